@@ -1,0 +1,217 @@
+//! Typed errors of the simulation core. Every failure names the problem and, where it
+//! helps, counts it; no library function panics on bad input.
+
+use std::fmt;
+
+/// What is wrong with an input surface mesh.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MeshError {
+    /// No vertices or no triangles.
+    Empty,
+    /// The index buffer length is not a multiple of three.
+    NotTriangles {
+        /// Number of indices found.
+        indices: usize,
+    },
+    /// A vertex coordinate is NaN or infinite.
+    NonFinite {
+        /// Index of the first bad vertex.
+        vertex: usize,
+        /// How many vertices are bad.
+        count: usize,
+    },
+    /// An index points past the vertex array.
+    IndexOutOfRange {
+        /// The offending index value.
+        index: u32,
+        /// Number of vertices.
+        vertices: usize,
+    },
+    /// Triangles with (near) zero area or repeated vertices.
+    DegenerateTriangles {
+        /// How many triangles are degenerate.
+        count: usize,
+    },
+    /// Edges used by only one triangle: the surface has holes.
+    NotClosed {
+        /// Number of boundary edges.
+        boundary_edges: usize,
+    },
+    /// Edges shared by more than two triangles (or duplicate faces).
+    NonManifold {
+        /// Number of non-manifold edges.
+        edges: usize,
+    },
+    /// Neighbouring triangles disagree about which side is outside.
+    InconsistentOrientation {
+        /// Number of edges traversed twice in the same direction.
+        edges: usize,
+    },
+    /// The enclosed volume is zero (flat surface).
+    ZeroVolume,
+}
+
+impl fmt::Display for MeshError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            MeshError::Empty => write!(f, "mesh is empty: no vertices or no triangles"),
+            MeshError::NotTriangles { indices } => {
+                write!(f, "index count {indices} is not a multiple of 3 (triangle list expected)")
+            }
+            MeshError::NonFinite { vertex, count } => write!(
+                f,
+                "{count} vertex position(s) are NaN or infinite (first: vertex {vertex})"
+            ),
+            MeshError::IndexOutOfRange { index, vertices } => write!(
+                f,
+                "triangle index {index} is out of range ({vertices} vertices)"
+            ),
+            MeshError::DegenerateTriangles { count } => {
+                write!(f, "{count} degenerate triangle(s) (zero area or repeated vertex)")
+            }
+            MeshError::NotClosed { boundary_edges } => {
+                write!(f, "surface not closed: {boundary_edges} boundary edges")
+            }
+            MeshError::NonManifold { edges } => write!(
+                f,
+                "surface not manifold: {edges} edges shared by more than two triangles"
+            ),
+            MeshError::InconsistentOrientation { edges } => write!(
+                f,
+                "triangle orientation inconsistent: {edges} edges traversed twice in the same direction"
+            ),
+            MeshError::ZeroVolume => write!(f, "surface encloses zero volume"),
+        }
+    }
+}
+
+impl std::error::Error for MeshError {}
+
+/// Any error of model building or simulation.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TissueError {
+    /// The surface mesh cannot become a soft body.
+    Mesh(MeshError),
+    /// A parameter is outside its valid range.
+    InvalidParameter {
+        /// Parameter name as it appears in the API.
+        name: &'static str,
+        /// The rejected value, formatted.
+        value: String,
+        /// What is allowed.
+        expected: &'static str,
+    },
+    /// The neighbour count K is not smaller than the number of particles.
+    TooFewParticles {
+        /// Particles sampled in the body.
+        particles: usize,
+        /// Requested neighbour count K.
+        neighbours: usize,
+    },
+    /// The requested resolution would create more particles than allowed.
+    TooManyParticles {
+        /// Particles the request would create (estimate).
+        requested: usize,
+        /// The limit.
+        limit: usize,
+    },
+    /// The simulation produced NaN/inf or exploded; the state was restored to before the step.
+    Diverged {
+        /// Step counter at which it happened.
+        step: u64,
+        /// First offending particle.
+        particle: usize,
+        /// What was detected.
+        reason: DivergenceKind,
+    },
+}
+
+/// Why a step was rejected as diverged.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DivergenceKind {
+    /// A position or velocity became NaN or infinite.
+    NonFinite,
+    /// A speed exceeded the configured limit (m/s).
+    Exploding {
+        /// The speed found, m/s.
+        speed: f32,
+    },
+}
+
+impl fmt::Display for TissueError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            TissueError::Mesh(e) => write!(f, "invalid mesh: {e}"),
+            TissueError::InvalidParameter {
+                name,
+                value,
+                expected,
+            } => write!(f, "invalid parameter `{name}` = {value}: expected {expected}"),
+            TissueError::TooFewParticles {
+                particles,
+                neighbours,
+            } => write!(
+                f,
+                "neighbour count K = {neighbours} must be smaller than the body's particle count ({particles}); lower K or raise the resolution"
+            ),
+            TissueError::TooManyParticles { requested, limit } => write!(
+                f,
+                "resolution would create about {requested} particles, more than the limit of {limit}"
+            ),
+            TissueError::Diverged {
+                step,
+                particle,
+                reason,
+            } => match reason {
+                DivergenceKind::NonFinite => write!(
+                    f,
+                    "simulation diverged at step {step}: particle {particle} became NaN/infinite (state restored)"
+                ),
+                DivergenceKind::Exploding { speed } => write!(
+                    f,
+                    "simulation exploded at step {step}: particle {particle} reached {speed:.3e} m/s (state restored)"
+                ),
+            },
+        }
+    }
+}
+
+impl std::error::Error for TissueError {}
+
+impl From<MeshError> for TissueError {
+    fn from(e: MeshError) -> Self {
+        TissueError::Mesh(e)
+    }
+}
+
+/// Checks that `value` is finite and strictly positive.
+pub(crate) fn positive(name: &'static str, value: f32) -> Result<f32, TissueError> {
+    if value.is_finite() && value > 0.0 {
+        Ok(value)
+    } else {
+        Err(TissueError::InvalidParameter {
+            name,
+            value: format!("{value}"),
+            expected: "a finite value > 0",
+        })
+    }
+}
+
+/// Checks that `value` is finite and within `[lo, hi]`.
+pub(crate) fn in_range(
+    name: &'static str,
+    value: f32,
+    lo: f32,
+    hi: f32,
+    expected: &'static str,
+) -> Result<f32, TissueError> {
+    if value.is_finite() && value >= lo && value <= hi {
+        Ok(value)
+    } else {
+        Err(TissueError::InvalidParameter {
+            name,
+            value: format!("{value}"),
+            expected,
+        })
+    }
+}

@@ -1,0 +1,37 @@
+//! The simulation core: no Bevy dependency beyond glam (Bevy's math), so it is easy to
+//! test and serves as the reference the GPU path is checked against.
+//!
+//! * [`mesh`] — closed-surface checks, welding, the lattice inside test;
+//! * [`sampling`] — particles on a lattice from a spacing or a count;
+//! * [`knn`] — uniform grid (counting sort) and exact K nearest neighbours;
+//! * [`constraints`] — shape matching, stable neo-Hookean XPBD, contacts (pure functions);
+//! * [`colliders`] — kinematic plane, sphere, capsule and box with friction;
+//! * [`model`] — the batched rest data of all bodies;
+//! * [`skin`] — the render surface embedded in the particles;
+//! * [`solver`] — CPU Gauss–Seidel and Jacobi time stepping;
+//! * [`procedural`] — shapes made in code (sphere, box, liver).
+//!
+//! ```
+//! use bevy_tissue::core::{model::*, procedural, sampling::Resolution, solver::*};
+//! let mut model = Model::new();
+//! let desc = BodyDesc { resolution: Resolution::Particles(300), neighbours: 16, ..Default::default() };
+//! model.add_body(&procedural::icosphere(0.1, 2), &desc).unwrap();
+//! let mut state = State::new(&model);
+//! let mut solver = Solver::new(&model, SolverSettings::default()).unwrap();
+//! solver.step(&model, &mut state, &Control::default()).unwrap();
+//! assert!(state.x.iter().all(|p| p.is_finite()));
+//! ```
+
+pub mod colliders;
+pub mod constraints;
+pub mod error;
+pub mod knn;
+pub mod mesh;
+pub mod model;
+pub mod par;
+pub mod procedural;
+pub mod sampling;
+pub mod skin;
+pub mod solver;
+
+pub use error::{MeshError, TissueError};

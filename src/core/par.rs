@@ -1,0 +1,77 @@
+//! Minimal data parallelism over scoped threads (no dependency): a slice is cut into one
+//! contiguous chunk per thread. Chunk boundaries depend only on the length and the thread
+//! count, and every element is written by exactly one thread, so results do not depend
+//! on scheduling.
+
+/// Number of worker threads to use when the caller asks for 0 ("all cores").
+pub fn default_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+/// Calls `f(first_item, chunk)` on contiguous chunks of `data`, each a whole number of
+/// `item`-sized items, on up to `threads` threads (0 = all cores).
+pub fn for_chunks_mut<T: Send, F>(data: &mut [T], item: usize, threads: usize, f: F)
+where
+    F: Fn(usize, &mut [T]) + Sync,
+{
+    let item = item.max(1);
+    let items = data.len() / item;
+    let threads = if threads == 0 { default_threads() } else { threads };
+    let threads = threads.min(items.max(1));
+    if threads <= 1 || items < 64 {
+        f(0, data);
+        return;
+    }
+    let per = items.div_ceil(threads);
+    std::thread::scope(|s| {
+        let f = &f;
+        let mut rest = data;
+        let mut first = 0;
+        while !rest.is_empty() {
+            let take = (per * item).min(rest.len());
+            let (head, tail) = rest.split_at_mut(take);
+            rest = tail;
+            let start = first;
+            first += take / item;
+            if rest.is_empty() {
+                f(start, head);
+            } else {
+                s.spawn(move || f(start, head));
+            }
+        }
+    });
+}
+
+/// Like [`for_chunks_mut`] over two slices of equal item count, cut at the same items.
+pub fn for_chunks_mut2<A: Send, B: Send, F>(a: &mut [A], b: &mut [B], threads: usize, f: F)
+where
+    F: Fn(usize, &mut [A], &mut [B]) + Sync,
+{
+    let items = a.len().min(b.len());
+    let threads = if threads == 0 { default_threads() } else { threads };
+    let threads = threads.min(items.max(1));
+    if threads <= 1 || items < 64 {
+        f(0, a, b);
+        return;
+    }
+    let per = items.div_ceil(threads);
+    std::thread::scope(|s| {
+        let f = &f;
+        let (mut ra, mut rb) = (a, b);
+        let mut first = 0;
+        while first < items {
+            let take = per.min(items - first);
+            let (ha, ta) = ra.split_at_mut(take);
+            let (hb, tb) = rb.split_at_mut(take);
+            ra = ta;
+            rb = tb;
+            let start = first;
+            first += take;
+            if first >= items {
+                f(start, ha, hb);
+            } else {
+                s.spawn(move || f(start, ha, hb));
+            }
+        }
+    });
+}

@@ -1,0 +1,615 @@
+//! The CPU reference solver (SPEC §3): fixed dt, substeps, iterations;
+//! predict → neighbours → constraints → velocity update and damping.
+//!
+//! Two methods:
+//! * [`Method::GaussSeidel`] — clusters solved one after another, each correction applied
+//!   at once; one thread, deterministic: the paper's CPU baseline.
+//! * [`Method::Jacobi`] — every cluster solved from the same positions (pass A, parallel
+//!   over clusters), then every particle gathers the corrections of the clusters that
+//!   contain it (pass B, parallel over particles), weighted by the cluster weight `1/s_c`
+//!   (constraint averaging, Macklin et al. 2014 §4.2, with a per-cluster weight so that
+//!   momentum is conserved) and relaxed by ω. Results do not depend on the thread count.
+//!
+//! Each step checks for non-finite or exploding state; a bad step is undone and reported
+//! as [`TissueError::Diverged`] instead of spreading NaN.
+
+use super::colliders::{Collider, project_collider};
+use super::constraints::{
+    ClusterCorrection, NeoHookean, cluster_moments, iteration_stiffness, solve_contact,
+    solve_neo_hookean, solve_shape_matching,
+};
+use super::error::{DivergenceKind, TissueError, in_range, positive};
+use super::model::{Material, Model};
+use super::par;
+use glam::{Mat3, Quat, Vec3};
+
+/// How constraints are iterated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Method {
+    /// Sequential Gauss–Seidel on one thread.
+    GaussSeidel,
+    /// Parallel Jacobi with constraint averaging and relaxation.
+    #[default]
+    Jacobi,
+}
+
+/// Time stepping and solver settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolverSettings {
+    /// Fixed time step, s.
+    pub dt: f32,
+    /// Substeps per step.
+    pub substeps: u32,
+    /// Constraint iterations per substep.
+    pub iterations: u32,
+    /// Gravity, m/s².
+    pub gravity: Vec3,
+    /// Velocity damping rate, 1/s (`v ← v·max(0, 1 − damping·h)`).
+    pub damping: f32,
+    /// Iteration method.
+    pub method: Method,
+    /// Jacobi relaxation ω: each cluster's correction (and XPBD multiplier increment) is
+    /// scaled by `ω/s_c` (1 = plain averaging; above 1 over-relaxes).
+    pub relaxation: f32,
+    /// Worker threads for Jacobi and KNN (0 = all cores).
+    pub threads: usize,
+    /// Refresh particle-contact neighbours every this many steps (the paper: 10).
+    pub knn_every: u32,
+    /// Particle–particle contacts on (between bodies, and within a body between
+    /// particles that are not rest neighbours).
+    pub particle_contacts: bool,
+    /// Neighbours searched per particle for contacts.
+    pub contact_neighbours: u32,
+    /// Iterations of the warm-started rotation extraction per shape-matching solve.
+    pub rotation_iterations: u32,
+    /// A particle faster than this (m/s) marks the step as exploded.
+    pub max_speed: f32,
+}
+
+impl Default for SolverSettings {
+    fn default() -> Self {
+        Self {
+            dt: 1.0 / 60.0,
+            substeps: 1,
+            iterations: 10,
+            gravity: Vec3::new(0.0, -9.81, 0.0),
+            damping: 1.0,
+            method: Method::Jacobi,
+            relaxation: 1.0,
+            threads: 0,
+            knn_every: 10,
+            particle_contacts: true,
+            contact_neighbours: 16,
+            rotation_iterations: 2,
+            max_speed: 500.0,
+        }
+    }
+}
+
+impl SolverSettings {
+    /// Checks every field.
+    pub fn validate(&self) -> Result<(), TissueError> {
+        positive("dt", self.dt)?;
+        positive("relaxation", self.relaxation)?;
+        positive("max_speed", self.max_speed)?;
+        in_range("damping", self.damping, 0.0, f32::MAX, "a finite value ≥ 0")?;
+        let count = |name, v: u32| {
+            if v == 0 {
+                Err(TissueError::InvalidParameter {
+                    name,
+                    value: "0".into(),
+                    expected: "at least 1",
+                })
+            } else {
+                Ok(())
+            }
+        };
+        count("substeps", self.substeps)?;
+        count("iterations", self.iterations)?;
+        count("knn_every", self.knn_every)?;
+        if !self.gravity.is_finite() {
+            return Err(TissueError::InvalidParameter {
+                name: "gravity",
+                value: format!("{:?}", self.gravity),
+                expected: "a finite vector",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The time-varying state of all particles.
+#[derive(Debug, Clone, PartialEq)]
+pub struct State {
+    /// Positions, m (world).
+    pub x: Vec<Vec3>,
+    /// Velocities, m/s.
+    pub v: Vec<Vec3>,
+    /// Each cluster's last rotation (warm start of the rotation extraction).
+    pub rot: Vec<Quat>,
+    /// Target of each pinned particle (same order as `Model::pinned`), m.
+    pub pin_targets: Vec<Vec3>,
+    /// Steps taken.
+    pub step: u64,
+}
+
+impl State {
+    /// The rest state: every body placed as its description said, at rest.
+    pub fn new(model: &Model) -> Self {
+        let x = model.placed_rest();
+        let rot = model
+            .particle_body
+            .iter()
+            .map(|&b| model.bodies[b as usize].rotation)
+            .collect();
+        let pin_targets = model.pinned.iter().map(|&i| x[i as usize]).collect();
+        Self {
+            v: vec![Vec3::ZERO; x.len()],
+            x,
+            rot,
+            pin_targets,
+            step: 0,
+        }
+    }
+}
+
+/// What the scene drives: kinematic colliders.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Control {
+    /// Kinematic colliders.
+    pub colliders: Vec<Collider>,
+}
+
+/// Per-step outputs.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StepStats {
+    /// Force each collider received from the tissue over the step, N (same order as
+    /// `Control::colliders`).
+    pub collider_forces: Vec<Vec3>,
+    /// Whether the particle-contact neighbours were refreshed this step.
+    pub knn_refreshed: bool,
+    /// Active particle contacts at the end of the step (pairs counted per particle).
+    pub active_contacts: usize,
+}
+
+/// Per-body constants for one substep.
+#[derive(Clone, Copy)]
+enum BodyConst {
+    Sm { k_iter: f32 },
+    Nh { nh: NeoHookean },
+}
+
+/// The CPU solver with its workspace.
+#[derive(Debug, Clone)]
+pub struct Solver {
+    /// Settings used by [`Solver::step`].
+    pub settings: SolverSettings,
+    p: Vec<Vec3>,
+    p2: Vec<Vec3>,
+    /// Per cluster: last correction and XPBD multipliers `[λ_H, λ_D]`.
+    work: Vec<(ClusterCorrection, [f32; 2])>,
+    pin_slot: Vec<u32>,
+    contact_start: Vec<u32>,
+    contact_list: Vec<u32>,
+    /// Per particle: collider correction summed over the substep, and the collider.
+    col: Vec<(Vec3, u32)>,
+    backup_x: Vec<Vec3>,
+    backup_v: Vec<Vec3>,
+    h: f32,
+}
+
+impl Solver {
+    /// A solver for `model`; fails on invalid settings.
+    pub fn new(model: &Model, settings: SolverSettings) -> Result<Self, TissueError> {
+        settings.validate()?;
+        let n = model.particle_count();
+        let mut pin_slot = vec![u32::MAX; n];
+        for (s, &i) in model.pinned.iter().enumerate() {
+            pin_slot[i as usize] = s as u32;
+        }
+        Ok(Self {
+            settings,
+            p: vec![Vec3::ZERO; n],
+            p2: vec![Vec3::ZERO; n],
+            work: vec![(ClusterCorrection::ZERO, [0.0; 2]); n],
+            pin_slot,
+            contact_start: vec![0; n + 1],
+            contact_list: Vec::new(),
+            col: vec![(Vec3::ZERO, u32::MAX); n],
+            backup_x: Vec::new(),
+            backup_v: Vec::new(),
+            h: 0.0,
+        })
+    }
+
+    fn body_consts(&self, model: &Model) -> Vec<BodyConst> {
+        model
+            .bodies
+            .iter()
+            .map(|b| match b.material {
+                Material::ShapeMatching { stiffness } => BodyConst::Sm {
+                    k_iter: iteration_stiffness(stiffness, self.settings.iterations),
+                },
+                Material::NeoHookean {
+                    youngs_modulus,
+                    poisson_ratio,
+                } => BodyConst::Nh {
+                    nh: NeoHookean::new(youngs_modulus, poisson_ratio),
+                },
+            })
+            .collect()
+    }
+
+    /// Advances `state` by one step of `settings.dt`. On divergence the state is restored
+    /// to what it was before the call and an error names the particle.
+    pub fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        control: &Control,
+    ) -> Result<StepStats, TissueError> {
+        let s = self.settings.clone();
+        s.validate()?;
+        let n = model.particle_count();
+        if state.x.len() != n || state.v.len() != n || state.rot.len() != n {
+            return Err(TissueError::InvalidParameter {
+                name: "state",
+                value: format!("{} particles", state.x.len()),
+                expected: "a State made for this model",
+            });
+        }
+        self.backup_x.clone_from(&state.x);
+        self.backup_v.clone_from(&state.v);
+        let mut stats = StepStats {
+            collider_forces: vec![Vec3::ZERO; control.colliders.len()],
+            ..Default::default()
+        };
+        if s.particle_contacts && state.step % s.knn_every as u64 == 0 {
+            self.refresh_contacts(model, &state.x);
+            stats.knn_refreshed = true;
+        }
+        let consts = self.body_consts(model);
+        let h = s.dt / s.substeps as f32;
+        self.h = h;
+        for _ in 0..s.substeps {
+            // 1. predict
+            for i in 0..n {
+                state.v[i] += s.gravity * h;
+                self.p[i] = state.x[i] + state.v[i] * h;
+            }
+            for (slot, &i) in model.pinned.iter().enumerate() {
+                self.p[i as usize] = state.pin_targets[slot];
+            }
+            self.work.iter_mut().for_each(|w| w.1 = [0.0; 2]);
+            self.col.iter_mut().for_each(|d| *d = (Vec3::ZERO, u32::MAX));
+            // 2. constraints
+            for _ in 0..s.iterations {
+                match s.method {
+                    Method::GaussSeidel => self.iterate_gs(model, state, control, &consts),
+                    Method::Jacobi => self.iterate_jacobi(model, state, control, &consts),
+                }
+            }
+            // Collider forces: momentum the colliders removed over the substep.
+            for i in 0..n {
+                let (dp, id) = self.col[i];
+                if id != u32::MAX {
+                    let f = -dp * model.mass[i] / (h * h);
+                    stats.collider_forces[id as usize] += f / s.substeps as f32;
+                }
+            }
+            // 3. velocity update and damping
+            let keep = (1.0 - s.damping * h).max(0.0);
+            for i in 0..n {
+                state.v[i] = (self.p[i] - state.x[i]) / h * keep;
+                state.x[i] = self.p[i];
+            }
+        }
+        // 4. divergence check
+        for i in 0..n {
+            let (x, v) = (state.x[i], state.v[i]);
+            let reason = if !x.is_finite() || !v.is_finite() {
+                Some(DivergenceKind::NonFinite)
+            } else if v.length() > s.max_speed {
+                Some(DivergenceKind::Exploding { speed: v.length() })
+            } else {
+                None
+            };
+            if let Some(reason) = reason {
+                state.x.clone_from(&self.backup_x);
+                state.v.clone_from(&self.backup_v);
+                return Err(TissueError::Diverged {
+                    step: state.step,
+                    particle: i,
+                    reason,
+                });
+            }
+        }
+        stats.active_contacts = self.count_active_contacts(model, &state.x);
+        state.step += 1;
+        Ok(stats)
+    }
+
+    /// Recomputes the particle-contact candidates from positions `x` (KNN on the grid),
+    /// dropping pairs of the same body that are within two contact distances at rest.
+    pub fn refresh_contacts(&mut self, model: &Model, x: &[Vec3]) {
+        let n = x.len();
+        let k = (self.settings.contact_neighbours as usize).min(n.saturating_sub(1));
+        self.contact_start.clear();
+        self.contact_list.clear();
+        self.contact_start.push(0);
+        if k == 0 {
+            self.contact_start.resize(n + 1, 0);
+            return;
+        }
+        let knn = super::knn::knn_all(x, k, self.settings.threads).unwrap_or_default();
+        for i in 0..n {
+            let bi = model.particle_body[i] as usize;
+            for &j in &knn[i * k..(i + 1) * k] {
+                let j = j as usize;
+                let bj = model.particle_body[j] as usize;
+                let d = model.bodies[bi].radius + model.bodies[bj].radius;
+                if bi == bj && model.rest[i].distance_squared(model.rest[j]) < 4.0 * d * d {
+                    continue;
+                }
+                self.contact_list.push(j as u32);
+            }
+            self.contact_start.push(self.contact_list.len() as u32);
+        }
+    }
+
+    fn count_active_contacts(&self, model: &Model, x: &[Vec3]) -> usize {
+        let mut active = 0;
+        for i in 0..x.len() {
+            let bi = model.particle_body[i] as usize;
+            for &j in &self.contact_list[self.contact_start[i] as usize..self.contact_start[i + 1] as usize] {
+                let bj = model.particle_body[j as usize] as usize;
+                let d = model.bodies[bi].radius + model.bodies[bj].radius;
+                if x[i].distance_squared(x[j as usize]) < d * d {
+                    active += 1;
+                }
+            }
+        }
+        active
+    }
+
+    /// Solves one cluster from positions `p` with Jacobi weight `weight` (1 for GS).
+    #[inline]
+    fn solve_cluster(
+        model: &Model,
+        c: usize,
+        p: &[Vec3],
+        consts: &[BodyConst],
+        weight: f32,
+        h2: f32,
+        rot: &mut Quat,
+        lambda: &mut [f32; 2],
+        rot_iters: u32,
+    ) -> ClusterCorrection {
+        let rest_c = &model.cluster_rest[c];
+        let (com, apq) = cluster_moments(model.members(c), p, &model.rest, &model.mass, rest_c);
+        match consts[model.particle_body[c] as usize] {
+            BodyConst::Sm { k_iter } => {
+                solve_shape_matching(com, &apq, rest_c, rot, k_iter * weight, rot_iters)
+            }
+            BodyConst::Nh { nh } => {
+                let f = apq * rest_c.aqq_inv;
+                solve_neo_hookean(&f, rest_c, model.cluster_volume[c], &nh, h2, weight, lambda)
+            }
+        }
+    }
+
+    fn iterate_gs(&mut self, model: &Model, state: &mut State, control: &Control, consts: &[BodyConst]) {
+        let h2 = self.h * self.h;
+        let n = model.particle_count();
+        let ri = self.settings.rotation_iterations;
+        for c in 0..n {
+            let corr = Self::solve_cluster(
+                model,
+                c,
+                &self.p,
+                consts,
+                1.0,
+                h2,
+                &mut state.rot[c],
+                &mut self.work[c].1,
+                ri,
+            );
+            for &j in model.members(c) {
+                let j = j as usize;
+                let pj = self.p[j];
+                self.p[j] = pj + corr.apply(model.rest[j], pj);
+            }
+        }
+        for i in 0..n {
+            if self.settings.particle_contacts {
+                let bi = model.particle_body[i] as usize;
+                for s in self.contact_start[i]..self.contact_start[i + 1] {
+                    let j = self.contact_list[s as usize] as usize;
+                    let bj = model.particle_body[j] as usize;
+                    let d = model.bodies[bi].radius + model.bodies[bj].radius;
+                    let (wi, wj) = (self.inv_mass(model, i), self.inv_mass(model, j));
+                    let di = solve_contact(self.p[i], self.p[j], wi, wj, d);
+                    if di != Vec3::ZERO {
+                        let dj = if wi > 0.0 { -di * (wj / wi) } else { Vec3::ZERO };
+                        self.p[i] += di;
+                        self.p[j] += dj;
+                    }
+                }
+            }
+            self.p[i] = self.boundary(model, state, control, i, self.p[i]);
+        }
+    }
+
+    #[inline]
+    fn inv_mass(&self, model: &Model, i: usize) -> f32 {
+        if self.pin_slot[i] != u32::MAX { 0.0 } else { 1.0 / model.mass[i] }
+    }
+
+    /// Colliders and pins for particle `i` at position `p` (records collider corrections).
+    #[inline]
+    fn boundary(&mut self, model: &Model, state: &State, control: &Control, i: usize, p: Vec3) -> Vec3 {
+        let (q, id, dp) = boundary_at(
+            model,
+            &self.pin_slot,
+            &state.pin_targets,
+            &state.x,
+            control,
+            self.h,
+            i,
+            p,
+        );
+        if id != u32::MAX {
+            self.col[i].0 += dp;
+            self.col[i].1 = id;
+        }
+        q
+    }
+
+    fn iterate_jacobi(&mut self, model: &Model, state: &mut State, control: &Control, consts: &[BodyConst]) {
+        let h2 = self.h * self.h;
+        let h = self.h;
+        let ri = self.settings.rotation_iterations;
+        let threads = self.settings.threads;
+        let omega = self.settings.relaxation;
+        let contacts = self.settings.particle_contacts;
+        // Pass A: every cluster from the same positions.
+        {
+            let p = &self.p;
+            par::for_chunks_mut2(&mut self.work, &mut state.rot, threads, |start, work, rot| {
+                for (k, ((cr, lam), r)) in work.iter_mut().zip(rot.iter_mut()).enumerate() {
+                    let c = start + k;
+                    *cr = Self::solve_cluster(model, c, p, consts, model.cluster_weight[c] * omega, h2, r, lam, ri);
+                }
+            });
+        }
+        // Pass B: every particle gathers its clusters' corrections, contacts, colliders, pins.
+        {
+            let p = &self.p;
+            let work = &self.work;
+            let cs = &self.contact_start;
+            let cl = &self.contact_list;
+            let pin_slot = &self.pin_slot;
+            let pin_targets = &state.pin_targets;
+            let x = &state.x;
+            let mut out = std::mem::take(&mut self.p2);
+            par::for_chunks_mut2(&mut out, &mut self.col, threads, |start, out, ids| {
+                for (k, (o, cid)) in out.iter_mut().zip(ids.iter_mut()).enumerate() {
+                    let j = start + k;
+                    let pj = p[j];
+                    // Σ_c (M_c X_j + t_c − a_c p_j), summed as (Σ M_c) X_j + Σ t_c − (Σ a_c) p_j.
+                    let (mut m, mut t, mut a) = (Mat3::ZERO, Vec3::ZERO, 0.0f32);
+                    for &c in model.clusters_of(j) {
+                        let w = &work[c as usize].0;
+                        m += w.m;
+                        t += w.t;
+                        a += w.a;
+                    }
+                    let d = m * model.rest[j] + t - a * pj;
+                    let mut q = pj + d;
+                    if contacts {
+                        let bj = model.particle_body[j] as usize;
+                        let wj = if pin_slot[j] != u32::MAX { 0.0 } else { 1.0 / model.mass[j] };
+                        let mut sum = Vec3::ZERO;
+                        let mut cnt = 0u32;
+                        for s in cs[j]..cs[j + 1] {
+                            let i = cl[s as usize] as usize;
+                            let bi = model.particle_body[i] as usize;
+                            let dist = model.bodies[bi].radius + model.bodies[bj].radius;
+                            let wi = if pin_slot[i] != u32::MAX { 0.0 } else { 1.0 / model.mass[i] };
+                            let dc = solve_contact(pj, p[i], wj, wi, dist);
+                            if dc != Vec3::ZERO {
+                                sum += dc;
+                                cnt += 1;
+                            }
+                        }
+                        if cnt > 0 {
+                            q += sum / cnt as f32;
+                        }
+                    }
+                    let (q, id, dp) = boundary_at(model, pin_slot, pin_targets, x, control, h, j, q);
+                    if id != u32::MAX {
+                        cid.0 += dp;
+                        cid.1 = id;
+                    }
+                    *o = q;
+                }
+            });
+            std::mem::swap(&mut self.p, &mut out);
+            self.p2 = out;
+        }
+    }
+
+    /// Each particle's own cluster's deformation gradient `F = A_pq A_qq⁻¹` at positions `x`
+    /// (what the skinning uses).
+    pub fn deformation_gradients(model: &Model, x: &[Vec3]) -> Vec<Mat3> {
+        (0..model.particle_count())
+            .map(|c| {
+                let r = &model.cluster_rest[c];
+                let (_, apq) = cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
+                apq * r.aqq_inv
+            })
+            .collect()
+    }
+
+    /// Constraint residual at positions `x`: the mass-weighted RMS of the correction each
+    /// cluster would ask for on its own (Gauss–Seidel style, stiffness 1 for shape
+    /// matching; the current multipliers and substep for XPBD), divided by the body
+    /// size. Zero exactly when every cluster is satisfied.
+    pub fn residual(&self, model: &Model, state: &State) -> f32 {
+        let x = &state.x;
+        let h2 = if self.h > 0.0 { self.h * self.h } else { (self.settings.dt / self.settings.substeps as f32).powi(2) };
+        let mut consts = self.body_consts(model);
+        for c in consts.iter_mut() {
+            if let BodyConst::Sm { k_iter } = c {
+                *k_iter = 1.0;
+            }
+        }
+        let mut sum = 0.0f64;
+        let mut msum = 0.0f64;
+        for c in 0..model.particle_count() {
+            let mut rot = state.rot[c];
+            let mut lam = self.work[c].1;
+            let corr = Self::solve_cluster(model, c, x, &consts, 1.0, h2, &mut rot, &mut lam, 20);
+            let size = model.bodies[model.particle_body[c] as usize].size as f64;
+            for &j in model.members(c) {
+                let j = j as usize;
+                let d = corr.apply(model.rest[j], x[j]).as_dvec3() / size;
+                sum += model.mass[j] as f64 * d.length_squared();
+                msum += model.mass[j] as f64;
+            }
+        }
+        (sum / msum.max(f64::MIN_POSITIVE)).sqrt() as f32
+    }
+}
+
+/// Pin or collider projection of particle `i` at `p`; returns the new position, the last
+/// collider touched (or `u32::MAX`) and that collider's correction.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn boundary_at(
+    model: &Model,
+    pin_slot: &[u32],
+    pin_targets: &[Vec3],
+    x: &[Vec3],
+    control: &Control,
+    h: f32,
+    i: usize,
+    mut p: Vec3,
+) -> (Vec3, u32, Vec3) {
+    if pin_slot[i] != u32::MAX {
+        return (pin_targets[pin_slot[i] as usize], u32::MAX, Vec3::ZERO);
+    }
+    let r = model.bodies[model.particle_body[i] as usize].radius;
+    let mut id = u32::MAX;
+    let mut total = Vec3::ZERO;
+    for (k, col) in control.colliders.iter().enumerate() {
+        let dp = project_collider(col, p, x[i], h, r);
+        if dp != Vec3::ZERO {
+            p += dp;
+            total += dp;
+            id = k as u32;
+        }
+    }
+    (p, id, total)
+}
+

@@ -1,0 +1,2 @@
+//! bevy_tissue
+pub mod core;

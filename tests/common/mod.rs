@@ -1,0 +1,146 @@
+//! Test helpers: the third-party meshes in ../shared/meshes and small utilities.
+#![allow(dead_code)]
+
+use bevy_tissue::core::mesh::TriMesh;
+use glam::Vec3;
+use std::path::PathBuf;
+
+/// The folder of third-party test meshes: `$BEVY_TISSUE_MESHES`, else `../shared/meshes`
+/// beside the crate. `None` (the tests say they were skipped) on a user's clone without
+/// it; under CI (`CI=true`) a missing folder is a failure.
+pub fn meshes_dir() -> Option<PathBuf> {
+    let dir = std::env::var_os("BEVY_TISSUE_MESHES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/meshes"));
+    if dir.is_dir() {
+        return Some(dir);
+    }
+    if std::env::var("CI").is_ok_and(|v| v == "true") {
+        panic!("CI=true but the shared meshes folder {} is missing", dir.display());
+    }
+    eprintln!("skipped: shared meshes folder {} not found", dir.display());
+    None
+}
+
+/// Loads an OBJ file (polygons triangulated, vertices unmerged as in the file).
+pub fn load_obj(path: &std::path::Path) -> TriMesh {
+    let (models, _) = tobj::load_obj(
+        path,
+        &tobj::LoadOptions {
+            triangulate: true,
+            single_index: true,
+            ..Default::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut mesh = TriMesh::default();
+    for m in models {
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend(
+            m.mesh
+                .positions
+                .chunks_exact(3)
+                .map(|p| Vec3::new(p[0], p[1], p[2])),
+        );
+        mesh.indices.extend(m.mesh.indices.iter().map(|i| i + base));
+    }
+    mesh
+}
+
+/// Loads a binary or ASCII STL file as an indexed mesh.
+pub fn load_stl(path: &std::path::Path) -> TriMesh {
+    let mut f = std::fs::File::open(path).unwrap();
+    let m = stl_io::read_stl(&mut f).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    TriMesh::new(
+        m.vertices.iter().map(|v| Vec3::new(v[0], v[1], v[2])).collect(),
+        m.faces
+            .iter()
+            .flat_map(|f| f.vertices.iter().map(|&i| i as u32))
+            .collect(),
+    )
+}
+
+/// Loads the boundary surface of a Gmsh MSH v1 tetrahedral mesh (faces of exactly one
+/// tetrahedron, oriented away from it).
+pub fn load_msh_v1_surface(path: &std::path::Path) -> TriMesh {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    let mut nodes = std::collections::HashMap::new();
+    let mut positions = Vec::new();
+    let mut tets: Vec<[u32; 4]> = Vec::new();
+    while let Some(l) = lines.next() {
+        match l.trim() {
+            "$NOD" => {
+                let n: usize = lines.next().unwrap().trim().parse().unwrap();
+                for _ in 0..n {
+                    let v: Vec<f64> = lines
+                        .next()
+                        .unwrap()
+                        .split_whitespace()
+                        .map(|s| s.parse().unwrap())
+                        .collect();
+                    nodes.insert(v[0] as u64, positions.len() as u32);
+                    positions.push(Vec3::new(v[1] as f32, v[2] as f32, v[3] as f32));
+                }
+            }
+            "$ELM" => {
+                let n: usize = lines.next().unwrap().trim().parse().unwrap();
+                for _ in 0..n {
+                    let v: Vec<u64> = lines
+                        .next()
+                        .unwrap()
+                        .split_whitespace()
+                        .map(|s| s.parse().unwrap())
+                        .collect();
+                    // elm-number elm-type reg-phys reg-elem number-of-nodes node-list
+                    if v[1] == 4 {
+                        let nn = &v[5..9];
+                        tets.push([nodes[&nn[0]], nodes[&nn[1]], nodes[&nn[2]], nodes[&nn[3]]]);
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    let mut faces: std::collections::HashMap<[u32; 3], ([u32; 3], u32)> = Default::default();
+    for t in &tets {
+        for (f, opp) in [([t[1], t[2], t[3]], t[0]), ([t[0], t[3], t[2]], t[1]), ([t[0], t[1], t[3]], t[2]), ([t[0], t[2], t[1]], t[3])] {
+            let mut key = f;
+            key.sort();
+            let e = faces.entry(key).or_insert((f, opp));
+            e.1 = if e.0 == f { opp } else { u32::MAX };
+            if e.0 != f {
+                e.0 = [u32::MAX; 3];
+            }
+        }
+    }
+    let mut indices = Vec::new();
+    for (_, (f, opp)) in faces {
+        if f[0] == u32::MAX {
+            continue;
+        }
+        // Orient away from the opposite vertex.
+        let [a, b, c] = f.map(|i| positions[i as usize]);
+        let n = (b - a).cross(c - a);
+        if n.dot(positions[opp as usize] - a) > 0.0 {
+            indices.extend([f[0], f[2], f[1]]);
+        } else {
+            indices.extend(f);
+        }
+    }
+    TriMesh::new(positions, indices)
+}
+
+/// Deterministic pseudo-random numbers (xorshift), no dependency.
+pub struct Rng(pub u64);
+impl Rng {
+    pub fn next_f32(&mut self) -> f32 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 40) as f32 / (1u64 << 24) as f32
+    }
+    pub fn vec3(&mut self) -> Vec3 {
+        Vec3::new(self.next_f32(), self.next_f32(), self.next_f32())
+    }
+}
