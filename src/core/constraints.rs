@@ -27,13 +27,51 @@ pub struct ClusterRest {
     pub aqq_inv: Mat3,
     /// Total mass of the members, kg.
     pub mass: f32,
+    /// Inverse-mass metric `W = Σ_j w_j b_j b_jᵀ` of the XPBD solve with the members'
+    /// true masses (Gauss–Seidel). Pinned members have `w_j = 0`.
+    pub metric: Metric,
+    /// The same with each member's mass split among the clusters that contain it
+    /// (`w_j → n_j w_j`, Tonge et al. 2012 mass splitting): used by Jacobi, where every
+    /// cluster owns only its share of each particle.
+    pub metric_split: Metric,
 }
 
-/// Computes a cluster's rest data from its members' rest positions and masses.
+/// The inverse-mass metric `W = A_qq⁻¹ (Σ_j w_j m_j² q_j q_jᵀ) A_qq⁻¹` (kg⁻¹·m⁻²) of a
+/// cluster, with its eigen-decomposition (used to solve the deviatoric block exactly).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Metric {
+    /// `W` itself.
+    pub w: Mat3,
+    /// Eigenvectors of `W` (columns).
+    pub basis: Mat3,
+    /// Eigenvalues of `W`.
+    pub values: Vec3,
+}
+
+impl Metric {
+    fn new(w: glam::DMat3) -> Self {
+        let (vals, vecs) = sym_eigen(&w);
+        Self {
+            w: w.as_mat3(),
+            basis: vecs.as_mat3(),
+            values: glam::DVec3::from_array(vals).max(glam::DVec3::ZERO).as_vec3(),
+        }
+    }
+}
+
+/// Computes a cluster's rest data from its members' rest positions, masses, inverse
+/// masses (`inv_mass[j] = 0` for pinned particles) and multiplicities (`mult[j]` = number
+/// of clusters containing `j`).
 ///
 /// `A_qq = Σ m_j q_j q_jᵀ` is inverted in f64 as a pseudo-inverse, so a coplanar or
 /// collinear cluster gets a finite `A_qq⁻¹` instead of NaN.
-pub fn init_cluster(members: &[u32], rest: &[Vec3], mass: &[f32]) -> ClusterRest {
+pub fn init_cluster(
+    members: &[u32],
+    rest: &[Vec3],
+    mass: &[f32],
+    inv_mass: &[f32],
+    mult: &[u32],
+) -> ClusterRest {
     let mut m_sum = 0.0f64;
     let mut com = glam::DVec3::ZERO;
     for &j in members {
@@ -47,10 +85,21 @@ pub fn init_cluster(members: &[u32], rest: &[Vec3], mass: &[f32]) -> ClusterRest
         let q = rest[j as usize].as_dvec3() - com;
         aqq += outer_d(q * mass[j as usize] as f64, q);
     }
+    let inv = pseudo_inverse_sym(&aqq, 1e-6);
+    let (mut free, mut split) = (glam::DMat3::ZERO, glam::DMat3::ZERO);
+    for &j in members {
+        let q = rest[j as usize].as_dvec3() - com;
+        let m = mass[j as usize] as f64;
+        let w = inv_mass[j as usize] as f64;
+        free += outer_d(q * (m * m * w), q);
+        split += outer_d(q * (m * m * w * mult[j as usize] as f64), q);
+    }
     ClusterRest {
         com: com.as_vec3(),
-        aqq_inv: pseudo_inverse_sym(&aqq, 1e-6).as_mat3(),
+        aqq_inv: inv.as_mat3(),
         mass: m_sum as f32,
+        metric: Metric::new(inv * free * inv),
+        metric_split: Metric::new(inv * split * inv),
     }
 }
 
@@ -129,10 +178,14 @@ pub fn frob(a: &Mat3, b: &Mat3) -> f32 {
     a.x_axis.dot(b.x_axis) + a.y_axis.dot(b.y_axis) + a.z_axis.dot(b.z_axis)
 }
 
-/// Current centre of mass `x_cm` and `A_pq = Σ m_j (p_j − x_cm) q_jᵀ` of a cluster.
+/// Current centre of mass `x_cm`, `A_pq = Σ m_j (p_j − x_cm) q_jᵀ`, and the rest centre
+/// of mass as the f32 members actually average to (`X_cm` plus the rounding offset
+/// `Σ m_j q_j / M`), for one cluster.
 ///
 /// Positions are taken relative to `p[members[0]]` before summing, which keeps f32
-/// cancellation at the size of the cluster rather than of the world.
+/// cancellation at the size of the cluster rather than of the world. Corrections built
+/// with the returned rest centre conserve linear momentum to rounding instead of leaking
+/// a constant bias every step.
 #[inline]
 pub fn cluster_moments(
     members: &[u32],
@@ -140,7 +193,7 @@ pub fn cluster_moments(
     rest: &[Vec3],
     mass: &[f32],
     rest_data: &ClusterRest,
-) -> (Vec3, Mat3) {
+) -> (Vec3, Mat3, Vec3) {
     let origin = p[members[0] as usize];
     let mut mp = Vec3::ZERO;
     let mut a = Mat3::ZERO;
@@ -154,10 +207,11 @@ pub fn cluster_moments(
         mq += q * m;
         a += outer(d * m, q);
     }
-    let c_rel = mp / rest_data.mass;
+    let inv_m = 1.0 / rest_data.mass;
+    let c_rel = mp * inv_m;
     // Σ m (p − x_cm) qᵀ = Σ m p qᵀ − x_cm (Σ m q)ᵀ; the second term is zero up to rounding.
     a -= outer(c_rel, mq);
-    (origin + c_rel, a)
+    (origin + c_rel, a, rest_data.com + mq * inv_m)
 }
 
 /// A cluster's correction as an affine map of the rest position: member `j` moves by
@@ -189,7 +243,8 @@ impl ClusterCorrection {
 
 /// Rotational part of `a` by the iterative method of Müller et al. 2016 ("A robust
 /// method to extract the rotational part of deformations"), warm-started from `q`;
-/// returns a proper rotation even for flat or inverted `a`. Updates `q` in place.
+/// returns a proper rotation even for flat or inverted `a`. Updates `q` in place; stops
+/// early once the update angle is below 1e-6 rad.
 pub fn extract_rotation(a: &Mat3, q: &mut Quat, iterations: u32) {
     for _ in 0..iterations {
         let r = Mat3::from_quat(*q);
@@ -198,8 +253,8 @@ pub fn extract_rotation(a: &Mat3, q: &mut Quat, iterations: u32) {
             + 1.0e-9;
         let omega = num / den;
         let w = omega.length();
-        if !(w >= 1.0e-9) {
-            break; // converged (also stops on NaN)
+        if !(w >= 1.0e-6) {
+            break; // converged to ~1e-6 rad (also stops on NaN)
         }
         *q = (Quat::from_axis_angle(omega / w, w) * *q).normalize();
     }
@@ -238,34 +293,46 @@ pub fn lame(e: f32, nu: f32) -> (f32, f32) {
     (mu, lambda)
 }
 
-/// Parameters of the stable neo-Hookean constraints of one material.
+/// Lamé parameters of one hyperelastic material.
 ///
-/// Energy density (Macklin & Müller 2021, "A constraint-based formulation of stable
-/// neo-Hookean materials", eq. 9 without the log term):
-/// `Ψ = μ/2 (tr FᵀF − 3) + λ'/2 (det F − γ)²`, `γ = 1 + μ/λ'`, as two constraints
-/// `C_D = ‖F‖_F` (compliance `1/(μV)`) and `C_H = det F − γ` (compliance `1/(λ'V)`).
-/// Linearising gives `Ψ ≈ μ‖ε‖² + (λ' − μ)/2 (tr ε)²`, so `λ' = λ + μ` makes the small-strain
-/// response that of linear elasticity with the given E and ν.
+/// Energy density: fixed corotated (Stomakhin et al. 2012, "Energetically consistent
+/// invertible elasticity", eq. 2), `Ψ = μ ‖F − R‖² + λ/2 (det F − 1)²` with `R = polar(F)`,
+/// solved as XPBD constraints (Macklin et al. 2016) on each cluster's `F`, split as in
+/// Macklin & Müller 2021 ("A constraint-based formulation of stable neo-Hookean
+/// materials") into a hydrostatic constraint `C_H = det F − 1` (compliance `1/(λV)`) and a
+/// deviatoric one — here the strain tensor `E = sym(Rᵀ F) − I` itself (six components,
+/// compliance `1/(2μV)` each), so that `½ α⁻¹ ‖E‖² = V μ ‖F − R‖²`. Both are zero at rest.
+/// The small-strain limit is linear elasticity with E and ν.
+///
+/// Why not their stable neo-Hookean (`C_D = ‖F‖`, `C_H = det F − (1 + μ/λ)`)? Its
+/// constraints are not zero at rest, so every cluster carries a rest pre-stress, and
+/// XPBD's frozen-gradient update mis-estimates the geometric stiffness by the size of that
+/// pre-stress: on overlapping clusters a body at rest drifted (E = 2 kPa) or blew up
+/// (E ≥ 20 kPa, Gauss–Seidel). And why a tensor multiplier rather than the scalar
+/// `‖F − R‖`? The scalar's gradient direction `E/‖E‖` turns from iteration to
+/// iteration, the summed multiplier then overstates the force actually applied, and a
+/// pinned bar crept downward without end; with a tensor multiplier the force `R Λ` is
+/// linear in the strain and the bookkeeping stays exact.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct NeoHookean {
+pub struct Hyperelastic {
     /// Shear modulus μ, Pa.
     pub mu: f32,
-    /// Hydrostatic stiffness λ' = λ + μ, Pa.
+    /// Lamé's first parameter λ, Pa.
     pub lambda: f32,
-    /// Rest determinant target γ = 1 + μ/λ'.
-    pub gamma: f32,
 }
 
-impl NeoHookean {
+impl Hyperelastic {
     /// From Young's modulus (Pa) and Poisson ratio.
     pub fn new(youngs_modulus: f32, poisson_ratio: f32) -> Self {
         let (mu, lambda) = lame(youngs_modulus, poisson_ratio);
-        let lambda = lambda + mu;
-        Self {
-            mu,
-            lambda,
-            gamma: 1.0 + mu / lambda,
-        }
+        Self { mu, lambda }
+    }
+
+    /// Energy density Ψ(F) (Pa = J/m³) for rotation `r = polar(F)`.
+    pub fn energy(&self, f: &Mat3, r: &Mat3) -> f32 {
+        let d = *f - *r;
+        let j = f.determinant() - 1.0;
+        self.mu * frob(&d, &d) + 0.5 * self.lambda * j * j
     }
 }
 
@@ -279,62 +346,174 @@ pub fn cofactor(f: &Mat3) -> Mat3 {
     )
 }
 
-/// One XPBD iteration of the coupled stable neo-Hookean constraints of a cluster
-/// (Macklin & Müller 2021, solved as a 2×2 block as their §5 suggests; multipliers kept
-/// across the iterations of a substep as in Macklin et al. 2016, "XPBD").
+/// XPBD multipliers of one cluster's hyperelastic constraints (N·s²·m⁻¹ scale):
+/// `h` for `C_H`, and the symmetric deviatoric multiplier `Λ` as
+/// `[Λxx, Λyy, Λzz, Λxy, Λxz, Λyz]`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Multipliers {
+    /// Hydrostatic multiplier.
+    pub h: f32,
+    /// Deviatoric multiplier (symmetric 3×3, packed).
+    pub d: [f32; 6],
+}
+
+impl Multipliers {
+    /// All zero.
+    pub const ZERO: Self = Self { h: 0.0, d: [0.0; 6] };
+
+    /// The deviatoric multiplier as a matrix.
+    #[inline]
+    pub fn d_mat(&self) -> Mat3 {
+        sym_from(self.d)
+    }
+
+    /// Scales every multiplier (used when the substep length changes: λ ∝ h²).
+    pub fn scaled(&self, s: f32) -> Self {
+        Self {
+            h: self.h * s,
+            d: self.d.map(|x| x * s),
+        }
+    }
+}
+
+#[inline]
+fn sym_from(d: [f32; 6]) -> Mat3 {
+    Mat3::from_cols(
+        Vec3::new(d[0], d[3], d[4]),
+        Vec3::new(d[3], d[1], d[5]),
+        Vec3::new(d[4], d[5], d[2]),
+    )
+}
+
+#[inline]
+fn sym_pack(m: &Mat3) -> [f32; 6] {
+    [m.x_axis.x, m.y_axis.y, m.z_axis.z, m.x_axis.y, m.x_axis.z, m.y_axis.z]
+}
+
+/// Hydrostatic constraint `C_H = det F − 1` (0 inside `dead_band`) and its gradient `cof F`.
+#[inline]
+pub fn hydrostatic_constraint(f: &Mat3, dead_band: f32) -> (f32, Mat3) {
+    let c = f.determinant() - 1.0;
+    (if c.abs() > dead_band { c } else { 0.0 }, cofactor(f))
+}
+
+/// Deviatoric strain `E = sym(Rᵀ F) − I` with `R = polar(F)` (warm-started in `rot`);
+/// components inside `dead_band` are 0. Taking the symmetric part also removes the skew
+/// error of an approximate `R`.
+#[inline]
+pub fn deviatoric_strain(f: &Mat3, rot: &mut Quat, rotation_iterations: u32, dead_band: f32) -> (Mat3, Mat3) {
+    extract_rotation(f, rot, rotation_iterations);
+    let r = Mat3::from_quat(*rot);
+    let rtf = r.transpose() * *f;
+    let mut e = (rtf + rtf.transpose()) * 0.5 - Mat3::IDENTITY;
+    if frob(&e, &e) <= dead_band * dead_band {
+        e = Mat3::ZERO;
+    }
+    (r, e)
+}
+
+/// One XPBD iteration of a cluster's hyperelastic constraints ([`Hyperelastic`]):
+/// the hydrostatic constraint, then the deviatoric tensor constraint at the deformation
+/// gradient the hydrostatic step leaves (block Gauss–Seidel inside the cluster; Macklin
+/// et al. 2016, "XPBD", eq. 18, per constraint block).
 ///
 /// * `f` — the cluster's deformation gradient `A_pq A_qq⁻¹`;
+/// * `rot` — warm start of `R = polar(F)`, updated ([`extract_rotation`]);
 /// * `volume` — the cluster's share of the body's rest volume, m³;
 /// * `h2` — substep length squared, s²;
-/// * `scale` — 1 for Gauss–Seidel; for Jacobi the cluster weight times the relaxation
-///   (`ω/s_c`). Both the applied correction and the multiplier increments are scaled by
-///   it, so `C + α̃λ` stays consistent with the motion that actually happens (a damped
-///   Richardson iteration on the dual system);
-/// * `lambdas` — `[λ_H, λ_D]`, updated.
+/// * `metric` — [`ClusterRest::metric`] for Gauss–Seidel, [`ClusterRest::metric_split`]
+///   for Jacobi;
+/// * `scale` — relaxation ω (1 for Gauss–Seidel); multiplier increments and the applied
+///   correction are both scaled by it, so `C + α̃λ` stays consistent with the motion;
+/// * `lam` — the multipliers, updated;
+/// * `dead_band` — strains below it count as zero: the rounding level of `F` in f32
+///   ([`strain_dead_band`]), so that a body at rest gets exactly zero correction
+///   instead of jittering and random-walking at the rounding level.
 ///
-/// With `∇_j C = P b_j` and `Σ_j w_j b_j b_jᵀ = A_qq⁻¹`, the system matrix entries are
-/// `⟨P_k A_qq⁻¹, P_l⟩`, and the member correction is
-/// `Δx_j = scale · (Δλ_H P_H + Δλ_D P_D) A_qq⁻¹ q_j` — an affine map in `q_j`.
-pub fn solve_neo_hookean(
+/// With `∇_j C = P b_j` and `W = Σ_j w_j b_j b_jᵀ` ([`Metric`]): a multiplier
+/// step `Δλ` along gradient `P` moves free member `j` by `Δλ P A_qq⁻¹ q_j` (as
+/// `w_j b_j = A_qq⁻¹ q_j`) and changes `F` by `Δλ P W`. Hydrostatic:
+/// `Δλ_H = (−C_H − α̃_H λ_H)/(⟨P_H W, P_H⟩ + α̃_H)`. Deviatoric: the force is `R Λ`, so
+/// `ΔE = sym(ΔΛ W)`; in the eigenbasis of `W` (values `w_a`) each component solves
+/// `ΔΛ_ab = (−E − α̃_D Λ)_ab / ((w_a + w_b)/2 + α̃_D)` exactly.
+/// The returned correction is the affine map `Δx_j = (Δλ_H P_H + R ΔΛ) A_qq⁻¹ q_j`.
+#[allow(clippy::too_many_arguments)]
+pub fn solve_hyperelastic(
     f: &Mat3,
     rest: &ClusterRest,
+    metric: &Metric,
+    rot: &mut Quat,
+    rotation_iterations: u32,
     volume: f32,
-    mat: &NeoHookean,
+    mat: &Hyperelastic,
     h2: f32,
     scale: f32,
-    lambdas: &mut [f32; 2],
+    lam: &mut Multipliers,
+    dead_band: f32,
 ) -> ClusterCorrection {
-    let ph = cofactor(f);
-    let c_h = f.determinant() - mat.gamma;
-    let norm = frob(f, f).sqrt();
-    let (pd, c_d) = if norm > 1e-12 {
-        (*f * (1.0 / norm), norm)
-    } else {
-        (Mat3::ZERO, 0.0)
-    };
+    // Hydrostatic.
+    let mut g = Mat3::ZERO;
+    let mut f2 = *f;
     let alpha_h = 1.0 / (mat.lambda * volume * h2);
-    let alpha_d = 1.0 / (mat.mu * volume * h2);
-    let ph_a = ph * rest.aqq_inv;
-    let pd_a = pd * rest.aqq_inv;
-    let a11 = frob(&ph_a, &ph);
-    let a22 = frob(&pd_a, &pd);
-    let a12 = frob(&ph_a, &pd);
-    let r1 = -c_h - alpha_h * lambdas[0];
-    let r2 = -c_d - alpha_d * lambdas[1];
-    let m11 = a11 + alpha_h;
-    let m22 = a22 + alpha_d;
-    // det = (a11 a22 − a12²) + a11 α_D + a22 α_H + α_H α_D, the Gram part clamped at 0:
-    // at rest P_H ∥ P_D and the exact Gram determinant is 0.
-    let gram = (a11 * a22 - a12 * a12).max(0.0);
-    let det = gram + a11 * alpha_d + a22 * alpha_h + alpha_h * alpha_d;
-    if !(det > 0.0) || !det.is_finite() {
+    if alpha_h.is_finite() {
+        let (c_h, ph) = hydrostatic_constraint(f, dead_band);
+        let r = -c_h - alpha_h * lam.h;
+        if r != 0.0 {
+            let a = frob(&(ph * metric.w), &ph);
+            let dl = scale * r / (a + alpha_h);
+            if dl.is_finite() {
+                lam.h += dl;
+                g += ph * dl;
+                f2 += ph * metric.w * dl;
+            }
+        }
+    }
+    // Deviatoric.
+    let alpha_d = 1.0 / (2.0 * mat.mu * volume * h2);
+    if alpha_d.is_finite() {
+        let (r, e) = deviatoric_strain(&f2, rot, rotation_iterations, dead_band);
+        let lam_d = lam.d_mat();
+        let rhs = -e - lam_d * alpha_d;
+        if rhs != Mat3::ZERO {
+            let q = metric.basis;
+            let rp = q.transpose() * rhs * q;
+            let wv = metric.values;
+            let mut dl = Mat3::ZERO;
+            for a in 0..3 {
+                for b in 0..3 {
+                    let denom = 0.5 * (wv[a] + wv[b]) + alpha_d;
+                    dl.col_mut(b)[a] = scale * rp.col(b)[a] / denom;
+                }
+            }
+            let dl = q * dl * q.transpose();
+            let dl = (dl + dl.transpose()) * 0.5;
+            if dl.is_finite() {
+                lam.d = sym_pack(&(lam_d + dl));
+                // The member displacements G A_qq⁻¹ q_j exert the torque axial(G Fᵀ − F Gᵀ)
+                // (exactly, as Σ m (p − c)(A_qq⁻¹ q)ᵀ = F); an anisotropic W leaves a
+                // little in R ΔΛ. Remove it: G' = G − skew(G Fᵀ) F⁻ᵀ makes G' Fᵀ symmetric,
+                // so the correction conserves angular momentum.
+                let mut gd = r * dl;
+                let det = f.determinant();
+                if det.abs() > 1e-3 {
+                    let k = gd * f.transpose();
+                    let skew = (k - k.transpose()) * 0.5;
+                    gd -= skew * (cofactor(f) * (1.0 / det));
+                }
+                g += gd;
+            }
+        }
+    }
+    correction_of(&g, rest)
+}
+
+/// `Δx_j = G A_qq⁻¹ q_j` as an affine map of the rest position.
+#[inline]
+fn correction_of(g: &Mat3, rest: &ClusterRest) -> ClusterCorrection {
+    if *g == Mat3::ZERO {
         return ClusterCorrection::ZERO;
     }
-    let dl_h = scale * (m22 * r1 - a12 * r2) / det;
-    let dl_d = scale * (m11 * r2 - a12 * r1) / det;
-    lambdas[0] += dl_h;
-    lambdas[1] += dl_d;
-    let m = (ph * dl_h + pd * dl_d) * rest.aqq_inv;
+    let m = *g * rest.aqq_inv;
     ClusterCorrection {
         m,
         t: -(m * rest.com),
@@ -342,11 +521,12 @@ pub fn solve_neo_hookean(
     }
 }
 
-/// Stable neo-Hookean energy density Ψ(F) in Pa (J/m³), for energy-based checks.
-pub fn neo_hookean_energy(f: &Mat3, mat: &NeoHookean) -> f32 {
-    let j = f.determinant() - mat.gamma;
-    0.5 * mat.mu * (frob(f, f) - 3.0) + 0.5 * mat.lambda * j * j
-        - 0.5 * mat.lambda * (1.0 - mat.gamma).powi(2)
+/// The strain that f32 rounding alone puts into a cluster's `F`: positions near
+/// `coordinate` (m, largest absolute coordinate) resolved over a cluster of radius
+/// `radius` (m), with a safety factor of 16 ulps.
+#[inline]
+pub fn strain_dead_band(coordinate: f32, radius: f32) -> f32 {
+    16.0 * f32::EPSILON * (coordinate + radius) / radius
 }
 
 /// Particle–particle contact (non-penetration `|p_i − p_j| ≥ d`): the correction of

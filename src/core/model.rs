@@ -5,7 +5,7 @@
 //! upload is a copy. The time-varying part is [`super::solver::State`] (Newton's
 //! Model / State / Control split).
 
-use super::constraints::{ClusterRest, NeoHookean, init_cluster};
+use super::constraints::{ClusterRest, Hyperelastic, init_cluster};
 use super::error::{TissueError, in_range, positive};
 use super::mesh::{Surface, TriMesh};
 use super::sampling::{Resolution, sample};
@@ -23,9 +23,11 @@ pub enum Material {
         /// Stiffness k in (0, 1] reached after all iterations of a substep.
         stiffness: f32,
     },
-    /// XPBD stable neo-Hookean on clusters (Macklin & Müller 2021), time-step and
-    /// iteration independent.
-    NeoHookean {
+    /// XPBD hyperelasticity on clusters: fixed-corotated energy (Stomakhin et al. 2012) as
+    /// deviatoric + hydrostatic constraints (Macklin & Müller 2021's split, both zero at
+    /// rest; see [`Hyperelastic`]). Stiffness set in SI units, independent of time step and
+    /// iteration count once converged.
+    Hyperelastic {
         /// Young's modulus E, Pa.
         youngs_modulus: f32,
         /// Poisson ratio ν in [0, 0.5).
@@ -36,7 +38,7 @@ pub enum Material {
 impl Default for Material {
     /// Soft tissue: E = 10 kPa, ν = 0.45.
     fn default() -> Self {
-        Material::NeoHookean {
+        Material::Hyperelastic {
             youngs_modulus: 10_000.0,
             poisson_ratio: 0.45,
         }
@@ -50,7 +52,7 @@ impl Material {
             Material::ShapeMatching { stiffness } => {
                 in_range("stiffness", stiffness, f32::MIN_POSITIVE, 1.0, "a value in (0, 1]")?;
             }
-            Material::NeoHookean {
+            Material::Hyperelastic {
                 youngs_modulus,
                 poisson_ratio,
             } => {
@@ -268,12 +270,20 @@ impl Model {
             mult[j as usize] += 1;
         }
         let masses = vec![m; n];
+        // Pins (local indices), needed by the clusters' inverse-mass metric.
+        let pinned_local: Vec<u32> = (0..n as u32)
+            .filter(|&i| desc.pins.iter().any(|r| r.contains(i, rest[i as usize])))
+            .collect();
+        let mut inv_mass = vec![1.0 / m; n];
+        for &i in &pinned_local {
+            inv_mass[i as usize] = 0.0;
+        }
         let mut cluster_rest = Vec::with_capacity(n);
         let mut cluster_volume = Vec::with_capacity(n);
         let mut cluster_weight = Vec::with_capacity(n);
         for c in 0..n {
             let mem = &members[c * (k + 1)..(c + 1) * (k + 1)];
-            cluster_rest.push(init_cluster(mem, &rest, &masses));
+            cluster_rest.push(init_cluster(mem, &rest, &masses, &inv_mass, &mult));
             let v: f32 = mem.iter().map(|&j| m / desc.density / mult[j as usize] as f32).sum();
             cluster_volume.push(v);
             let s = mem.iter().map(|&j| mult[j as usize]).max().unwrap_or(1);
@@ -285,11 +295,7 @@ impl Model {
                 inv[j as usize].push(first + c as u32);
             }
         }
-        // Pins.
-        let pinned: Vec<u32> = (0..n as u32)
-            .filter(|&i| desc.pins.iter().any(|r| r.contains(i, rest[i as usize])))
-            .map(|i| first + i)
-            .collect();
+        let pinned: Vec<u32> = pinned_local.iter().map(|i| first + i).collect();
         // Skin.
         let (lo, hi) = surface.bounds();
         let size = (hi - lo).length() as f32;
@@ -368,12 +374,12 @@ impl Model {
     }
 
     /// Neo-Hookean parameters of body `b`, if it uses that model.
-    pub fn neo_hookean(&self, b: usize) -> Option<NeoHookean> {
+    pub fn hyperelastic(&self, b: usize) -> Option<Hyperelastic> {
         match self.bodies[b].material {
-            Material::NeoHookean {
+            Material::Hyperelastic {
                 youngs_modulus,
                 poisson_ratio,
-            } => Some(NeoHookean::new(youngs_modulus, poisson_ratio)),
+            } => Some(Hyperelastic::new(youngs_modulus, poisson_ratio)),
             Material::ShapeMatching { .. } => None,
         }
     }

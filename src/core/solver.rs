@@ -6,17 +6,20 @@
 //!   at once; one thread, deterministic: the paper's CPU baseline.
 //! * [`Method::Jacobi`] — every cluster solved from the same positions (pass A, parallel
 //!   over clusters), then every particle gathers the corrections of the clusters that
-//!   contain it (pass B, parallel over particles), weighted by the cluster weight `1/s_c`
-//!   (constraint averaging, Macklin et al. 2014 §4.2, with a per-cluster weight so that
-//!   momentum is conserved) and relaxed by ω. Results do not depend on the thread count.
+//!   contain it (pass B, parallel over particles). Shape matching is averaged with the
+//!   cluster weight `1/s_c` (constraint averaging, Macklin et al. 2014 §4.2, with a
+//!   per-cluster weight so that momentum is conserved); the XPBD clusters are solved with
+//!   split masses (each cluster owns `m_j/n_j` of each member, Tonge et al. 2012), which
+//!   averages stiff corrections and lets compliant ones act in full. Both relaxed by ω.
+//!   Results do not depend on the thread count.
 //!
 //! Each step checks for non-finite or exploding state; a bad step is undone and reported
 //! as [`TissueError::Diverged`] instead of spreading NaN.
 
 use super::colliders::{Collider, project_collider};
 use super::constraints::{
-    ClusterCorrection, NeoHookean, cluster_moments, iteration_stiffness, solve_contact,
-    solve_neo_hookean, solve_shape_matching,
+    ClusterCorrection, ClusterRest, Multipliers, Hyperelastic, cluster_moments, iteration_stiffness, solve_contact,
+    solve_hyperelastic, solve_shape_matching, strain_dead_band,
 };
 use super::error::{DivergenceKind, TissueError, in_range, positive};
 use super::model::{Material, Model};
@@ -60,7 +63,8 @@ pub struct SolverSettings {
     pub particle_contacts: bool,
     /// Neighbours searched per particle for contacts.
     pub contact_neighbours: u32,
-    /// Iterations of the warm-started rotation extraction per shape-matching solve.
+    /// Most iterations of the warm-started rotation extraction per cluster solve (it stops
+    /// early once converged; usually 1–2 when warm).
     pub rotation_iterations: u32,
     /// A particle faster than this (m/s) marks the step as exploded.
     pub max_speed: f32,
@@ -80,7 +84,7 @@ impl Default for SolverSettings {
             knn_every: 10,
             particle_contacts: true,
             contact_neighbours: 16,
-            rotation_iterations: 2,
+            rotation_iterations: 8,
             max_speed: 500.0,
         }
     }
@@ -176,7 +180,7 @@ pub struct StepStats {
 #[derive(Clone, Copy)]
 enum BodyConst {
     Sm { k_iter: f32 },
-    Nh { nh: NeoHookean },
+    He { mat: Hyperelastic },
 }
 
 /// The CPU solver with its workspace.
@@ -187,7 +191,7 @@ pub struct Solver {
     p: Vec<Vec3>,
     p2: Vec<Vec3>,
     /// Per cluster: last correction and XPBD multipliers `[λ_H, λ_D]`.
-    work: Vec<(ClusterCorrection, [f32; 2])>,
+    work: Vec<(ClusterCorrection, Multipliers)>,
     pin_slot: Vec<u32>,
     contact_start: Vec<u32>,
     contact_list: Vec<u32>,
@@ -211,7 +215,7 @@ impl Solver {
             settings,
             p: vec![Vec3::ZERO; n],
             p2: vec![Vec3::ZERO; n],
-            work: vec![(ClusterCorrection::ZERO, [0.0; 2]); n],
+            work: vec![(ClusterCorrection::ZERO, Multipliers::ZERO); n],
             pin_slot,
             contact_start: vec![0; n + 1],
             contact_list: Vec::new(),
@@ -230,11 +234,11 @@ impl Solver {
                 Material::ShapeMatching { stiffness } => BodyConst::Sm {
                     k_iter: iteration_stiffness(stiffness, self.settings.iterations),
                 },
-                Material::NeoHookean {
+                Material::Hyperelastic {
                     youngs_modulus,
                     poisson_ratio,
-                } => BodyConst::Nh {
-                    nh: NeoHookean::new(youngs_modulus, poisson_ratio),
+                } => BodyConst::He {
+                    mat: Hyperelastic::new(youngs_modulus, poisson_ratio),
                 },
             })
             .collect()
@@ -280,7 +284,8 @@ impl Solver {
             for (slot, &i) in model.pinned.iter().enumerate() {
                 self.p[i as usize] = state.pin_targets[slot];
             }
-            self.work.iter_mut().for_each(|w| w.1 = [0.0; 2]);
+            // XPBD multipliers start from zero every substep (Macklin et al. 2016).
+            self.work.iter_mut().for_each(|w| w.1 = Multipliers::ZERO);
             self.col.iter_mut().for_each(|d| *d = (Vec3::ZERO, u32::MAX));
             // 2. constraints
             for _ in 0..s.iterations {
@@ -372,28 +377,39 @@ impl Solver {
         active
     }
 
-    /// Solves one cluster from positions `p` with Jacobi weight `weight` (1 for GS).
-    #[inline]
+    /// Solves one cluster from positions `p`. Gauss–Seidel: `jacobi = None`. Jacobi:
+    /// `Some(ω)`; shape matching is then averaged with the cluster weight `ω/s_c`, and the
+    /// hyperelastic solve uses split masses ([`ClusterRest::metric_split`]) relaxed by ω.
+    #[allow(clippy::too_many_arguments)]
     fn solve_cluster(
         model: &Model,
         c: usize,
         p: &[Vec3],
         consts: &[BodyConst],
-        weight: f32,
+        jacobi: Option<f32>,
         h2: f32,
         rot: &mut Quat,
-        lambda: &mut [f32; 2],
+        lambda: &mut Multipliers,
         rot_iters: u32,
     ) -> ClusterCorrection {
-        let rest_c = &model.cluster_rest[c];
-        let (com, apq) = cluster_moments(model.members(c), p, &model.rest, &model.mass, rest_c);
+        let r = &model.cluster_rest[c];
+        let (com, apq, rest_com) = cluster_moments(model.members(c), p, &model.rest, &model.mass, r);
+        let rest_c = &ClusterRest { com: rest_com, ..*r };
         match consts[model.particle_body[c] as usize] {
             BodyConst::Sm { k_iter } => {
-                solve_shape_matching(com, &apq, rest_c, rot, k_iter * weight, rot_iters)
+                let w = jacobi.map_or(1.0, |omega| omega * model.cluster_weight[c]);
+                solve_shape_matching(com, &apq, rest_c, rot, k_iter * w, rot_iters)
             }
-            BodyConst::Nh { nh } => {
+            BodyConst::He { mat } => {
                 let f = apq * rest_c.aqq_inv;
-                solve_neo_hookean(&f, rest_c, model.cluster_volume[c], &nh, h2, weight, lambda)
+                let v = model.cluster_volume[c];
+                let spacing = model.bodies[model.particle_body[c] as usize].spacing;
+                let band = strain_dead_band(com.abs().max_element(), spacing);
+                let (metric, scale) = match jacobi {
+                    None => (&r.metric, 1.0),
+                    Some(omega) => (&r.metric_split, omega),
+                };
+                solve_hyperelastic(&f, rest_c, metric, rot, rot_iters, v, &mat, h2, scale, lambda, band)
             }
         }
     }
@@ -408,7 +424,7 @@ impl Solver {
                 c,
                 &self.p,
                 consts,
-                1.0,
+                None,
                 h2,
                 &mut state.rot[c],
                 &mut self.work[c].1,
@@ -416,6 +432,9 @@ impl Solver {
             );
             for &j in model.members(c) {
                 let j = j as usize;
+                if self.pin_slot[j] != u32::MAX {
+                    continue; // pinned: infinite mass, held at its target
+                }
                 let pj = self.p[j];
                 self.p[j] = pj + corr.apply(model.rest[j], pj);
             }
@@ -478,7 +497,7 @@ impl Solver {
             par::for_chunks_mut2(&mut self.work, &mut state.rot, threads, |start, work, rot| {
                 for (k, ((cr, lam), r)) in work.iter_mut().zip(rot.iter_mut()).enumerate() {
                     let c = start + k;
-                    *cr = Self::solve_cluster(model, c, p, consts, model.cluster_weight[c] * omega, h2, r, lam, ri);
+                    *cr = Self::solve_cluster(model, c, p, consts, Some(omega), h2, r, lam, ri);
                 }
             });
         }
@@ -496,15 +515,7 @@ impl Solver {
                 for (k, (o, cid)) in out.iter_mut().zip(ids.iter_mut()).enumerate() {
                     let j = start + k;
                     let pj = p[j];
-                    // Σ_c (M_c X_j + t_c − a_c p_j), summed as (Σ M_c) X_j + Σ t_c − (Σ a_c) p_j.
-                    let (mut m, mut t, mut a) = (Mat3::ZERO, Vec3::ZERO, 0.0f32);
-                    for &c in model.clusters_of(j) {
-                        let w = &work[c as usize].0;
-                        m += w.m;
-                        t += w.t;
-                        a += w.a;
-                    }
-                    let d = m * model.rest[j] + t - a * pj;
+                    let d = gather(model, work, j, pj);
                     let mut q = pj + d;
                     if contacts {
                         let bj = model.particle_body[j] as usize;
@@ -545,7 +556,7 @@ impl Solver {
         (0..model.particle_count())
             .map(|c| {
                 let r = &model.cluster_rest[c];
-                let (_, apq) = cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
+                let (_, apq, _) = cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
                 apq * r.aqq_inv
             })
             .collect()
@@ -569,7 +580,7 @@ impl Solver {
         for c in 0..model.particle_count() {
             let mut rot = state.rot[c];
             let mut lam = self.work[c].1;
-            let corr = Self::solve_cluster(model, c, x, &consts, 1.0, h2, &mut rot, &mut lam, 20);
+            let corr = Self::solve_cluster(model, c, x, &consts, None, h2, &mut rot, &mut lam, 20);
             let size = model.bodies[model.particle_body[c] as usize].size as f64;
             for &j in model.members(c) {
                 let j = j as usize;
@@ -580,6 +591,20 @@ impl Solver {
         }
         (sum / msum.max(f64::MIN_POSITIVE)).sqrt() as f32
     }
+}
+
+/// Sum of the corrections of all clusters containing particle `j` (at position `pj`):
+/// `Σ_c (M_c X_j + t_c − a_c p_j)`, summed as `(Σ M_c) X_j + Σ t_c − (Σ a_c) p_j`.
+#[inline]
+fn gather(model: &Model, work: &[(ClusterCorrection, Multipliers)], j: usize, pj: Vec3) -> Vec3 {
+    let (mut m, mut t, mut a) = (Mat3::ZERO, Vec3::ZERO, 0.0f32);
+    for &c in model.clusters_of(j) {
+        let w = &work[c as usize].0;
+        m += w.m;
+        t += w.t;
+        a += w.a;
+    }
+    m * model.rest[j] + t - a * pj
 }
 
 /// Pin or collider projection of particle `i` at `p`; returns the new position, the last
