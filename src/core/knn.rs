@@ -123,6 +123,20 @@ impl Grid {
     /// written into `out` as `(squared distance, index)` in increasing order. Returns the
     /// number found (less than K only if the set is smaller).
     pub fn knn_into(&self, q: Vec3, k: usize, skip: u32, out: &mut Vec<(f32, u32)>) -> usize {
+        self.knn_filtered(q, k, f32::INFINITY, |i| i != skip, out)
+    }
+
+    /// The K nearest points to `q` that `accept` and that lie within `max_dist` (m), in
+    /// increasing `(squared distance, index)` order. The shell expansion stops at
+    /// `max_dist`, so a query far from every accepted point stays cheap.
+    pub fn knn_filtered(
+        &self,
+        q: Vec3,
+        k: usize,
+        max_dist: f32,
+        accept: impl Fn(u32) -> bool,
+        out: &mut Vec<(f32, u32)>,
+    ) -> usize {
         out.clear();
         if k == 0 {
             return 0;
@@ -131,6 +145,8 @@ impl Grid {
         // Unclamped position of q relative to the grid, to bound unvisited cells.
         let rel = (q - self.origin) / self.cell;
         let max_ring = self.dims.iter().copied().max().unwrap_or(1) as i32;
+        let max2 = max_dist as f64 * max_dist as f64;
+        let max2 = if max2 >= f32::MAX as f64 { f32::INFINITY } else { max2 as f32 };
         for r in 0..=max_ring {
             let lo = [c[0] - r, c[1] - r, c[2] - r];
             let hi = [c[0] + r, c[1] + r, c[2] + r];
@@ -151,14 +167,21 @@ impl Grid {
                         let (s, e) = (self.cell_start[ci] as usize, self.cell_start[ci + 1] as usize);
                         for slot in s..e {
                             let idx = self.sorted[slot];
-                            if idx == skip {
+                            if !accept(idx) {
                                 continue;
                             }
-                            insert_sorted(out, k, (dist2(q, self.sorted_pos[slot]), idx));
+                            let d2 = dist2(q, self.sorted_pos[slot]);
+                            if d2 <= max2 {
+                                insert_sorted(out, k, (d2, idx));
+                            }
                         }
                         x += 1;
                     }
                 }
+            }
+            // Everything within max_dist has been visited once the ring covers it.
+            if (r as f32) * self.cell >= max_dist + self.cell {
+                break;
             }
             if out.len() == k {
                 // Distance from q to the outside of the visited cube of cells.

@@ -6,7 +6,8 @@
 //!   at once; one thread, deterministic: the paper's CPU baseline.
 //! * [`Method::Jacobi`] — every cluster solved from the same positions (pass A, parallel
 //!   over clusters), then every particle gathers the corrections of the clusters that
-//!   contain it (pass B, parallel over particles). Shape matching is averaged with the
+//!   contain it (pass B, parallel over particles); contacts, colliders and pins follow
+//!   from the updated positions (pass C). Shape matching is averaged with the
 //!   cluster weight `1/s_c` (constraint averaging, Macklin et al. 2014 §4.2, with a
 //!   per-cluster weight so that momentum is conserved); the XPBD clusters are solved with
 //!   split masses (each cluster owns `m_j/n_j` of each member, Tonge et al. 2012), which
@@ -58,8 +59,7 @@ pub struct SolverSettings {
     pub threads: usize,
     /// Refresh particle-contact neighbours every this many steps (the paper: 10).
     pub knn_every: u32,
-    /// Particle–particle contacts on (between bodies, and within a body between
-    /// particles that are not rest neighbours).
+    /// Particle–particle contacts between bodies on.
     pub particle_contacts: bool,
     /// Neighbours searched per particle for contacts.
     pub contact_neighbours: u32,
@@ -334,8 +334,10 @@ impl Solver {
         Ok(stats)
     }
 
-    /// Recomputes the particle-contact candidates from positions `x` (KNN on the grid),
-    /// dropping pairs of the same body that are within two contact distances at rest.
+    /// Recomputes the particle-contact candidates from positions `x` (KNN on the grid):
+    /// pairs of particles of different bodies. (Self-contact inside a body is left to its
+    /// elastic model: with Jacobi, same-body contacts fighting the cluster corrections
+    /// were measured to blow up on impact.)
     pub fn refresh_contacts(&mut self, model: &Model, x: &[Vec3]) {
         let n = x.len();
         let k = (self.settings.contact_neighbours as usize).min(n.saturating_sub(1));
@@ -346,18 +348,25 @@ impl Solver {
             self.contact_start.resize(n + 1, 0);
             return;
         }
-        let knn = super::knn::knn_all(x, k, self.settings.threads).unwrap_or_default();
-        for i in 0..n {
-            let bi = model.particle_body[i] as usize;
-            for &j in &knn[i * k..(i + 1) * k] {
-                let j = j as usize;
-                let bj = model.particle_body[j] as usize;
-                let d = model.bodies[bi].radius + model.bodies[bj].radius;
-                if bi == bj && model.rest[i].distance_squared(model.rest[j]) < 4.0 * d * d {
-                    continue;
+        // Per particle: the k nearest particles of other bodies within twice the contact
+        // distance (candidates for the next `knn_every` steps).
+        let grid = super::knn::Grid::build(x, 2.0);
+        let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
+        let mut lists = vec![u32::MAX; n * k];
+        par::for_chunks_mut(&mut lists, k, self.settings.threads, |start, chunk| {
+            let mut buf = Vec::with_capacity(k + 1);
+            for (r, row) in chunk.chunks_exact_mut(k).enumerate() {
+                let i = start + r;
+                let bi = model.particle_body[i];
+                let reach = 2.0 * (model.bodies[bi as usize].radius + max_r);
+                grid.knn_filtered(x[i], k, reach, |j| model.particle_body[j as usize] != bi, &mut buf);
+                for (o, &(_, j)) in row.iter_mut().zip(&buf) {
+                    *o = j;
                 }
-                self.contact_list.push(j as u32);
             }
+        });
+        for row in lists.chunks_exact(k) {
+            self.contact_list.extend(row.iter().copied().filter(|&j| j != u32::MAX));
             self.contact_start.push(self.contact_list.len() as u32);
         }
     }
@@ -501,22 +510,32 @@ impl Solver {
                 }
             });
         }
-        // Pass B: every particle gathers its clusters' corrections, contacts, colliders, pins.
+        // Pass B: every particle gathers its clusters' corrections.
+        let mut out = std::mem::take(&mut self.p2);
         {
             let p = &self.p;
             let work = &self.work;
+            par::for_chunks_mut(&mut out, 1, threads, |start, out| {
+                for (k, o) in out.iter_mut().enumerate() {
+                    let j = start + k;
+                    *o = p[j] + gather(model, work, j, p[j]);
+                }
+            });
+        }
+        // Pass C: particle contacts (from the positions pass B left, so the two do not
+        // correct the same overlap twice), then colliders and pins.
+        {
+            let p = &out;
             let cs = &self.contact_start;
             let cl = &self.contact_list;
             let pin_slot = &self.pin_slot;
             let pin_targets = &state.pin_targets;
             let x = &state.x;
-            let mut out = std::mem::take(&mut self.p2);
-            par::for_chunks_mut2(&mut out, &mut self.col, threads, |start, out, ids| {
-                for (k, (o, cid)) in out.iter_mut().zip(ids.iter_mut()).enumerate() {
+            par::for_chunks_mut2(&mut self.p, &mut self.col, threads, |start, dst, col| {
+                for (k, (o, cid)) in dst.iter_mut().zip(col.iter_mut()).enumerate() {
                     let j = start + k;
                     let pj = p[j];
-                    let d = gather(model, work, j, pj);
-                    let mut q = pj + d;
+                    let mut q = pj;
                     if contacts {
                         let bj = model.particle_body[j] as usize;
                         let wj = if pin_slot[j] != u32::MAX { 0.0 } else { 1.0 / model.mass[j] };
@@ -545,9 +564,8 @@ impl Solver {
                     *o = q;
                 }
             });
-            std::mem::swap(&mut self.p, &mut out);
-            self.p2 = out;
         }
+        self.p2 = out;
     }
 
     /// Each particle's own cluster's deformation gradient `F = A_pq A_qq⁻¹` at positions `x`
