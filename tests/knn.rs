@@ -9,16 +9,25 @@ fn check(points: &[Vec3], what: &str) {
         let grid = knn_all(points, k, 2).unwrap();
         let brute = knn_brute_force(points, k).unwrap();
         let diff = grid.iter().zip(&brute).filter(|(a, b)| a != b).count();
-        assert_eq!(diff, 0, "{what}, K = {k}: {diff} entries differ from brute force");
+        assert_eq!(
+            diff, 0,
+            "{what}, K = {k}: {diff} entries differ from brute force"
+        );
         // Single-threaded gives the same answer.
-        assert_eq!(knn_all(points, k, 1).unwrap(), grid, "{what}, K = {k}: thread count changed result");
+        assert_eq!(
+            knn_all(points, k, 1).unwrap(),
+            grid,
+            "{what}, K = {k}: thread count changed result"
+        );
     }
 }
 
 #[test]
 fn random_points() {
     let mut rng = Rng(0x9e3779b97f4a7c15);
-    let pts: Vec<Vec3> = (0..2000).map(|_| rng.vec3() * Vec3::new(1.0, 0.5, 2.0)).collect();
+    let pts: Vec<Vec3> = (0..2000)
+        .map(|_| rng.vec3() * Vec3::new(1.0, 0.5, 2.0))
+        .collect();
     check(&pts, "random");
 }
 

@@ -21,7 +21,11 @@ fn procedural_shapes_are_valid_closed_surfaces() {
     // Sphere volume close to 4/3 π r³ (the icosphere is slightly smaller).
     let s = Surface::new(&procedural::icosphere(0.5, 4)).unwrap();
     let exact = 4.0 / 3.0 * std::f64::consts::PI * 0.125;
-    assert!((s.volume - exact).abs() / exact < 0.01, "volume {}", s.volume);
+    assert!(
+        (s.volume - exact).abs() / exact < 0.01,
+        "volume {}",
+        s.volume
+    );
     // The box welds its split edges: 6·5·5 grid vertices become 6·16+2 = 98... check closed.
     let b = Surface::new(&procedural::cuboid(Vec3::ONE, 4)).unwrap();
     assert_eq!(b.positions.len(), 98);
@@ -39,7 +43,11 @@ fn inverted_surface_is_flipped() {
     assert!(s.volume > 0.0);
     // and it samples the same as the outward one
     let a = sample(&s, Resolution::Spacing(0.05)).unwrap();
-    let b = sample(&Surface::new(&procedural::icosphere(0.3, 2)).unwrap(), Resolution::Spacing(0.05)).unwrap();
+    let b = sample(
+        &Surface::new(&procedural::icosphere(0.3, 2)).unwrap(),
+        Resolution::Spacing(0.05),
+    )
+    .unwrap();
     assert_eq!(a.positions.len(), b.positions.len());
 }
 
@@ -65,19 +73,29 @@ fn check_counts(mesh: &TriMesh, name: &str, targets: &[u32]) {
         let smp = sample(&s, Resolution::Particles(t)).unwrap();
         let n = smp.positions.len() as f64;
         let err = (n - t as f64).abs() / t as f64;
-        assert!(err <= 0.01, "{name}: asked {t}, got {n} ({:.2}%)", err * 100.0);
+        assert!(
+            err <= 0.01,
+            "{name}: asked {t}, got {n} ({:.2}%)",
+            err * 100.0
+        );
     }
 }
 
 #[test]
 fn sampling_hits_paper_counts_on_procedural_liver() {
-    check_counts(&procedural::liver(4), "procedural liver", &[512, 4096, 13824, 37982]);
+    check_counts(
+        &procedural::liver(4),
+        "procedural liver",
+        &[512, 4096, 13824, 37982],
+    );
     check_counts(&procedural::icosphere(0.2, 3), "sphere", &[512, 4096]);
 }
 
 #[test]
 fn sampling_hits_paper_counts_on_shared_liver() {
-    let Some(dir) = common::meshes_dir() else { return };
+    let Some(dir) = common::meshes_dir() else {
+        return;
+    };
     let mesh = common::load_obj(&dir.join("liver2.obj"));
     check_counts(&mesh, "liver2.obj", &[512, 4096, 13824, 37982]);
 }
@@ -91,24 +109,46 @@ fn masses_come_from_density() {
         neighbours: 8,
         ..Default::default()
     };
-    model.add_body(&procedural::icosphere(0.1, 4), &desc).unwrap();
+    model
+        .add_body(&procedural::icosphere(0.1, 4), &desc)
+        .unwrap();
     let total: f64 = model.mass.iter().map(|&m| m as f64).sum();
     let volume = Surface::new(&procedural::icosphere(0.1, 4)).unwrap().volume;
-    assert!((total - 1000.0 * volume).abs() / (1000.0 * volume) < 1e-4, "mass {total}");
+    assert!(
+        (total - 1000.0 * volume).abs() / (1000.0 * volume) < 1e-4,
+        "mass {total}"
+    );
 }
 
 #[test]
 fn every_closed_shared_mesh_loads_and_dragon_is_refused() {
-    let Some(dir) = common::meshes_dir() else { return };
+    let Some(dir) = common::meshes_dir() else {
+        return;
+    };
     let closed = [
         ("liver2.obj", common::load_obj(&dir.join("liver2.obj"))),
         ("bunny.obj", common::load_obj(&dir.join("bunny.obj"))),
         ("Bunny.stl", common::load_stl(&dir.join("Bunny.stl"))),
-        ("spot_low_resolution.obj", common::load_obj(&dir.join("spot_low_resolution.obj"))),
-        ("odedstein_sphere.obj", common::load_obj(&dir.join("odedstein_sphere.obj"))),
-        ("odedstein_torus.obj", common::load_obj(&dir.join("odedstein_torus.obj"))),
-        ("Armadillo_verysimplified.obj", common::load_obj(&dir.join("Armadillo_verysimplified.obj"))),
-        ("liver2.msh (boundary)", common::load_msh_v1_surface(&dir.join("liver2.msh"))),
+        (
+            "spot_low_resolution.obj",
+            common::load_obj(&dir.join("spot_low_resolution.obj")),
+        ),
+        (
+            "odedstein_sphere.obj",
+            common::load_obj(&dir.join("odedstein_sphere.obj")),
+        ),
+        (
+            "odedstein_torus.obj",
+            common::load_obj(&dir.join("odedstein_torus.obj")),
+        ),
+        (
+            "Armadillo_verysimplified.obj",
+            common::load_obj(&dir.join("Armadillo_verysimplified.obj")),
+        ),
+        (
+            "liver2.msh (boundary)",
+            common::load_msh_v1_surface(&dir.join("liver2.msh")),
+        ),
     ];
     for (name, mesh) in &closed {
         let mut model = Model::new();
@@ -124,13 +164,19 @@ fn every_closed_shared_mesh_loads_and_dragon_is_refused() {
         assert!((990..=1010).contains(&n), "{name}: {n} particles");
     }
     let dragon = common::load_obj(&dir.join("dragon.obj"));
-    let err = Model::new().add_body(&dragon, &BodyDesc::default()).unwrap_err();
+    let err = Model::new()
+        .add_body(&dragon, &BodyDesc::default())
+        .unwrap_err();
     match &err {
         TissueError::Mesh(MeshError::NonManifold { edges }) => assert!(*edges > 0),
-        TissueError::Mesh(MeshError::NotClosed { .. }) | TissueError::Mesh(MeshError::DegenerateTriangles { .. }) => {}
+        TissueError::Mesh(MeshError::NotClosed { .. })
+        | TissueError::Mesh(MeshError::DegenerateTriangles { .. }) => {}
         other => panic!("dragon: unexpected error {other}"),
     }
     let text = err.to_string();
-    assert!(text.contains("mesh"), "message should name the problem: {text}");
+    assert!(
+        text.contains("mesh"),
+        "message should name the problem: {text}"
+    );
     eprintln!("dragon.obj: {text}");
 }

@@ -30,7 +30,10 @@ fn check_map(model: &Model, a: Mat3, t: Vec3, what: &str) {
         .zip(&skin.rest_vertices)
         .map(|(v, v0)| v.distance(a * *v0 + t))
         .fold(0.0f32, f32::max);
-    assert!(err < 1e-5 * size, "{what}: max error {err:e} m (size {size} m)");
+    assert!(
+        err < 1e-5 * size,
+        "{what}: max error {err:e} m (size {size} m)"
+    );
 }
 
 #[test]
@@ -65,11 +68,19 @@ fn skin_normals_are_outward_and_rotate_with_the_body() {
     let rest_n = vertex_normals(&skin.rest_vertices, &skin.indices);
     for (n, n0) in nrm.iter().zip(&rest_n) {
         assert!((n.length() - 1.0).abs() < 1e-4);
-        assert!(n.dot(r * *n0) > 0.999, "normal {n} vs rotated rest normal {}", r * *n0);
+        assert!(
+            n.dot(r * *n0) > 0.999,
+            "normal {n} vs rotated rest normal {}",
+            r * *n0
+        );
     }
     // The deformed surface encloses the same volume after a rigid motion.
     let p64: Vec<glam::DVec3> = pos.iter().map(|p| p.as_dvec3()).collect();
-    let tris: Vec<[u32; 3]> = skin.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect();
+    let tris: Vec<[u32; 3]> = skin
+        .indices
+        .chunks_exact(3)
+        .map(|t| [t[0], t[1], t[2]])
+        .collect();
     let v = signed_volume(&p64, &tris);
     assert!((v - m.bodies[0].volume as f64).abs() / v < 1e-4);
 }

@@ -1,5 +1,6 @@
 //! Invariants and physics of the CPU solver (both elastic models, both methods).
 mod common;
+use bevy_tissue::core::colliders::{Collider, ColliderShape};
 use bevy_tissue::core::constraints::{
     Hyperelastic, cluster_moments, solve_hyperelastic, solve_shape_matching,
 };
@@ -9,7 +10,6 @@ use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::skin::skin_positions;
-use bevy_tissue::core::colliders::{Collider, ColliderShape};
 use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use glam::{Mat3, Quat, Vec3};
 
@@ -19,7 +19,13 @@ const NH: Material = Material::Hyperelastic {
     poisson_ratio: 0.4,
 };
 
-fn body(mesh: &bevy_tissue::core::mesh::TriMesh, n: u32, k: u32, material: Material, pins: Vec<PinRegion>) -> Model {
+fn body(
+    mesh: &bevy_tissue::core::mesh::TriMesh,
+    n: u32,
+    k: u32,
+    material: Material,
+    pins: Vec<PinRegion>,
+) -> Model {
     let mut m = Model::new();
     let desc = BodyDesc {
         resolution: Resolution::Particles(n),
@@ -42,7 +48,10 @@ fn settings(method: Method) -> SolverSettings {
 }
 
 fn max_dist(a: &[Vec3], b: &[Vec3]) -> f32 {
-    a.iter().zip(b).map(|(p, q)| p.distance(*q)).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| p.distance(*q))
+        .fold(0.0, f32::max)
 }
 
 #[test]
@@ -55,11 +64,16 @@ fn body_at_rest_stays_at_rest_for_1000_steps() {
             let x0 = state.x.clone();
             let mut solver = Solver::new(&model, settings(method)).unwrap();
             for _ in 0..1000 {
-                solver.step(&model, &mut state, &Control::default()).unwrap();
+                solver
+                    .step(&model, &mut state, &Control::default())
+                    .unwrap();
             }
             let drift = max_dist(&state.x, &x0);
             let size = model.bodies[0].size;
-            assert!(drift < 1e-6 * size, "{material:?} {method:?}: drift {drift:e} m, size {size} m");
+            assert!(
+                drift < 1e-6 * size,
+                "{material:?} {method:?}: drift {drift:e} m, size {size} m"
+            );
         }
     }
 }
@@ -76,13 +90,34 @@ fn corrections(model: &Model, x: &[Vec3], material: Material) -> Vec<(usize, Vec
                 let mut q = Quat::IDENTITY;
                 solve_shape_matching(com, &apq, r, &mut q, 1.0, 50)
             }
-            Material::Hyperelastic { youngs_modulus, poisson_ratio } => {
-                let (mut l, mut q) = (bevy_tissue::core::constraints::Multipliers::ZERO, Quat::IDENTITY);
-                solve_hyperelastic(&(apq * r.aqq_inv), r, &r.metric, &mut q, 50, model.cluster_volume[c], &Hyperelastic::new(youngs_modulus, poisson_ratio), 1e-4, 1.0, &mut l, 0.0)
+            Material::Hyperelastic {
+                youngs_modulus,
+                poisson_ratio,
+            } => {
+                let (mut l, mut q) = (
+                    bevy_tissue::core::constraints::Multipliers::ZERO,
+                    Quat::IDENTITY,
+                );
+                solve_hyperelastic(
+                    &(apq * r.aqq_inv),
+                    r,
+                    &r.metric,
+                    &mut q,
+                    50,
+                    model.cluster_volume[c],
+                    &Hyperelastic::new(youngs_modulus, poisson_ratio),
+                    1e-4,
+                    1.0,
+                    &mut l,
+                    0.0,
+                )
             }
         };
         for &j in model.members(c) {
-            out.push((j as usize, corr.apply(model.rest[j as usize], x[j as usize])));
+            out.push((
+                j as usize,
+                corr.apply(model.rest[j as usize], x[j as usize]),
+            ));
         }
     }
     out
@@ -101,7 +136,10 @@ fn rigid_motion_gets_no_elastic_correction() {
             .iter()
             .map(|(_, d)| d.length())
             .fold(0.0f32, f32::max);
-        assert!(worst < 1e-5 * size, "{material:?}: correction {worst:e} m under rigid motion");
+        assert!(
+            worst < 1e-5 * size,
+            "{material:?}: correction {worst:e} m under rigid motion"
+        );
     }
 }
 
@@ -127,9 +165,27 @@ fn elastic_corrections_conserve_momentum() {
                     let mut q = Quat::IDENTITY;
                     solve_shape_matching(com, &apq, r, &mut q, 0.7, 50)
                 }
-                Material::Hyperelastic { youngs_modulus, poisson_ratio } => {
-                    let (mut l, mut q) = (bevy_tissue::core::constraints::Multipliers::ZERO, Quat::IDENTITY);
-                    solve_hyperelastic(&(apq * r.aqq_inv), r, &r.metric, &mut q, 50, model.cluster_volume[c], &Hyperelastic::new(youngs_modulus, poisson_ratio), 1e-4, 1.0, &mut l, 0.0)
+                Material::Hyperelastic {
+                    youngs_modulus,
+                    poisson_ratio,
+                } => {
+                    let (mut l, mut q) = (
+                        bevy_tissue::core::constraints::Multipliers::ZERO,
+                        Quat::IDENTITY,
+                    );
+                    solve_hyperelastic(
+                        &(apq * r.aqq_inv),
+                        r,
+                        &r.metric,
+                        &mut q,
+                        50,
+                        model.cluster_volume[c],
+                        &Hyperelastic::new(youngs_modulus, poisson_ratio),
+                        1e-4,
+                        1.0,
+                        &mut l,
+                        0.0,
+                    )
                 }
             };
             let (mut lin, mut ang, mut scale) = (Vec3::ZERO, Vec3::ZERO, 0.0f32);
@@ -141,10 +197,27 @@ fn elastic_corrections_conserve_momentum() {
                 ang += m * (x[j] - com).cross(d);
                 scale += m * d.length() * (x[j] - com).length().max(1e-3);
             }
-            let msum: f32 = model.members(c).iter().map(|&j| model.mass[j as usize]).sum();
-            let dsum: f32 = model.members(c).iter().map(|&j| model.mass[j as usize] * corr.apply(model.rest[j as usize], x[j as usize]).length()).sum();
-            assert!(lin.length() <= 1e-4 * dsum.max(1e-12), "{material:?} cluster {c}: linear momentum {lin}");
-            assert!(ang.length() <= 1e-3 * scale.max(1e-12), "{material:?} cluster {c}: angular momentum {ang}");
+            let msum: f32 = model
+                .members(c)
+                .iter()
+                .map(|&j| model.mass[j as usize])
+                .sum();
+            let dsum: f32 = model
+                .members(c)
+                .iter()
+                .map(|&j| {
+                    model.mass[j as usize]
+                        * corr.apply(model.rest[j as usize], x[j as usize]).length()
+                })
+                .sum();
+            assert!(
+                lin.length() <= 1e-4 * dsum.max(1e-12),
+                "{material:?} cluster {c}: linear momentum {lin}"
+            );
+            assert!(
+                ang.length() <= 1e-3 * scale.max(1e-12),
+                "{material:?} cluster {c}: angular momentum {ang}"
+            );
             let _ = msum;
         }
         // Whole solver, both methods: a slightly deformed body at rest, no gravity, no
@@ -154,22 +227,63 @@ fn elastic_corrections_conserve_momentum() {
         let x: Vec<Vec3> = model
             .rest
             .iter()
-            .map(|p| Mat3::from_diagonal(Vec3::new(1.02, 0.99, 1.0)) * *p + (rng.vec3() - 0.5) * 0.001)
+            .map(|p| {
+                Mat3::from_diagonal(Vec3::new(1.02, 0.99, 1.0)) * *p + (rng.vec3() - 0.5) * 0.001
+            })
             .collect();
         for method in [Method::GaussSeidel, Method::Jacobi] {
             let mut state = State::new(&model);
             state.x = x.clone();
-            let s = SolverSettings { damping: 0.0, particle_contacts: false, ..settings(method) };
+            let s = SolverSettings {
+                damping: 0.0,
+                particle_contacts: false,
+                ..settings(method)
+            };
             let mut solver = Solver::new(&model, s).unwrap();
-            solver.step(&model, &mut state, &Control::default()).unwrap();
+            solver
+                .step(&model, &mut state, &Control::default())
+                .unwrap();
             let p: Vec3 = state.v.iter().zip(&model.mass).map(|(v, m)| *v * *m).sum();
-            let c: Vec3 = state.x.iter().zip(&model.mass).map(|(x, m)| *x * *m).sum::<Vec3>() / model.mass.iter().sum::<f32>();
-            let l: Vec3 = state.v.iter().zip(&model.mass).zip(&state.x).map(|((v, m), x)| (*x - c).cross(*v) * *m).sum();
-            let scale: f32 = state.v.iter().zip(&model.mass).map(|(v, m)| v.length() * m).sum();
-            let lscale: f32 = state.v.iter().zip(&model.mass).zip(&state.x).map(|((v, m), x)| (*x - c).length() * v.length() * m).sum();
-            assert!(p.length() < 1e-4 * scale, "{material:?} {method:?}: momentum {p} (scale {scale})");
-            assert!(l.length() < 2e-3 * lscale, "{material:?} {method:?}: angular momentum {l} (scale {lscale})");
-            eprintln!("{material:?} {method:?}: |P| / Σm|v| = {:.1e}, |L| / Σm|x−c||v| = {:.1e}", p.length() / scale, l.length() / lscale);
+            let c: Vec3 = state
+                .x
+                .iter()
+                .zip(&model.mass)
+                .map(|(x, m)| *x * *m)
+                .sum::<Vec3>()
+                / model.mass.iter().sum::<f32>();
+            let l: Vec3 = state
+                .v
+                .iter()
+                .zip(&model.mass)
+                .zip(&state.x)
+                .map(|((v, m), x)| (*x - c).cross(*v) * *m)
+                .sum();
+            let scale: f32 = state
+                .v
+                .iter()
+                .zip(&model.mass)
+                .map(|(v, m)| v.length() * m)
+                .sum();
+            let lscale: f32 = state
+                .v
+                .iter()
+                .zip(&model.mass)
+                .zip(&state.x)
+                .map(|((v, m), x)| (*x - c).length() * v.length() * m)
+                .sum();
+            assert!(
+                p.length() < 1e-4 * scale,
+                "{material:?} {method:?}: momentum {p} (scale {scale})"
+            );
+            assert!(
+                l.length() < 2e-3 * lscale,
+                "{material:?} {method:?}: angular momentum {l} (scale {lscale})"
+            );
+            eprintln!(
+                "{material:?} {method:?}: |P| / Σm|v| = {:.1e}, |L| / Σm|x−c||v| = {:.1e}",
+                p.length() / scale,
+                l.length() / lscale
+            );
         }
     }
 }
@@ -200,16 +314,24 @@ fn stretched_body_returns_to_rest_shape() {
             let mut state = State::new(&model);
             let stretch = Mat3::from_diagonal(Vec3::new(1.5, 0.9, 0.9));
             state.x = model.rest.iter().map(|p| stretch * *p).collect();
-            let s = SolverSettings { damping: 5.0, ..settings(method) };
+            let s = SolverSettings {
+                damping: 5.0,
+                ..settings(method)
+            };
             let mut solver = Solver::new(&model, s).unwrap();
             let size = model.bodies[0].size;
             let before = shape_error(&state.x, &model.rest);
             for _ in 0..400 {
-                solver.step(&model, &mut state, &Control::default()).unwrap();
+                solver
+                    .step(&model, &mut state, &Control::default())
+                    .unwrap();
             }
             let err = shape_error(&state.x, &model.rest);
             assert!(before > 0.05 * size);
-            assert!(err < 0.01 * size, "{material:?} {method:?}: shape error {err} m (size {size} m)");
+            assert!(
+                err < 0.01 * size,
+                "{material:?} {method:?}: shape error {err} m (size {size} m)"
+            );
         }
     }
 }
@@ -217,9 +339,18 @@ fn stretched_body_returns_to_rest_shape() {
 /// A cantilever 6 cm × 4 cm × 4 cm (E = 10 kPa, ν = 0.3) pinned at x < −0.024 m, settled
 /// under gravity for 3 s: returns the tip sag (mean y drop of the particles at
 /// x > 0.02 m), the final positions, and the sag change over the last 0.5 s.
-fn cantilever(method: Method, dt: f32, substeps: u32, iterations: u32, material: Material) -> (f32, Vec<Vec3>, f32) {
+fn cantilever(
+    method: Method,
+    dt: f32,
+    substeps: u32,
+    iterations: u32,
+    material: Material,
+) -> (f32, Vec<Vec3>, f32) {
     let mesh = procedural::cuboid(Vec3::new(0.03, 0.02, 0.02), 2);
-    let pins = vec![PinRegion::HalfSpace { point: Vec3::new(-0.024, 0.0, 0.0), normal: -Vec3::X }];
+    let pins = vec![PinRegion::HalfSpace {
+        point: Vec3::new(-0.024, 0.0, 0.0),
+        normal: -Vec3::X,
+    }];
     let model = body(&mesh, 800, 24, material, pins);
     let mut state = State::new(&model);
     let s = SolverSettings {
@@ -235,12 +366,17 @@ fn cantilever(method: Method, dt: f32, substeps: u32, iterations: u32, material:
         ..Default::default()
     };
     let mut solver = Solver::new(&model, s).unwrap();
-    let tip: Vec<usize> = (0..model.particle_count()).filter(|&i| model.rest[i].x > 0.02).collect();
-    let sag = |x: &[Vec3]| tip.iter().map(|&i| model.rest[i].y - x[i].y).sum::<f32>() / tip.len() as f32;
+    let tip: Vec<usize> = (0..model.particle_count())
+        .filter(|&i| model.rest[i].x > 0.02)
+        .collect();
+    let sag =
+        |x: &[Vec3]| tip.iter().map(|&i| model.rest[i].y - x[i].y).sum::<f32>() / tip.len() as f32;
     let steps = (3.0 / dt).round() as usize;
     let mut earlier = 0.0;
     for step in 0..steps {
-        solver.step(&model, &mut state, &Control::default()).unwrap();
+        solver
+            .step(&model, &mut state, &Control::default())
+            .unwrap();
         if step + 1 == (2.5 / dt).round() as usize {
             earlier = sag(&state.x);
         }
@@ -260,14 +396,20 @@ fn xpbd_cantilever_sag_is_independent_of_dt_and_iterations() {
     for dt in [1.0 / 60.0, 1.0 / 120.0, 1.0 / 240.0] {
         for it in [10, 20, 40] {
             let (sag, _, change) = cantilever(Method::GaussSeidel, dt, 1, it, SOFT);
-            assert!(change < 0.01 * sag, "dt {dt} it {it}: not settled (sag {sag}, change {change})");
+            assert!(
+                change < 0.01 * sag,
+                "dt {dt} it {it}: not settled (sag {sag}, change {change})"
+            );
             sags.push((dt, it, sag));
         }
     }
     let mean = sags.iter().map(|s| s.2).sum::<f32>() / sags.len() as f32;
     assert!(mean > 5e-3, "the cantilever should sag visibly: {mean} m");
     for (dt, it, sag) in &sags {
-        assert!((sag - mean).abs() <= 0.05 * mean, "dt {dt} it {it}: sag {sag} vs mean {mean} ({sags:?})");
+        assert!(
+            (sag - mean).abs() <= 0.05 * mean,
+            "dt {dt} it {it}: sag {sag} vs mean {mean} ({sags:?})"
+        );
     }
 }
 
@@ -276,20 +418,24 @@ fn gauss_seidel_and_jacobi_reach_the_same_static_shape() {
     // The hyperelastic model has a physical static solution that both methods must find.
     // (Shape matching's stiffness k is a per-iteration solver parameter, so its static
     // shape depends on the method by design.)
-    for material in [SOFT] {
-        let (_, gs, _) = cantilever(Method::GaussSeidel, 1.0 / 60.0, 4, 40, material);
-        let (_, jc, change) = cantilever(Method::Jacobi, 1.0 / 60.0, 4, 40, material);
-        assert!(change < 1e-4, "{material:?}: Jacobi not settled ({change})");
-        let size = (0.06f32 * 0.06 + 0.04 * 0.04 * 2.0).sqrt();
-        let d = max_dist(&gs, &jc);
-        assert!(d < 0.02 * size, "{material:?}: GS vs Jacobi differ by {d} m (size {size} m)");
-    }
+    let material = SOFT;
+    let (_, gs, _) = cantilever(Method::GaussSeidel, 1.0 / 60.0, 4, 40, material);
+    let (_, jc, change) = cantilever(Method::Jacobi, 1.0 / 60.0, 4, 40, material);
+    assert!(change < 1e-4, "{material:?}: Jacobi not settled ({change})");
+    let size = (0.06f32 * 0.06 + 0.04 * 0.04 * 2.0).sqrt();
+    let d = max_dist(&gs, &jc);
+    assert!(
+        d < 0.02 * size,
+        "{material:?}: GS vs Jacobi differ by {d} m (size {size} m)"
+    );
 }
 
 /// Material volume `Σ_c V_c det F_c` (the volume the elastic model sees), m³.
 fn material_volume(model: &Model, x: &[Vec3]) -> f32 {
     let f = Solver::deformation_gradients(model, x);
-    (0..model.particle_count()).map(|c| model.cluster_volume[c] * f[c].determinant()).sum()
+    (0..model.particle_count())
+        .map(|c| model.cluster_volume[c] * f[c].determinant())
+        .sum()
 }
 
 #[test]
@@ -297,14 +443,23 @@ fn nearly_incompressible_material_keeps_volume_under_compression() {
     // A 10 cm cube, ν = 0.49, squeezed by 20% between two frictionless plates.
     let h = 0.05;
     let mesh = procedural::cuboid(Vec3::splat(h), 3);
-    let material = Material::Hyperelastic { youngs_modulus: 20_000.0, poisson_ratio: 0.49 };
+    let material = Material::Hyperelastic {
+        youngs_modulus: 20_000.0,
+        poisson_ratio: 0.49,
+    };
     for method in [Method::GaussSeidel, Method::Jacobi] {
         let model = body(&mesh, 1500, 24, material, vec![]);
         let r = model.bodies[0].radius;
         let top0 = model.rest.iter().map(|p| p.y).fold(f32::MIN, f32::max) + r;
         let bottom = model.rest.iter().map(|p| p.y).fold(f32::MAX, f32::min) - r;
         let mut state = State::new(&model);
-        let s = SolverSettings { damping: 5.0, substeps: 4, iterations: 40, particle_contacts: false, ..settings(method) };
+        let s = SolverSettings {
+            damping: 5.0,
+            substeps: 4,
+            iterations: 40,
+            particle_contacts: false,
+            ..settings(method)
+        };
         let mut solver = Solver::new(&model, s).unwrap();
         let mut ground = Collider::ground(bottom);
         ground.friction = 0.0;
@@ -312,28 +467,62 @@ fn nearly_incompressible_material_keeps_volume_under_compression() {
         for step in 0..steps + 120 {
             let f = ((step + 1) as f32 / steps as f32).min(1.0);
             let y = top0 - 0.2 * (top0 - bottom) * f;
-            let mut plate = Collider::new(ColliderShape::Plane, Vec3::new(0.0, y, 0.0), Quat::from_rotation_x(std::f32::consts::PI));
+            let mut plate = Collider::new(
+                ColliderShape::Plane,
+                Vec3::new(0.0, y, 0.0),
+                Quat::from_rotation_x(std::f32::consts::PI),
+            );
             plate.friction = 0.0;
-            solver.step(&model, &mut state, &Control { colliders: vec![ground, plate] }).unwrap();
+            solver
+                .step(
+                    &model,
+                    &mut state,
+                    &Control {
+                        colliders: vec![ground, plate],
+                    },
+                )
+                .unwrap();
         }
-        let height = state.x.iter().map(|p| p.y).fold(f32::MIN, f32::max) - state.x.iter().map(|p| p.y).fold(f32::MAX, f32::min) + 2.0 * r;
-        assert!((height / (top0 - bottom) - 0.8).abs() < 0.01, "{method:?}: not compressed by 20%: {height}");
+        let height = state.x.iter().map(|p| p.y).fold(f32::MIN, f32::max)
+            - state.x.iter().map(|p| p.y).fold(f32::MAX, f32::min)
+            + 2.0 * r;
+        assert!(
+            (height / (top0 - bottom) - 0.8).abs() < 0.01,
+            "{method:?}: not compressed by 20%: {height}"
+        );
         let v0 = material_volume(&model, &model.rest);
         let v = material_volume(&model, &state.x);
         // The lateral bulge is real: the body got wider.
-        let width = state.x.iter().map(|p| p.x).fold(f32::MIN, f32::max) - state.x.iter().map(|p| p.x).fold(f32::MAX, f32::min);
-        let width0 = model.rest.iter().map(|p| p.x).fold(f32::MIN, f32::max) - model.rest.iter().map(|p| p.x).fold(f32::MAX, f32::min);
-        assert!(width > 1.05 * width0, "{method:?}: no Poisson bulge ({width} vs {width0})");
-        assert!((v - v0).abs() / v0 < 0.03, "{method:?}: volume {v} vs rest {v0} ({:+.2}%)", (v / v0 - 1.0) * 100.0);
+        let width = state.x.iter().map(|p| p.x).fold(f32::MIN, f32::max)
+            - state.x.iter().map(|p| p.x).fold(f32::MAX, f32::min);
+        let width0 = model.rest.iter().map(|p| p.x).fold(f32::MIN, f32::max)
+            - model.rest.iter().map(|p| p.x).fold(f32::MAX, f32::min);
+        assert!(
+            width > 1.05 * width0,
+            "{method:?}: no Poisson bulge ({width} vs {width0})"
+        );
+        assert!(
+            (v - v0).abs() / v0 < 0.03,
+            "{method:?}: volume {v} vs rest {v0} ({:+.2}%)",
+            (v / v0 - 1.0) * 100.0
+        );
         // For the record: the enclosed volume of the skinned render surface.
         let skin = &model.bodies[0].skin;
         let fg = Solver::deformation_gradients(&model, &state.x);
         let mut pos = vec![Vec3::ZERO; skin.rest_vertices.len()];
         skin_positions(skin, &state.x, &model.rest, &fg, &mut pos);
         let p64: Vec<glam::DVec3> = pos.iter().map(|p| p.as_dvec3()).collect();
-        let tris: Vec<[u32; 3]> = skin.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect();
+        let tris: Vec<[u32; 3]> = skin
+            .indices
+            .chunks_exact(3)
+            .map(|t| [t[0], t[1], t[2]])
+            .collect();
         let vs = signed_volume(&p64, &tris) / model.bodies[0].volume as f64;
-        eprintln!("{method:?}: material volume {:+.2}%, skinned surface volume {:+.2}%", (v / v0 - 1.0) * 100.0, (vs - 1.0) * 100.0);
+        eprintln!(
+            "{method:?}: material volume {:+.2}%, skinned surface volume {:+.2}%",
+            (v / v0 - 1.0) * 100.0,
+            (vs - 1.0) * 100.0
+        );
     }
 }
 
@@ -346,7 +535,10 @@ fn divergence_is_detected_and_state_restored() {
     state.v[17] = Vec3::new(f32::NAN, 0.0, 0.0);
     let before = state.clone();
     match solver.step(&model, &mut state, &Control::default()) {
-        Err(TissueError::Diverged { reason: DivergenceKind::NonFinite, .. }) => {}
+        Err(TissueError::Diverged {
+            reason: DivergenceKind::NonFinite,
+            ..
+        }) => {}
         other => panic!("expected NonFinite, got {other:?}"),
     }
     assert_eq!(state.x, before.x);
@@ -355,8 +547,19 @@ fn divergence_is_detected_and_state_restored() {
     let mut state = State::new(&model);
     state.v[3] = Vec3::new(1e5, 0.0, 0.0);
     let before = state.clone();
-    let err = solver.step(&model, &mut state, &Control::default()).unwrap_err();
-    assert!(matches!(err, TissueError::Diverged { reason: DivergenceKind::Exploding { .. }, .. }), "{err}");
+    let err = solver
+        .step(&model, &mut state, &Control::default())
+        .unwrap_err();
+    assert!(
+        matches!(
+            err,
+            TissueError::Diverged {
+                reason: DivergenceKind::Exploding { .. },
+                ..
+            }
+        ),
+        "{err}"
+    );
     assert!(err.to_string().contains("m/s"));
     assert_eq!(state.x, before.x);
     assert_eq!(state.v, before.v);
@@ -368,9 +571,15 @@ fn jacobi_is_independent_of_thread_count() {
     let mut results = Vec::new();
     for threads in [1, 2, 3] {
         let mut state = State::new(&model);
-        let s = SolverSettings { threads, gravity: Vec3::new(0.0, -9.81, 0.0), ..Default::default() };
+        let s = SolverSettings {
+            threads,
+            gravity: Vec3::new(0.0, -9.81, 0.0),
+            ..Default::default()
+        };
         let mut solver = Solver::new(&model, s).unwrap();
-        let control = Control { colliders: vec![bevy_tissue::core::colliders::Collider::ground(-0.05)] };
+        let control = Control {
+            colliders: vec![bevy_tissue::core::colliders::Collider::ground(-0.05)],
+        };
         for _ in 0..30 {
             solver.step(&model, &mut state, &control).unwrap();
         }
@@ -385,39 +594,68 @@ fn two_bodies_collide_without_passing_through() {
     // Gauss–Seidel only: with Jacobi (10 iterations) the elastic response converges too
     // slowly to hold particle contacts and the sphere sinks into the slab — a known
     // limitation recorded in BENCHMARKS.md, not asserted away here.
-    for method in [Method::GaussSeidel] {
-        let mut model = Model::new();
-        // A sphere dropped onto a slab lying on the ground. Particle contacts act between
-        // particles only: a soft, coarsely sampled slab lets the sphere's particles push
-        // its own apart (E = 10 kPa sank through, 100 kPa sank 2 cm), so this uses 1 MPa.
-        let shapes = [procedural::cuboid(Vec3::new(0.08, 0.03, 0.08), 2), procedural::icosphere(0.05, 2)];
-        // (The slab is sampled finely enough that the sphere's particles cannot slip
-        // through the gaps of its lattice.)
-        for ((mesh, y), n) in shapes.iter().zip([0.03f32, 0.15]).zip([2000, 400]) {
-            let desc = BodyDesc {
-                resolution: Resolution::Particles(n),
-                neighbours: 16,
-                material: Material::Hyperelastic { youngs_modulus: 1e6, poisson_ratio: 0.3 },
-                translation: Vec3::new(0.0, y, 0.0),
-                ..Default::default()
-            };
-            model.add_body(mesh, &desc).unwrap();
-        }
-        let mut state = State::new(&model);
-        let s = SolverSettings { method, knn_every: 1, substeps: 4, gravity: Vec3::new(0.0, -9.81, 0.0), ..settings(method) };
-        let mut solver = Solver::new(&model, s).unwrap();
-        let control = Control { colliders: vec![Collider::ground(0.0)] };
-        let mut touched = 0;
-        for _ in 0..120 {
-            touched += solver.step(&model, &mut state, &control).unwrap().active_contacts;
-        }
-        assert!(touched > 0, "{method:?}: the bodies never touched");
-        let (a, b) = (model.bodies[0].range(), model.bodies[1].range());
-        let d = model.bodies[0].radius + model.bodies[1].radius;
-        let min = a.clone().flat_map(|i| b.clone().map(move |j| (i, j))).map(|(i, j)| state.x[i].distance(state.x[j])).fold(f32::MAX, f32::min);
-        assert!(min > 0.5 * d, "{method:?}: bodies interpenetrate: closest particles {min} m apart (contact distance {d} m)");
-        // The upper body rests on the lower one, above it.
-        let cy = |r: std::ops::Range<usize>| r.clone().map(|i| state.x[i].y).sum::<f32>() / r.len() as f32;
-        assert!(cy(b.clone()) > cy(a.clone()) + 0.05, "{method:?}: upper body fell through ({} vs {})", cy(b.clone()), cy(a.clone()));
+    let method = Method::GaussSeidel;
+    let mut model = Model::new();
+    // A sphere dropped onto a slab lying on the ground. Particle contacts act between
+    // particles only: a soft, coarsely sampled slab lets the sphere's particles push
+    // its own apart (E = 10 kPa sank through, 100 kPa sank 2 cm), so this uses 1 MPa.
+    let shapes = [
+        procedural::cuboid(Vec3::new(0.08, 0.03, 0.08), 2),
+        procedural::icosphere(0.05, 2),
+    ];
+    // (The slab is sampled finely enough that the sphere's particles cannot slip
+    // through the gaps of its lattice.)
+    for ((mesh, y), n) in shapes.iter().zip([0.03f32, 0.15]).zip([2000, 400]) {
+        let desc = BodyDesc {
+            resolution: Resolution::Particles(n),
+            neighbours: 16,
+            material: Material::Hyperelastic {
+                youngs_modulus: 1e6,
+                poisson_ratio: 0.3,
+            },
+            translation: Vec3::new(0.0, y, 0.0),
+            ..Default::default()
+        };
+        model.add_body(mesh, &desc).unwrap();
     }
+    let mut state = State::new(&model);
+    let s = SolverSettings {
+        method,
+        knn_every: 1,
+        substeps: 4,
+        gravity: Vec3::new(0.0, -9.81, 0.0),
+        ..settings(method)
+    };
+    let mut solver = Solver::new(&model, s).unwrap();
+    let control = Control {
+        colliders: vec![Collider::ground(0.0)],
+    };
+    let mut touched = 0;
+    for _ in 0..120 {
+        touched += solver
+            .step(&model, &mut state, &control)
+            .unwrap()
+            .active_contacts;
+    }
+    assert!(touched > 0, "{method:?}: the bodies never touched");
+    let (a, b) = (model.bodies[0].range(), model.bodies[1].range());
+    let d = model.bodies[0].radius + model.bodies[1].radius;
+    let min = a
+        .clone()
+        .flat_map(|i| b.clone().map(move |j| (i, j)))
+        .map(|(i, j)| state.x[i].distance(state.x[j]))
+        .fold(f32::MAX, f32::min);
+    assert!(
+        min > 0.5 * d,
+        "{method:?}: bodies interpenetrate: closest particles {min} m apart (contact distance {d} m)"
+    );
+    // The upper body rests on the lower one, above it.
+    let cy =
+        |r: std::ops::Range<usize>| r.clone().map(|i| state.x[i].y).sum::<f32>() / r.len() as f32;
+    assert!(
+        cy(b.clone()) > cy(a.clone()) + 0.05,
+        "{method:?}: upper body fell through ({} vs {})",
+        cy(b.clone()),
+        cy(a.clone())
+    );
 }

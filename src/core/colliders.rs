@@ -116,7 +116,7 @@ fn box_sdf(local: Vec3, he: Vec3) -> (f32, Vec3) {
 pub fn project_collider(collider: &Collider, p: Vec3, x: Vec3, h: f32, radius: f32) -> Vec3 {
     let (d, n) = collider.distance(p);
     let depth = radius - d;
-    if !(depth > 0.0) {
+    if depth.is_nan() || depth <= 0.0 {
         return Vec3::ZERO;
     }
     let mut dp = n * depth;

@@ -54,7 +54,9 @@ impl Metric {
         Self {
             w: w.as_mat3(),
             basis: vecs.as_mat3(),
-            values: glam::DVec3::from_array(vals).max(glam::DVec3::ZERO).as_vec3(),
+            values: glam::DVec3::from_array(vals)
+                .max(glam::DVec3::ZERO)
+                .as_vec3(),
         }
     }
 }
@@ -110,13 +112,22 @@ pub fn pseudo_inverse_sym(a: &glam::DMat3, rel_eps: f64) -> glam::DMat3 {
     let (vals, vecs) = sym_eigen(a);
     let max = vals.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let mut out = glam::DMat3::ZERO;
-    for k in 0..3 {
-        if max > 0.0 && vals[k] > rel_eps * max {
+    for (k, &val) in vals.iter().enumerate() {
+        if max > 0.0 && val > rel_eps * max {
             let v = vecs.col(k);
-            out += outer_d(v / vals[k], v);
+            out += outer_d(v / val, v);
         }
     }
     out
+}
+
+/// Applies the Jacobi rotation `(c, s)` to columns `p` and `q` of a column-major 3×3.
+fn rotate_cols(m: &mut [[f64; 3]; 3], p: usize, q: usize, c: f64, s: f64) {
+    let (cp, cq) = (m[p], m[q]);
+    for k in 0..3 {
+        m[p][k] = c * cp[k] - s * cq[k];
+        m[q][k] = s * cp[k] + c * cq[k];
+    }
 }
 
 /// Eigenvalues and eigenvectors (columns) of a symmetric 3×3 matrix by cyclic Jacobi
@@ -139,21 +150,13 @@ pub fn sym_eigen(a: &glam::DMat3) -> ([f64; 3], glam::DMat3) {
             let t = if theta == 0.0 { 1.0 } else { t };
             let c = 1.0 / (t * t + 1.0).sqrt();
             let s = t * c;
-            for k in 0..3 {
-                let (mkp, mkq) = (m[p][k], m[q][k]);
-                m[p][k] = c * mkp - s * mkq;
-                m[q][k] = s * mkp + c * mkq;
+            rotate_cols(&mut m, p, q, c, s);
+            for row in m.iter_mut() {
+                let (mpk, mqk) = (row[p], row[q]);
+                row[p] = c * mpk - s * mqk;
+                row[q] = s * mpk + c * mqk;
             }
-            for k in 0..3 {
-                let (mpk, mqk) = (m[k][p], m[k][q]);
-                m[k][p] = c * mpk - s * mqk;
-                m[k][q] = s * mpk + c * mqk;
-            }
-            for k in 0..3 {
-                let (vkp, vkq) = (v[p][k], v[q][k]);
-                v[p][k] = c * vkp - s * vkq;
-                v[q][k] = s * vkp + c * vkq;
-            }
+            rotate_cols(&mut v, p, q, c, s);
         }
     }
     (
@@ -253,8 +256,8 @@ pub fn extract_rotation(a: &Mat3, q: &mut Quat, iterations: u32) {
             + 1.0e-9;
         let omega = num / den;
         let w = omega.length();
-        if !(w >= 1.0e-6) {
-            break; // converged to ~1e-6 rad (also stops on NaN)
+        if w.is_nan() || w < 1.0e-6 {
+            break; // converged to ~1e-6 rad (or NaN input)
         }
         *q = (Quat::from_axis_angle(omega / w, w) * *q).normalize();
     }
@@ -359,7 +362,10 @@ pub struct Multipliers {
 
 impl Multipliers {
     /// All zero.
-    pub const ZERO: Self = Self { h: 0.0, d: [0.0; 6] };
+    pub const ZERO: Self = Self {
+        h: 0.0,
+        d: [0.0; 6],
+    };
 
     /// The deviatoric multiplier as a matrix.
     #[inline]
@@ -387,7 +393,9 @@ fn sym_from(d: [f32; 6]) -> Mat3 {
 
 #[inline]
 fn sym_pack(m: &Mat3) -> [f32; 6] {
-    [m.x_axis.x, m.y_axis.y, m.z_axis.z, m.x_axis.y, m.x_axis.z, m.y_axis.z]
+    [
+        m.x_axis.x, m.y_axis.y, m.z_axis.z, m.x_axis.y, m.x_axis.z, m.y_axis.z,
+    ]
 }
 
 /// Hydrostatic constraint `C_H = det F − 1` (0 inside `dead_band`) and its gradient `cof F`.
@@ -401,7 +409,12 @@ pub fn hydrostatic_constraint(f: &Mat3, dead_band: f32) -> (f32, Mat3) {
 /// components inside `dead_band` are 0. Taking the symmetric part also removes the skew
 /// error of an approximate `R`.
 #[inline]
-pub fn deviatoric_strain(f: &Mat3, rot: &mut Quat, rotation_iterations: u32, dead_band: f32) -> (Mat3, Mat3) {
+pub fn deviatoric_strain(
+    f: &Mat3,
+    rot: &mut Quat,
+    rotation_iterations: u32,
+    dead_band: f32,
+) -> (Mat3, Mat3) {
     extract_rotation(f, rot, rotation_iterations);
     let r = Mat3::from_quat(*rot);
     let rtf = r.transpose() * *f;

@@ -56,7 +56,10 @@ impl fmt::Display for MeshError {
         match self {
             MeshError::Empty => write!(f, "mesh is empty: no vertices or no triangles"),
             MeshError::NotTriangles { indices } => {
-                write!(f, "index count {indices} is not a multiple of 3 (triangle list expected)")
+                write!(
+                    f,
+                    "index count {indices} is not a multiple of 3 (triangle list expected)"
+                )
             }
             MeshError::NonFinite { vertex, count } => write!(
                 f,
@@ -67,7 +70,10 @@ impl fmt::Display for MeshError {
                 "triangle index {index} is out of range ({vertices} vertices)"
             ),
             MeshError::DegenerateTriangles { count } => {
-                write!(f, "{count} degenerate triangle(s) (zero area or repeated vertex)")
+                write!(
+                    f,
+                    "{count} degenerate triangle(s) (zero area or repeated vertex)"
+                )
             }
             MeshError::NotClosed { boundary_edges } => {
                 write!(f, "surface not closed: {boundary_edges} boundary edges")
@@ -146,7 +152,10 @@ impl fmt::Display for TissueError {
                 name,
                 value,
                 expected,
-            } => write!(f, "invalid parameter `{name}` = {value}: expected {expected}"),
+            } => write!(
+                f,
+                "invalid parameter `{name}` = {value}: expected {expected}"
+            ),
             TissueError::TooFewParticles {
                 particles,
                 neighbours,

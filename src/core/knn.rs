@@ -60,7 +60,11 @@ impl Grid {
     pub fn build_with_cell(points: &[Vec3], origin: Vec3, cell: f32) -> Grid {
         let (_, hi) = super::mesh::bounds_of(points).unwrap_or((origin, origin));
         let d = ((hi - origin) / cell).floor() + Vec3::ONE;
-        let dims = [d.x.max(1.0) as u32, d.y.max(1.0) as u32, d.z.max(1.0) as u32];
+        let dims = [
+            d.x.max(1.0) as u32,
+            d.y.max(1.0) as u32,
+            d.z.max(1.0) as u32,
+        ];
         let mut g = Grid {
             origin,
             cell,
@@ -146,7 +150,11 @@ impl Grid {
         let rel = (q - self.origin) / self.cell;
         let max_ring = self.dims.iter().copied().max().unwrap_or(1) as i32;
         let max2 = max_dist as f64 * max_dist as f64;
-        let max2 = if max2 >= f32::MAX as f64 { f32::INFINITY } else { max2 as f32 };
+        let max2 = if max2 >= f32::MAX as f64 {
+            f32::INFINITY
+        } else {
+            max2 as f32
+        };
         for r in 0..=max_ring {
             let lo = [c[0] - r, c[1] - r, c[2] - r];
             let hi = [c[0] + r, c[1] + r, c[2] + r];
@@ -163,8 +171,12 @@ impl Grid {
                             continue;
                         }
                         let ci = x as usize
-                            + self.dims[0] as usize * (y as usize + self.dims[1] as usize * z as usize);
-                        let (s, e) = (self.cell_start[ci] as usize, self.cell_start[ci + 1] as usize);
+                            + self.dims[0] as usize
+                                * (y as usize + self.dims[1] as usize * z as usize);
+                        let (s, e) = (
+                            self.cell_start[ci] as usize,
+                            self.cell_start[ci + 1] as usize,
+                        );
                         for slot in s..e {
                             let idx = self.sorted[slot];
                             if !accept(idx) {

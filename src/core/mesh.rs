@@ -69,7 +69,7 @@ impl Surface {
         if mesh.positions.is_empty() || mesh.indices.is_empty() {
             return Err(MeshError::Empty);
         }
-        if mesh.indices.len() % 3 != 0 {
+        if !mesh.indices.len().is_multiple_of(3) {
             return Err(MeshError::NotTriangles {
                 indices: mesh.indices.len(),
             });
@@ -110,7 +110,9 @@ impl Surface {
                 weld_map[t[2] as usize],
             ];
             let [a, b, c] = tri.map(|i| positions[i as usize]);
-            if tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2]
+            if tri[0] == tri[1]
+                || tri[1] == tri[2]
+                || tri[0] == tri[2]
                 || (b - a).cross(c - a).length() * 0.5 <= area_eps
             {
                 degenerate += 1;

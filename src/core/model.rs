@@ -50,14 +50,26 @@ impl Material {
     pub fn validate(&self) -> Result<(), TissueError> {
         match *self {
             Material::ShapeMatching { stiffness } => {
-                in_range("stiffness", stiffness, f32::MIN_POSITIVE, 1.0, "a value in (0, 1]")?;
+                in_range(
+                    "stiffness",
+                    stiffness,
+                    f32::MIN_POSITIVE,
+                    1.0,
+                    "a value in (0, 1]",
+                )?;
             }
             Material::Hyperelastic {
                 youngs_modulus,
                 poisson_ratio,
             } => {
                 positive("youngs_modulus", youngs_modulus)?;
-                in_range("poisson_ratio", poisson_ratio, 0.0, 0.4999, "a value in [0, 0.5)")?;
+                in_range(
+                    "poisson_ratio",
+                    poisson_ratio,
+                    0.0,
+                    0.4999,
+                    "a value in [0, 0.5)",
+                )?;
             }
         }
         Ok(())
@@ -284,7 +296,10 @@ impl Model {
         for c in 0..n {
             let mem = &members[c * (k + 1)..(c + 1) * (k + 1)];
             cluster_rest.push(init_cluster(mem, &rest, &masses, &inv_mass, &mult));
-            let v: f32 = mem.iter().map(|&j| m / desc.density / mult[j as usize] as f32).sum();
+            let v: f32 = mem
+                .iter()
+                .map(|&j| m / desc.density / mult[j as usize] as f32)
+                .sum();
             cluster_volume.push(v);
             let s = mem.iter().map(|&j| mult[j as usize]).max().unwrap_or(1);
             cluster_weight.push(1.0 / s as f32);

@@ -16,7 +16,11 @@ where
 {
     let item = item.max(1);
     let items = data.len() / item;
-    let threads = if threads == 0 { default_threads() } else { threads };
+    let threads = if threads == 0 {
+        default_threads()
+    } else {
+        threads
+    };
     let threads = threads.min(items.max(1));
     if threads <= 1 || items < 64 {
         f(0, data);
@@ -48,7 +52,11 @@ where
     F: Fn(usize, &mut [A], &mut [B]) + Sync,
 {
     let items = a.len().min(b.len());
-    let threads = if threads == 0 { default_threads() } else { threads };
+    let threads = if threads == 0 {
+        default_threads()
+    } else {
+        threads
+    };
     let threads = threads.min(items.max(1));
     if threads <= 1 || items < 64 {
         f(0, a, b);

@@ -71,7 +71,13 @@ pub fn embed(
 /// Deforms the skin: writes every render vertex position into `out_positions`, using the
 /// current particle positions `x`, rest positions `rest`, and the per-particle deformation
 /// gradients `f` (one per particle: its own cluster's).
-pub fn skin_positions(skin: &Skin, x: &[Vec3], rest: &[Vec3], f: &[Mat3], out_positions: &mut [Vec3]) {
+pub fn skin_positions(
+    skin: &Skin,
+    x: &[Vec3],
+    rest: &[Vec3],
+    f: &[Mat3],
+    out_positions: &mut [Vec3],
+) {
     for (v, out) in out_positions.iter_mut().enumerate() {
         let v0 = skin.rest_vertices[v];
         let mut acc = Vec3::ZERO;

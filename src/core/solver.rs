@@ -19,8 +19,8 @@
 
 use super::colliders::{Collider, project_collider};
 use super::constraints::{
-    ClusterCorrection, ClusterRest, Multipliers, Hyperelastic, cluster_moments, iteration_stiffness, solve_contact,
-    solve_hyperelastic, solve_shape_matching, strain_dead_band,
+    ClusterCorrection, ClusterRest, Hyperelastic, Multipliers, cluster_moments,
+    iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
 };
 use super::error::{DivergenceKind, TissueError, in_range, positive};
 use super::model::{Material, Model};
@@ -268,7 +268,7 @@ impl Solver {
             collider_forces: vec![Vec3::ZERO; control.colliders.len()],
             ..Default::default()
         };
-        if s.particle_contacts && state.step % s.knn_every as u64 == 0 {
+        if s.particle_contacts && state.step.is_multiple_of(s.knn_every as u64) {
             self.refresh_contacts(model, &state.x);
             stats.knn_refreshed = true;
         }
@@ -286,7 +286,9 @@ impl Solver {
             }
             // XPBD multipliers start from zero every substep (Macklin et al. 2016).
             self.work.iter_mut().for_each(|w| w.1 = Multipliers::ZERO);
-            self.col.iter_mut().for_each(|d| *d = (Vec3::ZERO, u32::MAX));
+            self.col
+                .iter_mut()
+                .for_each(|d| *d = (Vec3::ZERO, u32::MAX));
             // 2. constraints
             for _ in 0..s.iterations {
                 match s.method {
@@ -359,14 +361,21 @@ impl Solver {
                 let i = start + r;
                 let bi = model.particle_body[i];
                 let reach = 2.0 * (model.bodies[bi as usize].radius + max_r);
-                grid.knn_filtered(x[i], k, reach, |j| model.particle_body[j as usize] != bi, &mut buf);
+                grid.knn_filtered(
+                    x[i],
+                    k,
+                    reach,
+                    |j| model.particle_body[j as usize] != bi,
+                    &mut buf,
+                );
                 for (o, &(_, j)) in row.iter_mut().zip(&buf) {
                     *o = j;
                 }
             }
         });
         for row in lists.chunks_exact(k) {
-            self.contact_list.extend(row.iter().copied().filter(|&j| j != u32::MAX));
+            self.contact_list
+                .extend(row.iter().copied().filter(|&j| j != u32::MAX));
             self.contact_start.push(self.contact_list.len() as u32);
         }
     }
@@ -375,7 +384,9 @@ impl Solver {
         let mut active = 0;
         for i in 0..x.len() {
             let bi = model.particle_body[i] as usize;
-            for &j in &self.contact_list[self.contact_start[i] as usize..self.contact_start[i + 1] as usize] {
+            for &j in &self.contact_list
+                [self.contact_start[i] as usize..self.contact_start[i + 1] as usize]
+            {
                 let bj = model.particle_body[j as usize] as usize;
                 let d = model.bodies[bi].radius + model.bodies[bj].radius;
                 if x[i].distance_squared(x[j as usize]) < d * d {
@@ -402,8 +413,12 @@ impl Solver {
         rot_iters: u32,
     ) -> ClusterCorrection {
         let r = &model.cluster_rest[c];
-        let (com, apq, rest_com) = cluster_moments(model.members(c), p, &model.rest, &model.mass, r);
-        let rest_c = &ClusterRest { com: rest_com, ..*r };
+        let (com, apq, rest_com) =
+            cluster_moments(model.members(c), p, &model.rest, &model.mass, r);
+        let rest_c = &ClusterRest {
+            com: rest_com,
+            ..*r
+        };
         match consts[model.particle_body[c] as usize] {
             BodyConst::Sm { k_iter } => {
                 let w = jacobi.map_or(1.0, |omega| omega * model.cluster_weight[c]);
@@ -418,12 +433,20 @@ impl Solver {
                     None => (&r.metric, 1.0),
                     Some(omega) => (&r.metric_split, omega),
                 };
-                solve_hyperelastic(&f, rest_c, metric, rot, rot_iters, v, &mat, h2, scale, lambda, band)
+                solve_hyperelastic(
+                    &f, rest_c, metric, rot, rot_iters, v, &mat, h2, scale, lambda, band,
+                )
             }
         }
     }
 
-    fn iterate_gs(&mut self, model: &Model, state: &mut State, control: &Control, consts: &[BodyConst]) {
+    fn iterate_gs(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        control: &Control,
+        consts: &[BodyConst],
+    ) {
         let h2 = self.h * self.h;
         let n = model.particle_count();
         let ri = self.settings.rotation_iterations;
@@ -458,7 +481,11 @@ impl Solver {
                     let (wi, wj) = (self.inv_mass(model, i), self.inv_mass(model, j));
                     let di = solve_contact(self.p[i], self.p[j], wi, wj, d);
                     if di != Vec3::ZERO {
-                        let dj = if wi > 0.0 { -di * (wj / wi) } else { Vec3::ZERO };
+                        let dj = if wi > 0.0 {
+                            -di * (wj / wi)
+                        } else {
+                            Vec3::ZERO
+                        };
                         self.p[i] += di;
                         self.p[j] += dj;
                     }
@@ -470,12 +497,23 @@ impl Solver {
 
     #[inline]
     fn inv_mass(&self, model: &Model, i: usize) -> f32 {
-        if self.pin_slot[i] != u32::MAX { 0.0 } else { 1.0 / model.mass[i] }
+        if self.pin_slot[i] != u32::MAX {
+            0.0
+        } else {
+            1.0 / model.mass[i]
+        }
     }
 
     /// Colliders and pins for particle `i` at position `p` (records collider corrections).
     #[inline]
-    fn boundary(&mut self, model: &Model, state: &State, control: &Control, i: usize, p: Vec3) -> Vec3 {
+    fn boundary(
+        &mut self,
+        model: &Model,
+        state: &State,
+        control: &Control,
+        i: usize,
+        p: Vec3,
+    ) -> Vec3 {
         let (q, id, dp) = boundary_at(
             model,
             &self.pin_slot,
@@ -493,7 +531,13 @@ impl Solver {
         q
     }
 
-    fn iterate_jacobi(&mut self, model: &Model, state: &mut State, control: &Control, consts: &[BodyConst]) {
+    fn iterate_jacobi(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        control: &Control,
+        consts: &[BodyConst],
+    ) {
         let h2 = self.h * self.h;
         let h = self.h;
         let ri = self.settings.rotation_iterations;
@@ -503,12 +547,17 @@ impl Solver {
         // Pass A: every cluster from the same positions.
         {
             let p = &self.p;
-            par::for_chunks_mut2(&mut self.work, &mut state.rot, threads, |start, work, rot| {
-                for (k, ((cr, lam), r)) in work.iter_mut().zip(rot.iter_mut()).enumerate() {
-                    let c = start + k;
-                    *cr = Self::solve_cluster(model, c, p, consts, Some(omega), h2, r, lam, ri);
-                }
-            });
+            par::for_chunks_mut2(
+                &mut self.work,
+                &mut state.rot,
+                threads,
+                |start, work, rot| {
+                    for (k, ((cr, lam), r)) in work.iter_mut().zip(rot.iter_mut()).enumerate() {
+                        let c = start + k;
+                        *cr = Self::solve_cluster(model, c, p, consts, Some(omega), h2, r, lam, ri);
+                    }
+                },
+            );
         }
         // Pass B: every particle gathers its clusters' corrections.
         let mut out = std::mem::take(&mut self.p2);
@@ -538,14 +587,22 @@ impl Solver {
                     let mut q = pj;
                     if contacts {
                         let bj = model.particle_body[j] as usize;
-                        let wj = if pin_slot[j] != u32::MAX { 0.0 } else { 1.0 / model.mass[j] };
+                        let wj = if pin_slot[j] != u32::MAX {
+                            0.0
+                        } else {
+                            1.0 / model.mass[j]
+                        };
                         let mut sum = Vec3::ZERO;
                         let mut cnt = 0u32;
                         for s in cs[j]..cs[j + 1] {
                             let i = cl[s as usize] as usize;
                             let bi = model.particle_body[i] as usize;
                             let dist = model.bodies[bi].radius + model.bodies[bj].radius;
-                            let wi = if pin_slot[i] != u32::MAX { 0.0 } else { 1.0 / model.mass[i] };
+                            let wi = if pin_slot[i] != u32::MAX {
+                                0.0
+                            } else {
+                                1.0 / model.mass[i]
+                            };
                             let dc = solve_contact(pj, p[i], wj, wi, dist);
                             if dc != Vec3::ZERO {
                                 sum += dc;
@@ -556,7 +613,8 @@ impl Solver {
                             q += sum / cnt as f32;
                         }
                     }
-                    let (q, id, dp) = boundary_at(model, pin_slot, pin_targets, x, control, h, j, q);
+                    let (q, id, dp) =
+                        boundary_at(model, pin_slot, pin_targets, x, control, h, j, q);
                     if id != u32::MAX {
                         cid.0 += dp;
                         cid.1 = id;
@@ -586,7 +644,11 @@ impl Solver {
     /// size. Zero exactly when every cluster is satisfied.
     pub fn residual(&self, model: &Model, state: &State) -> f32 {
         let x = &state.x;
-        let h2 = if self.h > 0.0 { self.h * self.h } else { (self.settings.dt / self.settings.substeps as f32).powi(2) };
+        let h2 = if self.h > 0.0 {
+            self.h * self.h
+        } else {
+            (self.settings.dt / self.settings.substeps as f32).powi(2)
+        };
         let mut consts = self.body_consts(model);
         for c in consts.iter_mut() {
             if let BodyConst::Sm { k_iter } = c {
@@ -655,4 +717,3 @@ fn boundary_at(
     }
     (p, id, total)
 }
-

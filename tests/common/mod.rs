@@ -16,7 +16,10 @@ pub fn meshes_dir() -> Option<PathBuf> {
         return Some(dir);
     }
     if std::env::var("CI").is_ok_and(|v| v == "true") {
-        panic!("CI=true but the shared meshes folder {} is missing", dir.display());
+        panic!(
+            "CI=true but the shared meshes folder {} is missing",
+            dir.display()
+        );
     }
     eprintln!("skipped: shared meshes folder {} not found", dir.display());
     None
@@ -52,7 +55,10 @@ pub fn load_stl(path: &std::path::Path) -> TriMesh {
     let mut f = std::fs::File::open(path).unwrap();
     let m = stl_io::read_stl(&mut f).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     TriMesh::new(
-        m.vertices.iter().map(|v| Vec3::new(v[0], v[1], v[2])).collect(),
+        m.vertices
+            .iter()
+            .map(|v| Vec3::new(v[0], v[1], v[2]))
+            .collect(),
         m.faces
             .iter()
             .flat_map(|f| f.vertices.iter().map(|&i| i as u32))
@@ -104,7 +110,12 @@ pub fn load_msh_v1_surface(path: &std::path::Path) -> TriMesh {
     }
     let mut faces: std::collections::HashMap<[u32; 3], ([u32; 3], u32)> = Default::default();
     for t in &tets {
-        for (f, opp) in [([t[1], t[2], t[3]], t[0]), ([t[0], t[3], t[2]], t[1]), ([t[0], t[1], t[3]], t[2]), ([t[0], t[2], t[1]], t[3])] {
+        for (f, opp) in [
+            ([t[1], t[2], t[3]], t[0]),
+            ([t[0], t[3], t[2]], t[1]),
+            ([t[0], t[1], t[3]], t[2]),
+            ([t[0], t[2], t[1]], t[3]),
+        ] {
             let mut key = f;
             key.sort();
             let e = faces.entry(key).or_insert((f, opp));

@@ -1,0 +1,130 @@
+//! CPU benchmark of the simulation core at the paper's sizes (Li & Kang 2014, Table 1):
+//! the procedural liver sampled at 512, 4096, 13824 and 37982 particles, K = 32,
+//! 10 iterations, dt = 1/60 s, pinned along its ligament, falling under gravity.
+//!
+//! Prints a Markdown table: ms per step for one-thread Gauss–Seidel (the paper's CPU
+//! baseline) and all-core Jacobi, both elastic models, and ms per KNN refresh (K = 32,
+//! all cores and one thread).
+//!
+//! ```text
+//! cargo run --release --example cpu_bench            # the full table
+//! cargo run --release --example cpu_bench -- --quick # small sizes only, seconds
+//! ```
+use bevy_tissue::core::knn::knn_all;
+use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
+use bevy_tissue::core::procedural;
+use bevy_tissue::core::sampling::Resolution;
+use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
+use std::time::Instant;
+
+/// Median of a list of milliseconds.
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Mean ms per step over `steps` steps, or the error if the run diverged.
+fn time_steps(model: &Model, method: Method, threads: usize, steps: usize) -> Result<f64, String> {
+    let settings = SolverSettings {
+        method,
+        threads,
+        iterations: 10,
+        knn_every: 10,
+        ..Default::default()
+    };
+    let mut solver = Solver::new(model, settings).map_err(|e| e.to_string())?;
+    let mut state = State::new(model);
+    let control = Control::default();
+    // Warm-up: the body starts to sag and the contact KNN runs once.
+    for _ in 0..5 {
+        solver
+            .step(model, &mut state, &control)
+            .map_err(|e| e.to_string())?;
+    }
+    let mut per_step = Vec::with_capacity(steps);
+    for _ in 0..steps {
+        let t = Instant::now();
+        solver
+            .step(model, &mut state, &control)
+            .map_err(|e| e.to_string())?;
+        per_step.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    // Mean over the run (KNN refreshes included at their 1-in-10 rate).
+    Ok(per_step.iter().sum::<f64>() / per_step.len() as f64)
+}
+
+fn cell(r: &Result<f64, String>) -> String {
+    match r {
+        Ok(ms) => format!("{ms:.1}"),
+        Err(e) => {
+            eprintln!("  run failed: {e}");
+            "diverged".into()
+        }
+    }
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let sizes: &[u32] = if quick {
+        &[512, 4096]
+    } else {
+        &[512, 4096, 13824, 37982]
+    };
+    let steps = if quick { 10 } else { 30 };
+    let threads = bevy_tissue::core::par::default_threads();
+    let mesh = procedural::liver(5);
+    let (lo, hi) = procedural::liver_ligament();
+    println!("CPU threads: {threads}; K = 32, 10 iterations, dt = 1/60 s, KNN every 10th step");
+    println!();
+    println!(
+        "| particles | model | GS 1 thread ms/step | Jacobi {threads} threads ms/step | KNN {threads} threads ms | KNN 1 thread ms |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for &n in sizes {
+        for (name, material) in [
+            (
+                "shape matching k=0.5",
+                Material::ShapeMatching { stiffness: 0.5 },
+            ),
+            ("hyperelastic E=10 kPa", Material::default()),
+        ] {
+            let mut model = Model::new();
+            let desc = BodyDesc {
+                resolution: Resolution::Particles(n),
+                neighbours: 32,
+                material,
+                pins: vec![PinRegion::Box { min: lo, max: hi }],
+                ..Default::default()
+            };
+            let t = Instant::now();
+            model
+                .add_body(&mesh, &desc)
+                .expect("the procedural liver is valid");
+            eprintln!(
+                "built {} particles ({name}) in {:.0} ms",
+                model.particle_count(),
+                t.elapsed().as_secs_f64() * 1e3
+            );
+            let gs = time_steps(&model, Method::GaussSeidel, 1, steps);
+            let jc = time_steps(&model, Method::Jacobi, 0, steps);
+            let knn = |th: usize| {
+                median(
+                    (0..3)
+                        .map(|_| {
+                            let t = Instant::now();
+                            let _ = knn_all(&model.rest, 32, th);
+                            t.elapsed().as_secs_f64() * 1e3
+                        })
+                        .collect(),
+                )
+            };
+            let (k_all, k_one) = (knn(0), knn(1));
+            println!(
+                "| {} | {name} | {} | {} | {k_all:.1} | {k_one:.1} |",
+                model.particle_count(),
+                cell(&gs),
+                cell(&jc)
+            );
+        }
+    }
+}
