@@ -14,7 +14,7 @@ use bevy_tissue::core::knn::knn_all;
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
+use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, StageTimes, State};
 use std::time::Instant;
 
 /// Median of a list of milliseconds.
@@ -23,8 +23,14 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// Mean ms per step over `steps` steps, or the error if the run diverged.
-fn time_steps(model: &Model, method: Method, threads: usize, steps: usize) -> Result<f64, String> {
+/// Mean ms per step over `steps` steps (and the mean time per stage), or the error if
+/// the run diverged.
+fn time_steps(
+    model: &Model,
+    method: Method,
+    threads: usize,
+    steps: usize,
+) -> Result<(f64, StageTimes), String> {
     let settings = SolverSettings {
         method,
         threads,
@@ -42,20 +48,29 @@ fn time_steps(model: &Model, method: Method, threads: usize, steps: usize) -> Re
             .map_err(|e| e.to_string())?;
     }
     let mut per_step = Vec::with_capacity(steps);
+    let mut stages = StageTimes::default();
     for _ in 0..steps {
         let t = Instant::now();
-        solver
+        let st = solver
             .step(model, &mut state, &control)
             .map_err(|e| e.to_string())?;
         per_step.push(t.elapsed().as_secs_f64() * 1e3);
+        let s = st.timings;
+        let w = 1.0 / steps as f64;
+        stages.knn += s.knn * w;
+        stages.predict += s.predict * w;
+        stages.clusters += s.clusters * w;
+        stages.gather += s.gather * w;
+        stages.boundary += s.boundary * w;
+        stages.finish += s.finish * w;
     }
     // Mean over the run (KNN refreshes included at their 1-in-10 rate).
-    Ok(per_step.iter().sum::<f64>() / per_step.len() as f64)
+    Ok((per_step.iter().sum::<f64>() / per_step.len() as f64, stages))
 }
 
-fn cell(r: &Result<f64, String>) -> String {
+fn cell(r: &Result<(f64, StageTimes), String>) -> String {
     match r {
-        Ok(ms) => format!("{ms:.1}"),
+        Ok((ms, _)) => format!("{ms:.1}"),
         Err(e) => {
             eprintln!("  run failed: {e}");
             "diverged".into()
@@ -80,6 +95,7 @@ fn main() {
         "| particles | model | GS 1 thread ms/step | Jacobi {threads} threads ms/step | KNN {threads} threads ms | KNN 1 thread ms |"
     );
     println!("|---|---|---|---|---|---|");
+    let mut breakdown = Vec::new();
     for &n in sizes {
         for (name, material) in [
             (
@@ -125,6 +141,30 @@ fn main() {
                 cell(&gs),
                 cell(&jc)
             );
+            for (method, r) in [("GS 1 thread", &gs), ("Jacobi all cores", &jc)] {
+                if let Ok((_, s)) = r {
+                    breakdown.push(format!(
+                        "| {} | {name} | {method} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+                        model.particle_count(),
+                        s.knn,
+                        s.predict,
+                        s.clusters,
+                        s.gather,
+                        s.boundary,
+                        s.finish
+                    ));
+                }
+            }
         }
+    }
+    println!();
+    println!("Mean ms per step by stage:");
+    println!();
+    println!(
+        "| particles | model | method | KNN | predict | clusters | gather | contacts/colliders/pins | finish |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for row in breakdown {
+        println!("{row}");
     }
 }

@@ -259,7 +259,14 @@ pub fn extract_rotation(a: &Mat3, q: &mut Quat, iterations: u32) {
         if w.is_nan() || w < 1.0e-6 {
             break; // converged to ~1e-6 rad (or NaN input)
         }
-        *q = (Quat::from_axis_angle(omega / w, w) * *q).normalize();
+        // exp(ω) ⊗ q; below 0.25 rad its first-order form (1, ω/2) is used (no
+        // trigonometry): the iteration's fixed point ω = 0 is the same.
+        let step = if w < 0.25 {
+            Quat::from_xyzw(0.5 * omega.x, 0.5 * omega.y, 0.5 * omega.z, 1.0)
+        } else {
+            Quat::from_axis_angle(omega / w, w)
+        };
+        *q = (step * *q).normalize();
     }
 }
 

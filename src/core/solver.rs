@@ -84,7 +84,7 @@ impl Default for SolverSettings {
             knn_every: 10,
             particle_contacts: true,
             contact_neighbours: 16,
-            rotation_iterations: 8,
+            rotation_iterations: 2,
             max_speed: 500.0,
         }
     }
@@ -174,6 +174,37 @@ pub struct StepStats {
     pub knn_refreshed: bool,
     /// Active particle contacts at the end of the step (pairs counted per particle).
     pub active_contacts: usize,
+    /// Wall-clock time per stage of this step.
+    pub timings: StageTimes,
+}
+
+/// Wall-clock time per stage of a step, ms (as rapier reports its pipeline stages).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTimes {
+    /// Contact-neighbour KNN refresh.
+    pub knn: f64,
+    /// Prediction `p = x + h v`.
+    pub predict: f64,
+    /// Cluster solves (Jacobi pass A; the whole Gauss–Seidel sweep).
+    pub clusters: f64,
+    /// Jacobi pass B: every particle gathers its clusters' corrections.
+    pub gather: f64,
+    /// Contacts, colliders and pins (Jacobi pass C; the Gauss–Seidel particle loop).
+    pub boundary: f64,
+    /// Velocity update, damping, divergence check.
+    pub finish: f64,
+}
+
+impl StageTimes {
+    /// Sum of all stages, ms.
+    pub fn total(&self) -> f64 {
+        self.knn + self.predict + self.clusters + self.gather + self.boundary + self.finish
+    }
+}
+
+/// Milliseconds since `t`.
+fn ms(t: std::time::Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
 }
 
 /// Per-body constants for one substep.
@@ -197,6 +228,7 @@ pub struct Solver {
     contact_list: Vec<u32>,
     /// Per particle: collider correction summed over the substep, and the collider.
     col: Vec<(Vec3, u32)>,
+    timings: StageTimes,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     h: f32,
@@ -220,6 +252,7 @@ impl Solver {
             contact_start: vec![0; n + 1],
             contact_list: Vec::new(),
             col: vec![(Vec3::ZERO, u32::MAX); n],
+            timings: StageTimes::default(),
             backup_x: Vec::new(),
             backup_v: Vec::new(),
             h: 0.0,
@@ -268,15 +301,19 @@ impl Solver {
             collider_forces: vec![Vec3::ZERO; control.colliders.len()],
             ..Default::default()
         };
+        self.timings = StageTimes::default();
         if s.particle_contacts && state.step.is_multiple_of(s.knn_every as u64) {
+            let t = std::time::Instant::now();
             self.refresh_contacts(model, &state.x);
             stats.knn_refreshed = true;
+            self.timings.knn = ms(t);
         }
         let consts = self.body_consts(model);
         let h = s.dt / s.substeps as f32;
         self.h = h;
         for _ in 0..s.substeps {
             // 1. predict
+            let t = std::time::Instant::now();
             for i in 0..n {
                 state.v[i] += s.gravity * h;
                 self.p[i] = state.x[i] + state.v[i] * h;
@@ -289,6 +326,7 @@ impl Solver {
             self.col
                 .iter_mut()
                 .for_each(|d| *d = (Vec3::ZERO, u32::MAX));
+            self.timings.predict += ms(t);
             // 2. constraints
             for _ in 0..s.iterations {
                 match s.method {
@@ -297,6 +335,7 @@ impl Solver {
                 }
             }
             // Collider forces: momentum the colliders removed over the substep.
+            let t = std::time::Instant::now();
             for i in 0..n {
                 let (dp, id) = self.col[i];
                 if id != u32::MAX {
@@ -310,7 +349,9 @@ impl Solver {
                 state.v[i] = (self.p[i] - state.x[i]) / h * keep;
                 state.x[i] = self.p[i];
             }
+            self.timings.finish += ms(t);
         }
+        let t = std::time::Instant::now();
         // 4. divergence check
         for i in 0..n {
             let (x, v) = (state.x[i], state.v[i]);
@@ -332,6 +373,8 @@ impl Solver {
             }
         }
         stats.active_contacts = self.count_active_contacts(model, &state.x);
+        self.timings.finish += ms(t);
+        stats.timings = self.timings;
         state.step += 1;
         Ok(stats)
     }
@@ -447,6 +490,7 @@ impl Solver {
         control: &Control,
         consts: &[BodyConst],
     ) {
+        let t = std::time::Instant::now();
         let h2 = self.h * self.h;
         let n = model.particle_count();
         let ri = self.settings.rotation_iterations;
@@ -471,6 +515,8 @@ impl Solver {
                 self.p[j] = pj + corr.apply(model.rest[j], pj);
             }
         }
+        self.timings.clusters += ms(t);
+        let t = std::time::Instant::now();
         for i in 0..n {
             if self.settings.particle_contacts {
                 let bi = model.particle_body[i] as usize;
@@ -480,19 +526,14 @@ impl Solver {
                     let d = model.bodies[bi].radius + model.bodies[bj].radius;
                     let (wi, wj) = (self.inv_mass(model, i), self.inv_mass(model, j));
                     let di = solve_contact(self.p[i], self.p[j], wi, wj, d);
-                    if di != Vec3::ZERO {
-                        let dj = if wi > 0.0 {
-                            -di * (wj / wi)
-                        } else {
-                            Vec3::ZERO
-                        };
-                        self.p[i] += di;
-                        self.p[j] += dj;
-                    }
+                    let dj = solve_contact(self.p[j], self.p[i], wj, wi, d);
+                    self.p[i] += di;
+                    self.p[j] += dj;
                 }
             }
             self.p[i] = self.boundary(model, state, control, i, self.p[i]);
         }
+        self.timings.boundary += ms(t);
     }
 
     #[inline]
@@ -545,6 +586,7 @@ impl Solver {
         let omega = self.settings.relaxation;
         let contacts = self.settings.particle_contacts;
         // Pass A: every cluster from the same positions.
+        let t = std::time::Instant::now();
         {
             let p = &self.p;
             par::for_chunks_mut2(
@@ -559,7 +601,9 @@ impl Solver {
                 },
             );
         }
+        self.timings.clusters += ms(t);
         // Pass B: every particle gathers its clusters' corrections.
+        let t = std::time::Instant::now();
         let mut out = std::mem::take(&mut self.p2);
         {
             let p = &self.p;
@@ -571,8 +615,10 @@ impl Solver {
                 }
             });
         }
+        self.timings.gather += ms(t);
         // Pass C: particle contacts (from the positions pass B left, so the two do not
         // correct the same overlap twice), then colliders and pins.
+        let t = std::time::Instant::now();
         {
             let p = &out;
             let cs = &self.contact_start;
@@ -624,6 +670,7 @@ impl Solver {
             });
         }
         self.p2 = out;
+        self.timings.boundary += ms(t);
     }
 
     /// Each particle's own cluster's deformation gradient `F = A_pq A_qq⁻¹` at positions `x`
