@@ -1,10 +1,10 @@
 //! The skinned surface follows rigid and affine motion exactly; normals are recomputed.
-use bevy_tissue::core::mesh::{signed_volume, vertex_normals};
+mod common;
+use bevy_tissue::core::mesh::vertex_normals;
 use bevy_tissue::core::model::{BodyDesc, Model};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::skin::{skin_normals, skin_positions};
-use bevy_tissue::core::solver::Solver;
+use bevy_tissue::core::skin::skin_normals;
 use glam::{Mat3, Quat, Vec3};
 
 fn model() -> Model {
@@ -20,10 +20,8 @@ fn model() -> Model {
 
 fn check_map(model: &Model, a: Mat3, t: Vec3, what: &str) {
     let x: Vec<Vec3> = model.rest.iter().map(|p| a * *p + t).collect();
-    let f = Solver::deformation_gradients(model, &x);
     let skin = &model.bodies[0].skin;
-    let mut out = vec![Vec3::ZERO; skin.rest_vertices.len()];
-    skin_positions(skin, &x, &model.rest, &f, &mut out);
+    let out = common::skinned(model, &x);
     let size = model.bodies[0].size;
     let err = out
         .iter()
@@ -60,9 +58,7 @@ fn skin_normals_are_outward_and_rotate_with_the_body() {
     let skin = &m.bodies[0].skin;
     let r = Quat::from_rotation_z(0.9);
     let x: Vec<Vec3> = m.rest.iter().map(|p| r * *p).collect();
-    let f = Solver::deformation_gradients(&m, &x);
-    let mut pos = vec![Vec3::ZERO; skin.rest_vertices.len()];
-    skin_positions(skin, &x, &m.rest, &f, &mut pos);
+    let pos = common::skinned(&m, &x);
     let mut nrm = vec![Vec3::ZERO; pos.len()];
     skin_normals(skin, &pos, &mut nrm);
     let rest_n = vertex_normals(&skin.rest_vertices, &skin.indices);
@@ -75,12 +71,6 @@ fn skin_normals_are_outward_and_rotate_with_the_body() {
         );
     }
     // The deformed surface encloses the same volume after a rigid motion.
-    let p64: Vec<glam::DVec3> = pos.iter().map(|p| p.as_dvec3()).collect();
-    let tris: Vec<[u32; 3]> = skin
-        .indices
-        .chunks_exact(3)
-        .map(|t| [t[0], t[1], t[2]])
-        .collect();
-    let v = signed_volume(&p64, &tris);
+    let v = common::enclosed_volume(&pos, &skin.indices);
     assert!((v - m.bodies[0].volume as f64).abs() / v < 1e-4);
 }

@@ -5,11 +5,9 @@ use bevy_tissue::core::constraints::{
     Hyperelastic, cluster_moments, solve_hyperelastic, solve_shape_matching,
 };
 use bevy_tissue::core::error::{DivergenceKind, TissueError};
-use bevy_tissue::core::mesh::signed_volume;
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::skin::skin_positions;
 use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use glam::{Mat3, Quat, Vec3};
 
@@ -78,41 +76,47 @@ fn body_at_rest_stays_at_rest_for_1000_steps() {
     }
 }
 
+/// One cluster's correction at positions `x` (from zero multipliers, a converged
+/// rotation), via the pure constraint functions; also returns the current centre of mass.
+fn cluster_correction(
+    model: &Model,
+    x: &[Vec3],
+    c: usize,
+    material: Material,
+    sm_alpha: f32,
+) -> (Vec3, bevy_tissue::core::constraints::ClusterCorrection) {
+    let r = &model.cluster_rest[c];
+    let (com, apq, rc) = cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
+    let r = &bevy_tissue::core::constraints::ClusterRest { com: rc, ..*r };
+    let mut q = Quat::IDENTITY;
+    let mut lam = bevy_tissue::core::constraints::Multipliers::ZERO;
+    let corr = match material {
+        Material::ShapeMatching { .. } => solve_shape_matching(com, &apq, r, &mut q, sm_alpha, 50),
+        Material::Hyperelastic {
+            youngs_modulus,
+            poisson_ratio,
+        } => solve_hyperelastic(
+            &(apq * r.aqq_inv),
+            r,
+            &r.metric,
+            &mut q,
+            50,
+            model.cluster_volume[c],
+            &Hyperelastic::new(youngs_modulus, poisson_ratio),
+            1e-4,
+            1.0,
+            &mut lam,
+            0.0,
+        ),
+    };
+    (com, corr)
+}
+
 /// Every cluster's correction for positions `x`, via the pure constraint functions.
 fn corrections(model: &Model, x: &[Vec3], material: Material) -> Vec<(usize, Vec3)> {
     let mut out = Vec::new();
     for c in 0..model.particle_count() {
-        let r = &model.cluster_rest[c];
-        let (com, apq, rc) = cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
-        let r = &bevy_tissue::core::constraints::ClusterRest { com: rc, ..*r };
-        let corr = match material {
-            Material::ShapeMatching { .. } => {
-                let mut q = Quat::IDENTITY;
-                solve_shape_matching(com, &apq, r, &mut q, 1.0, 50)
-            }
-            Material::Hyperelastic {
-                youngs_modulus,
-                poisson_ratio,
-            } => {
-                let (mut l, mut q) = (
-                    bevy_tissue::core::constraints::Multipliers::ZERO,
-                    Quat::IDENTITY,
-                );
-                solve_hyperelastic(
-                    &(apq * r.aqq_inv),
-                    r,
-                    &r.metric,
-                    &mut q,
-                    50,
-                    model.cluster_volume[c],
-                    &Hyperelastic::new(youngs_modulus, poisson_ratio),
-                    1e-4,
-                    1.0,
-                    &mut l,
-                    0.0,
-                )
-            }
-        };
+        let (_, corr) = cluster_correction(model, x, c, material, 1.0);
         for &j in model.members(c) {
             out.push((
                 j as usize,
@@ -157,37 +161,7 @@ fn elastic_corrections_conserve_momentum() {
             .collect();
         // Per cluster: Σ m Δx = 0 and Σ m x × Δx = 0.
         for c in (0..model.particle_count()).step_by(7) {
-            let r = &model.cluster_rest[c];
-            let (com, apq, rc) = cluster_moments(model.members(c), &x, &model.rest, &model.mass, r);
-            let r = &bevy_tissue::core::constraints::ClusterRest { com: rc, ..*r };
-            let corr = match material {
-                Material::ShapeMatching { .. } => {
-                    let mut q = Quat::IDENTITY;
-                    solve_shape_matching(com, &apq, r, &mut q, 0.7, 50)
-                }
-                Material::Hyperelastic {
-                    youngs_modulus,
-                    poisson_ratio,
-                } => {
-                    let (mut l, mut q) = (
-                        bevy_tissue::core::constraints::Multipliers::ZERO,
-                        Quat::IDENTITY,
-                    );
-                    solve_hyperelastic(
-                        &(apq * r.aqq_inv),
-                        r,
-                        &r.metric,
-                        &mut q,
-                        50,
-                        model.cluster_volume[c],
-                        &Hyperelastic::new(youngs_modulus, poisson_ratio),
-                        1e-4,
-                        1.0,
-                        &mut l,
-                        0.0,
-                    )
-                }
-            };
+            let (com, corr) = cluster_correction(&model, &x, c, material, 0.7);
             let (mut lin, mut ang, mut scale) = (Vec3::ZERO, Vec3::ZERO, 0.0f32);
             for &j in model.members(c) {
                 let j = j as usize;
@@ -507,17 +481,9 @@ fn nearly_incompressible_material_keeps_volume_under_compression() {
             (v / v0 - 1.0) * 100.0
         );
         // For the record: the enclosed volume of the skinned render surface.
-        let skin = &model.bodies[0].skin;
-        let fg = Solver::deformation_gradients(&model, &state.x);
-        let mut pos = vec![Vec3::ZERO; skin.rest_vertices.len()];
-        skin_positions(skin, &state.x, &model.rest, &fg, &mut pos);
-        let p64: Vec<glam::DVec3> = pos.iter().map(|p| p.as_dvec3()).collect();
-        let tris: Vec<[u32; 3]> = skin
-            .indices
-            .chunks_exact(3)
-            .map(|t| [t[0], t[1], t[2]])
-            .collect();
-        let vs = signed_volume(&p64, &tris) / model.bodies[0].volume as f64;
+        let pos = common::skinned(&model, &state.x);
+        let vs = common::enclosed_volume(&pos, &model.bodies[0].skin.indices)
+            / model.bodies[0].volume as f64;
         eprintln!(
             "{method:?}: material volume {:+.2}%, skinned surface volume {:+.2}%",
             (v / v0 - 1.0) * 100.0,

@@ -155,3 +155,22 @@ impl Rng {
         Vec3::new(self.next_f32(), self.next_f32(), self.next_f32())
     }
 }
+
+/// The skinned render-surface positions of body 0 at particle positions `x`.
+pub fn skinned(model: &bevy_tissue::core::model::Model, x: &[Vec3]) -> Vec<Vec3> {
+    let skin = &model.bodies[0].skin;
+    let f = bevy_tissue::core::solver::Solver::deformation_gradients(model, x);
+    let mut out = vec![Vec3::ZERO; skin.rest_vertices.len()];
+    bevy_tissue::core::skin::skin_positions(skin, x, &model.rest, &f, &mut out);
+    out
+}
+
+/// Enclosed volume (m³) of a triangle list over `positions`.
+pub fn enclosed_volume(positions: &[Vec3], indices: &[u32]) -> f64 {
+    let p64: Vec<glam::DVec3> = positions.iter().map(|p| p.as_dvec3()).collect();
+    let tris: Vec<[u32; 3]> = indices
+        .chunks_exact(3)
+        .map(|t| [t[0], t[1], t[2]])
+        .collect();
+    bevy_tissue::core::mesh::signed_volume(&p64, &tris)
+}
