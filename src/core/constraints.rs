@@ -16,7 +16,7 @@
 //! (`A_pq`), a 3×3 solve, then one gather per particle over the clusters that contain it
 //! — no scatter, no atomics, deterministic on every thread count and on the GPU.
 
-use glam::{Mat3, Quat, Vec3};
+use glam::{Mat3, Quat, Vec3, Vec3A};
 
 /// Rest data of one cluster (SPEC §2).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -198,20 +198,25 @@ pub fn cluster_moments(
     rest_data: &ClusterRest,
 ) -> (Vec3, Mat3, Vec3) {
     let origin = p[members[0] as usize];
-    let mut mp = Vec3::ZERO;
-    let mut a = Mat3::ZERO;
-    let mut mq = Vec3::ZERO;
+    let (o, com) = (Vec3A::from(origin), Vec3A::from(rest_data.com));
+    // 4-wide SIMD accumulation: the columns of Σ m d qᵀ are Σ (m d) q_k.
+    let (mut mp, mut mq) = (Vec3A::ZERO, Vec3A::ZERO);
+    let (mut a0, mut a1, mut a2) = (Vec3A::ZERO, Vec3A::ZERO, Vec3A::ZERO);
     for &j in members {
         let j = j as usize;
         let m = mass[j];
-        let d = p[j] - origin;
-        let q = rest[j] - rest_data.com;
-        mp += d * m;
+        let md = (Vec3A::from(p[j]) - o) * m;
+        let q = Vec3A::from(rest[j]) - com;
+        mp += md;
         mq += q * m;
-        a += outer(d * m, q);
+        a0 += md * q.x;
+        a1 += md * q.y;
+        a2 += md * q.z;
     }
     let inv_m = 1.0 / rest_data.mass;
-    let c_rel = mp * inv_m;
+    let c_rel = Vec3::from(mp * inv_m);
+    let mq = Vec3::from(mq);
+    let mut a = Mat3::from_cols(a0.into(), a1.into(), a2.into());
     // Σ m (p − x_cm) qᵀ = Σ m p qᵀ − x_cm (Σ m q)ᵀ; the second term is zero up to rounding.
     a -= outer(c_rel, mq);
     (origin + c_rel, a, rest_data.com + mq * inv_m)
