@@ -16,7 +16,7 @@
 //! (`A_pq`), a 3×3 solve, then one gather per particle over the clusters that contain it
 //! — no scatter, no atomics, deterministic on every thread count and on the GPU.
 
-use glam::{Mat3, Quat, Vec3, Vec3A};
+use glam::{Mat3, Mat3A, Quat, Vec3, Vec3A, Vec4};
 
 /// Rest data of one cluster (SPEC §2).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -223,29 +223,49 @@ pub fn cluster_moments(
 }
 
 /// A cluster's correction as an affine map of the rest position: member `j` moves by
-/// `Δx_j = m X_j + t − a p_j`.
+/// `Δx_j = m X_j + t − a p_j`. Stored 16-byte aligned (`Mat3A` and `t, a` in one `Vec4`)
+/// so that a particle sums its clusters' corrections with four SIMD adds each.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ClusterCorrection {
     /// Linear part applied to the rest position `X_j` (dimensionless).
-    pub m: Mat3,
-    /// Translation, m.
-    pub t: Vec3,
-    /// Weight of the current position (dimensionless, in [0, 1]).
-    pub a: f32,
+    pub m: Mat3A,
+    /// Translation `t` (m) in `xyz` and the weight `a` of the current position
+    /// (dimensionless, in [0, 1]) in `w`.
+    pub ta: Vec4,
 }
 
 impl ClusterCorrection {
     /// No correction.
     pub const ZERO: Self = Self {
-        m: Mat3::ZERO,
-        t: Vec3::ZERO,
-        a: 0.0,
+        m: Mat3A::ZERO,
+        ta: Vec4::ZERO,
     };
+
+    /// The map `Δx = m X + t − a p`.
+    #[inline]
+    pub fn new(m: Mat3, t: Vec3, a: f32) -> Self {
+        Self {
+            m: Mat3A::from(m),
+            ta: t.extend(a),
+        }
+    }
+
+    /// Translation, m.
+    #[inline]
+    pub fn t(&self) -> Vec3 {
+        self.ta.truncate()
+    }
+
+    /// Weight of the current position.
+    #[inline]
+    pub fn a(&self) -> f32 {
+        self.ta.w
+    }
 
     /// The displacement of a member with rest position `x_rest` and current position `p`.
     #[inline(always)]
     pub fn apply(&self, x_rest: Vec3, p: Vec3) -> Vec3 {
-        self.m * x_rest + self.t - self.a * p
+        Vec3::from(self.m * Vec3A::from(x_rest)) + self.t() - self.a() * p
     }
 }
 
@@ -294,11 +314,7 @@ pub fn solve_shape_matching(
 ) -> ClusterCorrection {
     extract_rotation(apq, rot, rotation_iterations);
     let r = Mat3::from_quat(*rot);
-    ClusterCorrection {
-        m: r * alpha,
-        t: (c - r * rest.com) * alpha,
-        a: alpha,
-    }
+    ClusterCorrection::new(r * alpha, (c - r * rest.com) * alpha, alpha)
 }
 
 /// Lamé parameters `(μ, λ)` in Pa of Young's modulus `e` (Pa) and Poisson ratio `nu`.
@@ -539,11 +555,7 @@ fn correction_of(g: &Mat3, rest: &ClusterRest) -> ClusterCorrection {
         return ClusterCorrection::ZERO;
     }
     let m = *g * rest.aqq_inv;
-    ClusterCorrection {
-        m,
-        t: -(m * rest.com),
-        a: 0.0,
-    }
+    ClusterCorrection::new(m, -(m * rest.com), 0.0)
 }
 
 /// The strain that f32 rounding alone puts into a cluster's `F`: positions near

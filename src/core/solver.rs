@@ -724,14 +724,13 @@ impl Solver {
 /// `Σ_c (M_c X_j + t_c − a_c p_j)`, summed as `(Σ M_c) X_j + Σ t_c − (Σ a_c) p_j`.
 #[inline]
 fn gather(model: &Model, work: &[(ClusterCorrection, Multipliers)], j: usize, pj: Vec3) -> Vec3 {
-    let (mut m, mut t, mut a) = (Mat3::ZERO, Vec3::ZERO, 0.0f32);
+    let (mut m, mut ta) = (glam::Mat3A::ZERO, glam::Vec4::ZERO);
     for &c in model.clusters_of(j) {
         let w = &work[c as usize].0;
         m += w.m;
-        t += w.t;
-        a += w.a;
+        ta += w.ta;
     }
-    m * model.rest[j] + t - a * pj
+    Vec3::from(m * glam::Vec3A::from(model.rest[j])) + ta.truncate() - ta.w * pj
 }
 
 /// Pin or collider projection of particle `i` at `p`; returns the new position, the last
