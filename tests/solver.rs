@@ -538,6 +538,7 @@ fn jacobi_is_independent_of_thread_count() {
     for threads in [1, 2, 3] {
         let mut state = State::new(&model);
         let s = SolverSettings {
+            method: Method::Jacobi,
             threads,
             gravity: Vec3::new(0.0, -9.81, 0.0),
             ..Default::default()
