@@ -54,8 +54,9 @@ pub struct SolverSettings {
     pub damping: f32,
     /// Iteration method.
     pub method: Method,
-    /// Jacobi relaxation ω: each cluster's correction (and XPBD multiplier increment) is
-    /// scaled by `ω/s_c` (1 = plain averaging; above 1 over-relaxes).
+    /// Jacobi relaxation ω (1 = plain averaging; above 1 over-relaxes): shape-matching
+    /// corrections are scaled by `ω/s_c`, XPBD multiplier increments (solved with split
+    /// masses) and their corrections by `ω`.
     pub relaxation: f32,
     /// Worker threads for Jacobi and KNN (0 = all cores).
     pub threads: usize,
