@@ -400,14 +400,6 @@ impl Multipliers {
     pub fn d_mat(&self) -> Mat3 {
         sym_from(self.d)
     }
-
-    /// Scales every multiplier (used when the substep length changes: λ ∝ h²).
-    pub fn scaled(&self, s: f32) -> Self {
-        Self {
-            h: self.h * s,
-            d: self.d.map(|x| x * s),
-        }
-    }
 }
 
 #[inline]

@@ -5,11 +5,11 @@
 //! upload is a copy. The time-varying part is [`super::solver::State`] (Newton's
 //! Model / State / Control split).
 
-use super::constraints::{ClusterRest, Hyperelastic, init_cluster};
+use super::constraints::{ClusterRest, init_cluster};
 use super::error::{TissueError, in_range, positive};
 use super::mesh::{Surface, TriMesh};
 use super::sampling::{Resolution, sample};
-use super::skin::{SKIN_INFLUENCES, Skin, embed};
+use super::skin::{Skin, embed};
 use glam::{Quat, Vec3};
 
 /// Largest neighbour count K supported.
@@ -330,7 +330,6 @@ impl Model {
             welded_count: surface.positions.len() as u32,
             welded_triangles: surface.triangles.clone(),
         };
-        debug_assert!(skin.particles.iter().all(|p| p.len() == SKIN_INFLUENCES));
 
         // Commit (nothing above touched self).
         let id = self.bodies.len();
@@ -386,17 +385,6 @@ impl Model {
     #[inline]
     pub fn clusters_of(&self, j: usize) -> &[u32] {
         &self.inv_clusters[self.inv_start[j] as usize..self.inv_start[j + 1] as usize]
-    }
-
-    /// Neo-Hookean parameters of body `b`, if it uses that model.
-    pub fn hyperelastic(&self, b: usize) -> Option<Hyperelastic> {
-        match self.bodies[b].material {
-            Material::Hyperelastic {
-                youngs_modulus,
-                poisson_ratio,
-            } => Some(Hyperelastic::new(youngs_modulus, poisson_ratio)),
-            Material::ShapeMatching { .. } => None,
-        }
     }
 
     /// World position of each particle's rest position under its body's placement.

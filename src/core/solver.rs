@@ -527,7 +527,10 @@ impl Solver {
                     let j = self.contact_list[s as usize] as usize;
                     let bj = model.particle_body[j] as usize;
                     let d = model.bodies[bi].radius + model.bodies[bj].radius;
-                    let (wi, wj) = (self.inv_mass(model, i), self.inv_mass(model, j));
+                    let (wi, wj) = (
+                        inv_mass(model, &self.pin_slot, i),
+                        inv_mass(model, &self.pin_slot, j),
+                    );
                     let di = solve_contact(self.p[i], self.p[j], wi, wj, d);
                     let dj = solve_contact(self.p[j], self.p[i], wj, wi, d);
                     self.p[i] += di;
@@ -537,15 +540,6 @@ impl Solver {
             self.p[i] = self.boundary(model, state, control, i, self.p[i]);
         }
         self.timings.boundary += ms(t);
-    }
-
-    #[inline]
-    fn inv_mass(&self, model: &Model, i: usize) -> f32 {
-        if self.pin_slot[i] != u32::MAX {
-            0.0
-        } else {
-            1.0 / model.mass[i]
-        }
     }
 
     /// Colliders and pins for particle `i` at position `p` (records collider corrections).
@@ -636,22 +630,14 @@ impl Solver {
                     let mut q = pj;
                     if contacts {
                         let bj = model.particle_body[j] as usize;
-                        let wj = if pin_slot[j] != u32::MAX {
-                            0.0
-                        } else {
-                            1.0 / model.mass[j]
-                        };
+                        let wj = inv_mass(model, pin_slot, j);
                         let mut sum = Vec3::ZERO;
                         let mut cnt = 0u32;
                         for s in cs[j]..cs[j + 1] {
                             let i = cl[s as usize] as usize;
                             let bi = model.particle_body[i] as usize;
                             let dist = model.bodies[bi].radius + model.bodies[bj].radius;
-                            let wi = if pin_slot[i] != u32::MAX {
-                                0.0
-                            } else {
-                                1.0 / model.mass[i]
-                            };
+                            let wi = inv_mass(model, pin_slot, i);
                             let dc = solve_contact(pj, p[i], wj, wi, dist);
                             if dc != Vec3::ZERO {
                                 sum += dc;
@@ -734,6 +720,16 @@ fn gather(model: &Model, work: &[(ClusterCorrection, Multipliers)], j: usize, pj
         ta += w.ta;
     }
     Vec3::from(m * glam::Vec3A::from(model.rest[j])) + ta.truncate() - ta.w * pj
+}
+
+/// Inverse mass of particle `i`, 1/kg; 0 for a pinned particle (infinite mass).
+#[inline]
+fn inv_mass(model: &Model, pin_slot: &[u32], i: usize) -> f32 {
+    if pin_slot[i] != u32::MAX {
+        0.0
+    } else {
+        1.0 / model.mass[i]
+    }
 }
 
 /// Pin or collider projection of particle `i` at `p`; returns the new position, the last
