@@ -121,6 +121,16 @@ pub enum TissueError {
         /// The limit.
         limit: usize,
     },
+    /// The model does not fit the GPU: a buffer or a dispatch would exceed the adapter's
+    /// limits.
+    GpuLimit {
+        /// What exceeds the limit (a buffer or a dispatch, by name).
+        what: &'static str,
+        /// What the model needs (bytes or count).
+        needed: u64,
+        /// What the adapter allows.
+        limit: u64,
+    },
     /// The simulation produced NaN/inf or exploded; the state was restored to before the step.
     Diverged {
         /// Step counter at which it happened.
@@ -166,6 +176,14 @@ impl fmt::Display for TissueError {
             TissueError::TooManyParticles { requested, limit } => write!(
                 f,
                 "resolution would create about {requested} particles, more than the limit of {limit}"
+            ),
+            TissueError::GpuLimit {
+                what,
+                needed,
+                limit,
+            } => write!(
+                f,
+                "model too big for the GPU: {what} needs {needed}, the adapter allows {limit}; lower the resolution or split the body"
             ),
             TissueError::Diverged {
                 step,

@@ -375,6 +375,49 @@ impl Model {
         Ok(id)
     }
 
+    /// Appends every body of `other` (its indices shifted past this model's particles),
+    /// so that bodies built separately (in parallel, say) can be batched into one model.
+    pub fn append(&mut self, other: &Model) {
+        let off = self.rest.len() as u32;
+        let body_off = self.bodies.len() as u32;
+        if self.cluster_start.is_empty() {
+            self.cluster_start.push(0);
+        }
+        if self.inv_start.is_empty() {
+            self.inv_start.push(0);
+        }
+        let (m0, i0) = (
+            self.cluster_members.len() as u32,
+            self.inv_clusters.len() as u32,
+        );
+        self.cluster_start
+            .extend(other.cluster_start.iter().skip(1).map(|s| s + m0));
+        self.cluster_members
+            .extend(other.cluster_members.iter().map(|j| j + off));
+        self.inv_start
+            .extend(other.inv_start.iter().skip(1).map(|s| s + i0));
+        self.inv_clusters
+            .extend(other.inv_clusters.iter().map(|c| c + off));
+        self.rest.extend_from_slice(&other.rest);
+        self.mass.extend_from_slice(&other.mass);
+        self.particle_body
+            .extend(other.particle_body.iter().map(|b| b + body_off));
+        self.cluster_rest.extend_from_slice(&other.cluster_rest);
+        self.cluster_volume.extend_from_slice(&other.cluster_volume);
+        self.cluster_weight.extend_from_slice(&other.cluster_weight);
+        self.pinned.extend(other.pinned.iter().map(|i| i + off));
+        for b in &other.bodies {
+            let mut b = b.clone();
+            b.first += off;
+            for inf in &mut b.skin.particles {
+                for i in inf.iter_mut() {
+                    *i += off;
+                }
+            }
+            self.bodies.push(b);
+        }
+    }
+
     /// Members of cluster `c`.
     #[inline]
     pub fn members(&self, c: usize) -> &[u32] {

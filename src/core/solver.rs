@@ -426,6 +426,12 @@ impl Solver {
         }
     }
 
+    /// The particle-contact candidates of the last refresh, as CSR: candidates of
+    /// particle `i` are `list[start[i]..start[i + 1]]` (nearest first).
+    pub fn contact_lists(&self) -> (&[u32], &[u32]) {
+        (&self.contact_start, &self.contact_list)
+    }
+
     fn count_active_contacts(&self, model: &Model, x: &[Vec3]) -> usize {
         let mut active = 0;
         for i in 0..x.len() {

@@ -1,0 +1,51 @@
+// The "world" bind group (group 0) shared by every simulation kernel; a kernel's source
+// is common.wgsl + this file + its own file, so every binding is declared once.
+// Layout and packing: src/gpu/buffers.rs.
+
+const MAX_COLLIDERS: u32 = 128u;
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<uniform> colliders: array<Collider, MAX_COLLIDERS>;
+@group(0) @binding(2) var<storage, read_write> x: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read_write> v: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read_write> p: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read_write> p2: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read> rest: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> pinfo: array<vec4<u32>>;
+@group(0) @binding(8) var<storage, read> lists: array<u32>;
+@group(0) @binding(9) var<storage, read> crest: array<ClusterRest>;
+@group(0) @binding(10) var<storage, read> bodies: array<Body>;
+@group(0) @binding(11) var<storage, read_write> cstate: array<ClusterState>;
+@group(0) @binding(12) var<storage, read_write> corr: array<Corr>;
+@group(0) @binding(13) var<storage, read> pins: array<vec4<f32>>;
+@group(0) @binding(14) var<storage, read_write> coldp: array<vec4<f32>>;
+@group(0) @binding(15) var<storage, read_write> contacts: array<u32>;
+@group(0) @binding(16) var<storage, read_write> scan: array<atomic<u32>>;
+@group(0) @binding(17) var<storage, read_write> cursor: array<atomic<u32>>;
+@group(0) @binding(18) var<storage, read_write> sorted: array<vec4<f32>>;
+@group(0) @binding(19) var<storage, read_write> cell_of: array<u32>;
+@group(0) @binding(20) var<storage, read_write> forces: array<vec4<f32>>;
+@group(0) @binding(21) var<storage, read_write> fgrad: array<vec4<f32>>;
+@group(0) @binding(22) var<storage, read> vinf: array<vec4<u32>>;
+@group(0) @binding(23) var<storage, read> vwt: array<vec4<f32>>;
+@group(0) @binding(24) var<storage, read> vrest: array<vec4<f32>>;
+@group(0) @binding(25) var<storage, read> adj: array<u32>;
+@group(0) @binding(26) var<storage, read> draw: array<DrawBody>;
+@group(0) @binding(27) var<storage, read_write> knn_out: array<u32>;
+
+fn inv_mass(i: u32) -> f32 {
+    if (pinfo[i].y != NONE) {
+        return 0.0;
+    }
+    return 1.0 / rest[i].w;
+}
+
+// Grid cell of a point (unbounded integer coordinates) and its hash bucket.
+fn cell_coords(q: vec3<f32>) -> vec3<i32> {
+    return vec3<i32>(floor(q / params.grid_cell));
+}
+
+fn cell_hash(c: vec3<i32>) -> u32 {
+    let h = (u32(c.x) * 73856093u) ^ (u32(c.y) * 19349663u) ^ (u32(c.z) * 83492791u);
+    return h & (params.grid_table - 1u);
+}

@@ -1,0 +1,127 @@
+// Pass A of a Jacobi iteration: every cluster solved from the same predicted positions
+// `p`; its correction stored as an affine map of the rest positions (`corr`).
+// CPU twin: core::solver (Jacobi pass A) with core::constraints::{solve_shape_matching,
+// solve_hyperelastic}.
+
+fn sym_from(l0: vec4<f32>, l1: vec4<f32>) -> mat3x3<f32> {
+    return mat3x3<f32>(
+        vec3<f32>(l0.y, l1.x, l1.y),
+        vec3<f32>(l1.x, l0.z, l1.z),
+        vec3<f32>(l1.y, l1.z, l0.w),
+    );
+}
+
+fn cofactor(f: mat3x3<f32>) -> mat3x3<f32> {
+    return mat3x3<f32>(cross(f[1], f[2]), cross(f[2], f[0]), cross(f[0], f[1]));
+}
+
+fn mat_finite(m: mat3x3<f32>) -> bool {
+    var ok = true;
+    for (var c = 0; c < 3; c = c + 1) {
+        for (var r = 0; r < 3; r = r + 1) {
+            ok = ok && is_finite_f(m[c][r]);
+        }
+    }
+    return ok;
+}
+
+fn store_corr(c: u32, m: mat3x3<f32>, t: vec3<f32>, a: f32) {
+    corr[c] = Corr(vec4<f32>(m[0], t.x), vec4<f32>(m[1], t.y), vec4<f32>(m[2], t.z),
+                   vec4<f32>(a, 0.0, 0.0, 0.0));
+}
+
+@compute @workgroup_size(128)
+fn solve_clusters(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let c = gid.x;
+    if (c >= params.n) {
+        return;
+    }
+    let info = pinfo[c];
+    let body = bodies[info.x];
+    let cr = crest[c];
+    let mo = cluster_moments(c, true);
+    var st = cstate[c];
+    if (body.kind == 0u) {
+        // Shape matching (Müller et al. 2005), averaged with the cluster weight.
+        let alpha = body.k_iter * params.omega * cr.weight.x;
+        st.rot = extract_rotation(mo.apq, st.rot, params.rot_iters);
+        let r = quat_mat(st.rot);
+        store_corr(c, r * alpha, (mo.com - r * mo.rest_com) * alpha, alpha);
+        cstate[c] = st;
+        return;
+    }
+    // Fixed-corotated XPBD on F with split masses (core::constraints::solve_hyperelastic).
+    let f = mo.apq * cr.aqq;
+    let vol = cr.values_vol.w;
+    let coord = max(max(abs(mo.com.x), abs(mo.com.y)), abs(mo.com.z));
+    let band = 16.0 * 1.1920929e-7 * (coord + body.spacing) / body.spacing;
+    let scale = params.omega;
+    var g = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    var f2 = f;
+    let alpha_h = 1.0 / (body.lambda * vol * params.h2);
+    if (is_finite_f(alpha_h)) {
+        var c_h = determinant(f) - 1.0;
+        if (abs(c_h) <= band) {
+            c_h = 0.0;
+        }
+        let ph = cofactor(f);
+        let r = -c_h - alpha_h * st.lam0.x;
+        if (r != 0.0) {
+            let a = frob(ph * cr.w, ph);
+            let dl = scale * r / (a + alpha_h);
+            if (is_finite_f(dl)) {
+                st.lam0.x = st.lam0.x + dl;
+                g = g + ph * dl;
+                f2 = f2 + ph * cr.w * dl;
+            }
+        }
+    }
+    let alpha_d = 1.0 / (2.0 * body.mu * vol * params.h2);
+    if (is_finite_f(alpha_d)) {
+        st.rot = extract_rotation(f2, st.rot, params.rot_iters);
+        let r = quat_mat(st.rot);
+        let rtf = transpose(r) * f2;
+        var e = (rtf + transpose(rtf)) * 0.5 - mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
+        if (frob(e, e) <= band * band) {
+            e = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+        }
+        let lam_d = sym_from(st.lam0, st.lam1);
+        let rhs = (e * -1.0) - lam_d * alpha_d;
+        let nz = any(rhs[0] != vec3<f32>(0.0)) || any(rhs[1] != vec3<f32>(0.0)) || any(rhs[2] != vec3<f32>(0.0));
+        if (nz) {
+            let q = cr.basis;
+            let rp = transpose(q) * rhs * q;
+            let wv = cr.values_vol.xyz;
+            var dl = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+            for (var a = 0; a < 3; a = a + 1) {
+                for (var b = 0; b < 3; b = b + 1) {
+                    let denom = 0.5 * (wv[a] + wv[b]) + alpha_d;
+                    dl[b][a] = scale * rp[b][a] / denom;
+                }
+            }
+            dl = q * dl * transpose(q);
+            dl = (dl + transpose(dl)) * 0.5;
+            if (mat_finite(dl)) {
+                let nl = lam_d + dl;
+                st.lam0 = vec4<f32>(st.lam0.x, nl[0].x, nl[1].y, nl[2].z);
+                st.lam1 = vec4<f32>(nl[0].y, nl[0].z, nl[1].z, 0.0);
+                var gd = r * dl;
+                let det = determinant(f);
+                if (abs(det) > 1.0e-3) {
+                    let k = gd * transpose(f);
+                    let skew = (k - transpose(k)) * 0.5;
+                    gd = gd - skew * (cofactor(f) * (1.0 / det));
+                }
+                g = g + gd;
+            }
+        }
+    }
+    cstate[c] = st;
+    let gz = all(g[0] == vec3<f32>(0.0)) && all(g[1] == vec3<f32>(0.0)) && all(g[2] == vec3<f32>(0.0));
+    if (gz) {
+        store_corr(c, g, vec3<f32>(0.0), 0.0);
+        return;
+    }
+    let m = g * cr.aqq;
+    store_corr(c, m, -(m * mo.rest_com), 0.0);
+}

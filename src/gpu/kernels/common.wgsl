@@ -1,0 +1,134 @@
+// Shared declarations of every bevy_tissue kernel (prepended to each kernel's source).
+// The layouts mirror `src/gpu/buffers.rs`; the math mirrors `src/core` (the CPU twin).
+
+const NONE: u32 = 0xffffffffu;
+const WG: u32 = 128u;
+
+struct Params {
+    gravity: vec4<f32>,      // xyz m/s², w unused
+    n: u32,                  // particles
+    n_colliders: u32,
+    rot_iters: u32,
+    contacts: u32,           // 1: particle contacts on (pass C separate)
+    h: f32,                  // substep, s
+    h2: f32,                 // h², s²
+    keep: f32,               // velocity kept after damping, max(0, 1 − damping·h)
+    omega: f32,              // Jacobi relaxation
+    inv_offset: u32,         // start of the inverse lists in `lists`
+    contact_k: u32,          // contact neighbours per particle (list stride)
+    n_vertices: u32,         // render vertices
+    inv_substeps: f32,       // 1 / substeps
+    grid_cell: f32,          // grid cell edge, m
+    grid_table: u32,         // hash buckets (power of two)
+    knn_mode: u32,           // 0: K nearest of all particles (knn_out), 1: contacts
+    max_radius: f32,         // largest particle radius of any body, m
+    knn_k: u32,              // K of the unfiltered search (knn_out stride)
+    n_bodies: u32,
+    _pad0: u32,
+    _pad1: u32,
+};
+
+// Per body, per frame: world → entity-local affine map for drawing, and where the
+// body's render vertices start in the mesh slab (in floats) and in the vertex arrays.
+struct DrawBody {
+    m0: vec4<f32>,           // rows of the 3×4 map
+    m1: vec4<f32>,
+    m2: vec4<f32>,
+    vbase: u32,              // first float of the body's vertices in the slab
+    vfirst: u32,             // first render vertex of the body (global)
+    stride: u32,             // floats per vertex in the slab
+    _pad: u32,
+};
+
+struct Body {
+    kind: u32,               // 0 shape matching, 1 hyperelastic
+    first: u32,
+    count: u32,
+    _pad: u32,
+    k_iter: f32,             // shape matching: per-iteration stiffness
+    mu: f32,                 // Pa
+    lambda: f32,             // Pa
+    spacing: f32,            // m
+    radius: f32,             // m
+    _pad1: f32,
+    _pad2: f32,
+    _pad3: f32,
+};
+
+struct ClusterRest {
+    com_mass: vec4<f32>,     // rest centre of mass (body frame, m), total mass (kg)
+    aqq: mat3x3<f32>,        // A_qq⁻¹
+    w: mat3x3<f32>,          // split-mass metric W
+    basis: mat3x3<f32>,      // eigenvectors of W
+    values_vol: vec4<f32>,   // eigenvalues of W, cluster volume (m³)
+    weight: vec4<f32>,       // x: Jacobi weight 1/s_c
+};
+
+struct ClusterState {
+    rot: vec4<f32>,          // warm-start rotation (quaternion xyzw)
+    lam0: vec4<f32>,         // λ_H, Λxx, Λyy, Λzz
+    lam1: vec4<f32>,         // Λxy, Λxz, Λyz, -
+};
+
+// Affine correction Δx = M X + t − a p: columns of M with t in w, and a.
+struct Corr {
+    c0: vec4<f32>,
+    c1: vec4<f32>,
+    c2: vec4<f32>,
+    a: vec4<f32>,
+};
+
+struct Collider {
+    kind_fr: vec4<f32>,      // x: kind (0 plane, 1 sphere, 2 capsule, 3 box), y: friction
+    pos: vec4<f32>,          // m
+    rot: vec4<f32>,          // quaternion
+    shape: vec4<f32>,        // sphere: r; capsule: half length, r; box: half extents
+    vel: vec4<f32>,          // m/s
+};
+
+fn quat_mat(q: vec4<f32>) -> mat3x3<f32> {
+    // glam's Mat3::from_quat.
+    let x2 = q.x + q.x; let y2 = q.y + q.y; let z2 = q.z + q.z;
+    let xx = q.x * x2; let xy = q.x * y2; let xz = q.x * z2;
+    let yy = q.y * y2; let yz = q.y * z2; let zz = q.z * z2;
+    let wx = q.w * x2; let wy = q.w * y2; let wz = q.w * z2;
+    return mat3x3<f32>(
+        vec3<f32>(1.0 - (yy + zz), xy + wz, xz - wy),
+        vec3<f32>(xy - wz, 1.0 - (xx + zz), yz + wx),
+        vec3<f32>(xz + wy, yz - wx, 1.0 - (xx + yy)),
+    );
+}
+
+fn quat_mul(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
+    return vec4<f32>(
+        a.w * b.x + a.x * b.w + a.y * b.z - a.z * b.y,
+        a.w * b.y - a.x * b.z + a.y * b.w + a.z * b.x,
+        a.w * b.z + a.x * b.y - a.y * b.x + a.z * b.w,
+        a.w * b.w - a.x * b.x - a.y * b.y - a.z * b.z,
+    );
+}
+
+fn quat_rotate(q: vec4<f32>, v: vec3<f32>) -> vec3<f32> {
+    return quat_mat(q) * v;
+}
+
+fn quat_inv_rotate(q: vec4<f32>, v: vec3<f32>) -> vec3<f32> {
+    return transpose(quat_mat(q)) * v;
+}
+
+fn outer(a: vec3<f32>, b: vec3<f32>) -> mat3x3<f32> {
+    return mat3x3<f32>(a * b.x, a * b.y, a * b.z);
+}
+
+fn frob(a: mat3x3<f32>, b: mat3x3<f32>) -> f32 {
+    return dot(a[0], b[0]) + dot(a[1], b[1]) + dot(a[2], b[2]);
+}
+
+fn is_finite_f(x: f32) -> bool {
+    return x == x && abs(x) <= 3.4028235e38;
+}
+
+fn dist2(a: vec3<f32>, b: vec3<f32>) -> f32 {
+    let d = a - b;
+    return d.x * d.x + d.y * d.y + d.z * d.z;
+}

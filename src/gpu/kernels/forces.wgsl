@@ -1,0 +1,49 @@
+// Force each collider takes from the tissue over a substep: the momentum its projections
+// removed, `F = −Σ_i m_i Δp_i / h²`, summed deterministically (fixed-shape tree
+// reduction, no float atomics). CPU twin: core::solver::Solver::step ("Collider forces").
+
+const FORCE_GROUPS: u32 = 64u;
+const FWG: u32 = 256u;
+
+var<workgroup> red: array<vec3<f32>, 256>;
+
+// forces[k * FORCE_GROUPS + g]: partial sum of group g for collider k.
+@compute @workgroup_size(256)
+fn force_partial(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let g = wid.x;
+    let k = wid.y;
+    var acc = vec3<f32>(0.0);
+    let stride = FORCE_GROUPS * FWG;
+    for (var i = g * FWG + lid.x; i < params.n; i = i + stride) {
+        let d = coldp[i];
+        if (d.w == f32(k)) {
+            acc = acc - d.xyz * (rest[i].w / params.h2);
+        }
+    }
+    red[lid.x] = acc;
+    workgroupBarrier();
+    for (var s = FWG / 2u; s > 0u; s = s >> 1u) {
+        if (lid.x < s) {
+            red[lid.x] = red[lid.x] + red[lid.x + s];
+        }
+        workgroupBarrier();
+    }
+    if (lid.x == 0u) {
+        forces[k * FORCE_GROUPS + g] = vec4<f32>(red[0], 0.0);
+    }
+}
+
+// Totals after the partials: forces[n_colliders * FORCE_GROUPS + k] += Σ_g partial / substeps.
+@compute @workgroup_size(64)
+fn force_total(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x;
+    if (k >= params.n_colliders) {
+        return;
+    }
+    var acc = vec3<f32>(0.0);
+    for (var g = 0u; g < FORCE_GROUPS; g = g + 1u) {
+        acc = acc + forces[k * FORCE_GROUPS + g].xyz;
+    }
+    let o = params.n_colliders * FORCE_GROUPS + k;
+    forces[o] = vec4<f32>(forces[o].xyz + acc * params.inv_substeps, 0.0);
+}

@@ -1,0 +1,171 @@
+// Pass B (gather: every particle sums the affine corrections of the clusters that
+// contain it) and pass C (particle contacts, colliders, pins) of a Jacobi iteration.
+// CPU twins: core::solver (Jacobi passes B and C), core::constraints::solve_contact,
+// core::colliders::project_collider.
+
+fn sdf_sphere(l: vec3<f32>, r: f32) -> vec4<f32> {
+    let len = length(l);
+    var n = vec3<f32>(0.0, 1.0, 0.0);
+    if (len > 1.0e-12) {
+        n = l / len;
+    }
+    return vec4<f32>(n, len - r);
+}
+
+fn sdf_box(l: vec3<f32>, he: vec3<f32>) -> vec4<f32> {
+    let q = abs(l) - he;
+    let outside = max(q, vec3<f32>(0.0));
+    let ol = length(outside);
+    if (ol > 0.0) {
+        return vec4<f32>(outside * sign(l) / ol, ol);
+    }
+    var axis = 2;
+    if (q.x >= q.y && q.x >= q.z) {
+        axis = 0;
+    } else if (q.y >= q.z) {
+        axis = 1;
+    }
+    var n = vec3<f32>(0.0);
+    if (l[axis] >= 0.0) { n[axis] = 1.0; } else { n[axis] = -1.0; }
+    return vec4<f32>(n, q[axis]);
+}
+
+// Signed distance (w) and outward normal (xyz, world) of collider k at p.
+fn collider_distance(k: u32, pw: vec3<f32>) -> vec4<f32> {
+    let c = colliders[k];
+    let l = quat_inv_rotate(c.rot, pw - c.pos.xyz);
+    let kind = u32(c.kind_fr.x);
+    var r: vec4<f32>;
+    if (kind == 0u) {
+        r = vec4<f32>(0.0, 1.0, 0.0, l.y);
+    } else if (kind == 1u) {
+        r = sdf_sphere(l, c.shape.x);
+    } else if (kind == 2u) {
+        let y = clamp(l.y, -c.shape.x, c.shape.x);
+        r = sdf_sphere(l - vec3<f32>(0.0, y, 0.0), c.shape.y);
+    } else {
+        r = sdf_box(l, c.shape.xyz);
+    }
+    return vec4<f32>(quat_rotate(c.rot, r.xyz), r.w);
+}
+
+// Macklin et al. 2014 eq. 24 friction; returns the correction of p.
+fn project_collider(k: u32, pp: vec3<f32>, xx: vec3<f32>, radius: f32) -> vec3<f32> {
+    let dn = collider_distance(k, pp);
+    let depth = radius - dn.w;
+    if (!(depth == depth) || depth <= 0.0) {
+        return vec3<f32>(0.0);
+    }
+    let n = dn.xyz;
+    var dp = n * depth;
+    let mu = colliders[k].kind_fr.y;
+    if (mu > 0.0) {
+        let rel = (pp + dp - xx) - colliders[k].vel.xyz * params.h;
+        let tangential = rel - n * dot(rel, n);
+        let t = length(tangential);
+        if (t > 0.0) {
+            if (t <= mu * depth) {
+                dp = dp - tangential;
+            } else {
+                dp = dp - tangential * (mu * depth / t);
+            }
+        }
+    }
+    return dp;
+}
+
+// Pins and colliders for particle j at q; records the collider correction.
+fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
+    let info = pinfo[j];
+    if (info.y != NONE) {
+        return pins[info.y].xyz;
+    }
+    var q = q0;
+    let r = bodies[info.x].radius;
+    var id = NONE;
+    var total = vec3<f32>(0.0);
+    let xj = x[j].xyz;
+    for (var k = 0u; k < params.n_colliders; k = k + 1u) {
+        let dp = project_collider(k, q, xj, r);
+        if (any(dp != vec3<f32>(0.0))) {
+            q = q + dp;
+            total = total + dp;
+            id = k;
+        }
+    }
+    if (id != NONE) {
+        let old = coldp[j];
+        coldp[j] = vec4<f32>(old.xyz + total, f32(id));
+    }
+    return q;
+}
+
+@compute @workgroup_size(128)
+fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    let s0 = pinfo[j].z;
+    let s1 = pinfo[j + 1u].z;
+    var c0 = vec4<f32>(0.0);
+    var c1 = vec4<f32>(0.0);
+    var c2 = vec4<f32>(0.0);
+    var a = 0.0;
+    for (var s = s0; s < s1; s = s + 1u) {
+        let k = lists[params.inv_offset + s];
+        let w = corr[k];
+        c0 = c0 + w.c0;
+        c1 = c1 + w.c1;
+        c2 = c2 + w.c2;
+        a = a + w.a.x;
+    }
+    let xr = rest[j].xyz;
+    let pj = p[j].xyz;
+    let m = mat3x3<f32>(c0.xyz, c1.xyz, c2.xyz);
+    let out = pj + ((m * xr) + vec3<f32>(c0.w, c1.w, c2.w) - a * pj);
+    if (params.contacts == 0u) {
+        p[j] = vec4<f32>(boundary(j, out), 0.0);
+    } else {
+        p2[j] = vec4<f32>(out, 0.0);
+    }
+}
+
+@compute @workgroup_size(128)
+fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    let pj = p2[j].xyz;
+    var q = pj;
+    let bj = pinfo[j].x;
+    let wj = inv_mass(j);
+    var sum = vec3<f32>(0.0);
+    var cnt = 0u;
+    let kk = params.contact_k;
+    for (var s = 0u; s < kk; s = s + 1u) {
+        let i = contacts[j * kk + s];
+        if (i == NONE) {
+            break;
+        }
+        let dist = bodies[pinfo[i].x].radius + bodies[bj].radius;
+        let wi = inv_mass(i);
+        let delta = pj - p2[i].xyz;
+        let l2 = dot(delta, delta);
+        let w = wj + wi;
+        if (l2 >= dist * dist || l2 <= 1.0e-24 || w <= 0.0) {
+            continue;
+        }
+        let l = sqrt(l2);
+        let dc = delta * ((dist - l) / l * wj / w);
+        if (any(dc != vec3<f32>(0.0))) {
+            sum = sum + dc;
+            cnt = cnt + 1u;
+        }
+    }
+    if (cnt > 0u) {
+        q = q + sum / f32(cnt);
+    }
+    p[j] = vec4<f32>(boundary(j, q), 0.0);
+}

@@ -1,0 +1,13 @@
+//! Uniform (hashed) grid by counting sort: counts, multi-level prefix sum, scatter (SPEC §3 step 2).
+//!
+//! Source: `grid.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
+
+/// WGSL source of this kernel's module.
+pub const SOURCE: &str = concat!(
+    include_str!("common.wgsl"),
+    include_str!("bindings.wgsl"),
+    include_str!("grid.wgsl")
+);
+
+/// Entry points of the module.
+pub const ENTRY_POINTS: &[&str] = &["grid_count", "scan_block", "scan_add", "grid_scatter"];

@@ -1,0 +1,185 @@
+//! The compute kernels, one `.rs` + `.wgsl` pair each, and [`Kernels`], their compiled
+//! pipelines.
+//!
+//! Every kernel binds the same "world" bind group (group 0, declared once in
+//! `bindings.wgsl`): all bodies' buffers, so one dispatch serves every body. The prefix
+//! sum and the skinning add a small group 1 (a per-dispatch uniform with a dynamic
+//! offset; the skinning also the mesh allocator's vertex slab). Shaders are embedded in
+//! the binary (`include_str!`), so a user of the crate copies no files.
+
+pub mod cluster;
+pub mod forces;
+pub mod gather;
+pub mod grid;
+pub mod integrate;
+pub mod knn;
+pub mod skin;
+
+use crate::core::TissueError;
+use bevy::render::render_resource::{
+    BindGroupLayout, BindGroupLayoutEntry, BindingType, BufferBindingType, ComputePipeline,
+    PipelineCompilationOptions, PipelineLayoutDescriptor, ShaderModuleDescriptor, ShaderSource,
+    ShaderStages,
+};
+use bevy::render::renderer::RenderDevice;
+use std::borrow::Cow;
+
+/// Bindings of the world group that the kernels only read.
+const READ_ONLY: &[u32] = &[6, 7, 8, 9, 10, 13, 22, 23, 24, 25, 26];
+/// Bindings of the world group (0 and 1 are uniforms, the rest storage buffers).
+pub const WORLD_BINDINGS: u32 = 28;
+/// Storage buffers a kernel binds at most (world group plus the vertex slab).
+pub const STORAGE_BUFFERS_NEEDED: u32 = WORLD_BINDINGS - 2 + 1;
+
+fn uniform(binding: u32, dynamic: bool) -> BindGroupLayoutEntry {
+    BindGroupLayoutEntry {
+        binding,
+        visibility: ShaderStages::COMPUTE,
+        ty: BindingType::Buffer {
+            ty: BufferBindingType::Uniform,
+            has_dynamic_offset: dynamic,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn storage(binding: u32, read_only: bool) -> BindGroupLayoutEntry {
+    BindGroupLayoutEntry {
+        binding,
+        visibility: ShaderStages::COMPUTE,
+        ty: BindingType::Buffer {
+            ty: BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+/// All compiled pipelines and bind group layouts (one per device, shared by every world).
+pub struct Kernels {
+    /// Group 0 of every kernel.
+    pub world_layout: BindGroupLayout,
+    /// Group 1 of the prefix sum: the level uniform (dynamic offset).
+    pub scan_layout: BindGroupLayout,
+    /// Group 1 of the draw path: the vertex slab and the range uniform (dynamic offset).
+    pub skin_layout: BindGroupLayout,
+    /// `integrate.wgsl`: predict.
+    pub predict: ComputePipeline,
+    /// `integrate.wgsl`: finish.
+    pub finish: ComputePipeline,
+    /// `grid.wgsl`: cell counts.
+    pub grid_count: ComputePipeline,
+    /// `grid.wgsl`: block scan.
+    pub scan_block: ComputePipeline,
+    /// `grid.wgsl`: block offsets.
+    pub scan_add: ComputePipeline,
+    /// `grid.wgsl`: scatter.
+    pub grid_scatter: ComputePipeline,
+    /// `knn.wgsl`: K nearest of all particles.
+    pub knn_all: ComputePipeline,
+    /// `knn.wgsl`: contact candidates.
+    pub knn_contacts: ComputePipeline,
+    /// `cluster.wgsl`: Jacobi pass A.
+    pub clusters: ComputePipeline,
+    /// `gather.wgsl`: Jacobi pass B.
+    pub gather: ComputePipeline,
+    /// `gather.wgsl`: Jacobi pass C.
+    pub contact: ComputePipeline,
+    /// `forces.wgsl`: partial sums.
+    pub force_partial: ComputePipeline,
+    /// `forces.wgsl`: totals.
+    pub force_total: ComputePipeline,
+    /// `skin.wgsl`: deformation gradients.
+    pub deform: ComputePipeline,
+    /// `skin.wgsl`: skinning.
+    pub skin: ComputePipeline,
+    /// `skin.wgsl`: normals.
+    pub normals: ComputePipeline,
+}
+
+impl Kernels {
+    /// Compiles every kernel for `device`. Fails with [`TissueError::GpuLimit`] if the
+    /// adapter cannot bind the storage buffers the kernels need.
+    pub fn new(device: &RenderDevice) -> Result<Self, TissueError> {
+        let limits = device.limits();
+        if limits.max_storage_buffers_per_shader_stage < STORAGE_BUFFERS_NEEDED {
+            return Err(TissueError::GpuLimit {
+                what: "storage buffers per shader stage",
+                needed: STORAGE_BUFFERS_NEEDED as u64,
+                limit: limits.max_storage_buffers_per_shader_stage as u64,
+            });
+        }
+        let mut world = vec![uniform(0, false), uniform(1, false)];
+        for b in 2..WORLD_BINDINGS {
+            world.push(storage(b, READ_ONLY.contains(&b)));
+        }
+        let world_layout = device.create_bind_group_layout("tissue world", &world);
+        let scan_layout = device.create_bind_group_layout("tissue scan level", &[uniform(0, true)]);
+        let skin_layout = device
+            .create_bind_group_layout("tissue vertex slab", &[storage(0, false), uniform(1, true)]);
+        let layout = |extra: Option<&BindGroupLayout>| {
+            let groups: Vec<Option<&wgpu::BindGroupLayout>> = match extra {
+                Some(e) => vec![Some(&*world_layout), Some(&**e)],
+                None => vec![Some(&*world_layout)],
+            };
+            device.create_pipeline_layout(&PipelineLayoutDescriptor {
+                label: Some("tissue"),
+                bind_group_layouts: &groups,
+                immediate_size: 0,
+            })
+        };
+        let world_only = layout(None);
+        let with_scan = layout(Some(&scan_layout));
+        let with_skin = layout(Some(&skin_layout));
+        let module = |name: &str, src: &'static str| {
+            device.create_and_validate_shader_module(ShaderModuleDescriptor {
+                label: Some(name),
+                source: ShaderSource::Wgsl(Cow::Borrowed(src)),
+            })
+        };
+        let integrate_m = module("tissue integrate", integrate::SOURCE);
+        let grid_m = module("tissue grid", grid::SOURCE);
+        let knn_m = module("tissue knn", knn::SOURCE);
+        let cluster_m = module("tissue cluster", cluster::SOURCE);
+        let gather_m = module("tissue gather", gather::SOURCE);
+        let forces_m = module("tissue forces", forces::SOURCE);
+        let skin_m = module("tissue skin", skin::SOURCE);
+        let pipe = |m: &bevy::render::render_resource::ShaderModule,
+                    l: &bevy::render::render_resource::PipelineLayout,
+                    entry: &'static str| {
+            device.create_compute_pipeline(
+                &bevy::render::render_resource::RawComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: Some(l),
+                    module: m,
+                    entry_point: Some(entry),
+                    compilation_options: PipelineCompilationOptions::default(),
+                    cache: None,
+                },
+            )
+        };
+        Ok(Self {
+            predict: pipe(&integrate_m, &world_only, "predict"),
+            finish: pipe(&integrate_m, &world_only, "finish"),
+            grid_count: pipe(&grid_m, &with_scan, "grid_count"),
+            scan_block: pipe(&grid_m, &with_scan, "scan_block"),
+            scan_add: pipe(&grid_m, &with_scan, "scan_add"),
+            grid_scatter: pipe(&grid_m, &with_scan, "grid_scatter"),
+            knn_all: pipe(&knn_m, &world_only, "knn_all"),
+            knn_contacts: pipe(&knn_m, &world_only, "knn_contacts"),
+            clusters: pipe(&cluster_m, &world_only, "solve_clusters"),
+            gather: pipe(&gather_m, &world_only, "gather"),
+            contact: pipe(&gather_m, &world_only, "contact"),
+            force_partial: pipe(&forces_m, &world_only, "force_partial"),
+            force_total: pipe(&forces_m, &world_only, "force_total"),
+            deform: pipe(&skin_m, &with_skin, "deform"),
+            skin: pipe(&skin_m, &with_skin, "skin"),
+            normals: pipe(&skin_m, &with_skin, "normals"),
+            world_layout,
+            scan_layout,
+            skin_layout,
+        })
+    }
+}

@@ -1,0 +1,92 @@
+//! GPU time per pass from timestamp queries, for benchmarks run outside Bevy (inside
+//! Bevy, the plugin reports the same passes through `RenderDiagnosticsPlugin`).
+
+use super::world::PassRecorder;
+use bevy::render::render_resource::{Buffer, BufferDescriptor, BufferUsages, CommandEncoder};
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use std::collections::BTreeMap;
+use wgpu::{QuerySet, QuerySetDescriptor, QueryType};
+
+/// Timestamp queries around every pass, summed per pass name.
+pub struct GpuProfiler {
+    set: QuerySet,
+    resolve: Buffer,
+    capacity: u32,
+    names: Vec<&'static str>,
+    period_ns: f32,
+}
+
+impl GpuProfiler {
+    /// A profiler for up to `passes` passes per submission; `None` where the device has
+    /// no timestamp queries.
+    pub fn new(device: &RenderDevice, queue: &RenderQueue, passes: u32) -> Option<Self> {
+        if !device
+            .features()
+            .contains(bevy::render::render_resource::WgpuFeatures::TIMESTAMP_QUERY)
+        {
+            return None;
+        }
+        let capacity = (passes * 2).min(4096);
+        let set = device.wgpu_device().create_query_set(&QuerySetDescriptor {
+            label: Some("tissue timestamps"),
+            ty: QueryType::Timestamp,
+            count: capacity,
+        });
+        let resolve = device.create_buffer(&BufferDescriptor {
+            label: Some("tissue timestamps"),
+            size: capacity as u64 * 8,
+            usage: BufferUsages::QUERY_RESOLVE | BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        Some(Self {
+            set,
+            resolve,
+            capacity,
+            names: Vec::new(),
+            period_ns: queue.get_timestamp_period(),
+        })
+    }
+
+    /// Records the resolve of this submission's queries (call after the passes).
+    pub fn resolve(&self, encoder: &mut CommandEncoder) {
+        let used = self.names.len() as u32 * 2;
+        if used > 0 {
+            encoder.resolve_query_set(&self.set, 0..used, &self.resolve, 0);
+        }
+    }
+
+    /// Reads the resolved times back (blocking): milliseconds per pass name, summed over
+    /// the passes of that name, and how many there were. Resets for the next submission.
+    pub fn read(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+    ) -> BTreeMap<&'static str, (f64, u32)> {
+        let used = self.names.len() as u64 * 2;
+        let mut out = BTreeMap::new();
+        if used == 0 {
+            return out;
+        }
+        let bytes = super::world::read_buffer(device, queue, &self.resolve, 0, used * 8);
+        let ts: &[u64] = bytemuck::cast_slice(&bytes);
+        for (i, name) in self.names.iter().enumerate() {
+            let d = ts[2 * i + 1].saturating_sub(ts[2 * i]) as f64 * self.period_ns as f64 * 1e-6;
+            let e = out.entry(*name).or_insert((0.0, 0));
+            e.0 += d;
+            e.1 += 1;
+        }
+        self.names.clear();
+        out
+    }
+}
+
+impl PassRecorder for GpuProfiler {
+    fn timestamps(&mut self, name: &'static str) -> Option<(QuerySet, u32)> {
+        let i = self.names.len() as u32 * 2;
+        if i + 2 > self.capacity {
+            return None;
+        }
+        self.names.push(name);
+        Some((self.set.clone(), i))
+    }
+}

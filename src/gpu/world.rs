@@ -1,0 +1,833 @@
+//! [`GpuWorld`]: every body of a scene in one set of GPU buffers, and the recording of
+//! time steps and of the draw path into a command encoder.
+//!
+//! A step is the CPU Jacobi solver's step (`core::solver`, its twin) as dispatches:
+//! contact neighbours (grid + KNN, every `knn_every` steps), then per substep predict,
+//! `iterations` × (clusters, gather, contacts), collider forces, finish. Results are
+//! deterministic: no float atomics, every sum in a fixed order.
+//!
+//! The world works on a bare `RenderDevice`/`RenderQueue`, so it runs inside Bevy's
+//! render graph (the plugin) and standalone (tests, benchmarks) alike.
+
+use super::buffers::*;
+use super::kernels::Kernels;
+use crate::core::TissueError;
+use crate::core::colliders::Collider;
+use crate::core::model::Model;
+use crate::core::solver::{SolverSettings, State};
+use bevy::render::render_resource::{
+    BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferDescriptor,
+    BufferUsages, CommandEncoder, ComputePass, ComputePassDescriptor, ComputePipeline, MapMode,
+};
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use glam::Vec3;
+use wgpu::{ComputePassTimestampWrites, QuerySet};
+
+/// Hooks around every compute pass a world records: GPU timestamps for benchmarks, or
+/// Bevy's render-diagnostic spans in the plugin.
+pub trait PassRecorder {
+    /// Timestamp writes for the pass named `name` (query set and the index of its
+    /// beginning; the end is the next index), if this recorder takes them.
+    fn timestamps(&mut self, _name: &'static str) -> Option<(QuerySet, u32)> {
+        None
+    }
+    /// Called after the pass begins.
+    fn begin(&mut self, _pass: &mut ComputePass<'_>, _name: &'static str) {}
+    /// Called before the pass ends.
+    fn end(&mut self, _pass: &mut ComputePass<'_>) {}
+}
+
+/// Records nothing around passes.
+pub struct NoTiming;
+impl PassRecorder for NoTiming {}
+
+/// Bindings, in world-group order (see `kernels/bindings.wgsl`).
+struct Buffers {
+    params: Buffer,
+    colliders: Buffer,
+    x: Buffer,
+    v: Buffer,
+    p: Buffer,
+    p2: Buffer,
+    rest: Buffer,
+    pinfo: Buffer,
+    lists: Buffer,
+    crest: Buffer,
+    bodies: Buffer,
+    cstate: Buffer,
+    corr: Buffer,
+    pins: Buffer,
+    coldp: Buffer,
+    contacts: Buffer,
+    scan: Buffer,
+    cursor: Buffer,
+    sorted: Buffer,
+    cell_of: Buffer,
+    forces: Buffer,
+    fgrad: Buffer,
+    vinf: Buffer,
+    vwt: Buffer,
+    vrest: Buffer,
+    adj: Buffer,
+    draw: Buffer,
+    knn_out: Buffer,
+}
+
+impl Buffers {
+    fn in_order(&self) -> [&Buffer; 28] {
+        [
+            &self.params,
+            &self.colliders,
+            &self.x,
+            &self.v,
+            &self.p,
+            &self.p2,
+            &self.rest,
+            &self.pinfo,
+            &self.lists,
+            &self.crest,
+            &self.bodies,
+            &self.cstate,
+            &self.corr,
+            &self.pins,
+            &self.coldp,
+            &self.contacts,
+            &self.scan,
+            &self.cursor,
+            &self.sorted,
+            &self.cell_of,
+            &self.forces,
+            &self.fgrad,
+            &self.vinf,
+            &self.vwt,
+            &self.vrest,
+            &self.adj,
+            &self.draw,
+            &self.knn_out,
+        ]
+    }
+}
+
+/// Per body: particle range and render-vertex range.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BodyRange {
+    /// First particle.
+    pub first: u32,
+    /// Particles.
+    pub count: u32,
+    /// First render vertex.
+    pub vfirst: u32,
+    /// Render vertices.
+    pub vcount: u32,
+}
+
+/// All bodies of a scene on the GPU (see the module docs).
+pub struct GpuWorld {
+    /// Solver settings (the same fields as the CPU solver's; `method` is ignored: the GPU
+    /// runs Jacobi).
+    pub settings: SolverSettings,
+    /// Steps taken.
+    pub step: u64,
+    /// Particle and vertex ranges of the bodies, in model order.
+    pub ranges: Vec<BodyRange>,
+    b: Buffers,
+    surface: Buffer,
+    level_buf: Buffer,
+    levels: Vec<(u32, u32)>,
+    range_buf: Buffer,
+    world_group: BindGroup,
+    scan_group: BindGroup,
+    n: u32,
+    n_vertices: u32,
+    n_colliders: u32,
+    contact_k: u32,
+    knn_k: u32,
+    contacts_on: bool,
+    params: GpuParams,
+}
+
+/// Largest number of skin dispatches (runs of bodies sharing a vertex slab) per frame.
+pub const MAX_SKIN_RUNS: usize = 64;
+
+fn groups(n: u32, per: u32) -> u32 {
+    n.div_ceil(per).max(1)
+}
+
+impl GpuWorld {
+    /// Uploads `model` with its current `state`. `knn_k` is the K of the optional
+    /// all-particle neighbour search ([`GpuWorld::record_knn_all`]; 0 = not used).
+    /// Fails with [`TissueError::GpuLimit`] when a buffer or a dispatch exceeds the
+    /// adapter's limits, and on invalid settings.
+    pub fn new(
+        device: &RenderDevice,
+        kernels: &Kernels,
+        model: &Model,
+        state: &State,
+        settings: SolverSettings,
+        knn_k: u32,
+    ) -> Result<Self, TissueError> {
+        Self::check_limits(&device.limits(), model, &settings)?;
+        Self::new_unchecked(device, kernels, model, state, settings, knn_k)
+    }
+
+    /// Checks that `model` fits a device with `limits`: every buffer binding and the
+    /// per-particle dispatch size. [`GpuWorld::new`] runs this first.
+    pub fn check_limits(
+        limits: &bevy::render::render_resource::WgpuLimits,
+        model: &Model,
+        settings: &SolverSettings,
+    ) -> Result<(), TissueError> {
+        let n = model.particle_count() as u64;
+        let nv: u64 = model
+            .bodies
+            .iter()
+            .map(|b| b.skin.rest_vertices.len() as u64)
+            .sum();
+        let lists = (model.cluster_members.len() + model.inv_clusters.len()) as u64;
+        let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
+        let max_bind = limits.max_storage_buffer_binding_size;
+        let checks: [(&'static str, u64); 5] = [
+            ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
+            ("cluster corrections", n * 64),
+            ("cluster lists", lists * 4),
+            ("contact lists", n * contact_k.max(1) * 4),
+            ("render vertices", nv * 32),
+        ];
+        for (what, bytes) in checks {
+            let limit = max_bind.min(limits.max_buffer_size);
+            if bytes > limit {
+                return Err(TissueError::GpuLimit {
+                    what,
+                    needed: bytes,
+                    limit,
+                });
+            }
+        }
+        let max_groups = limits.max_compute_workgroups_per_dimension as u64;
+        let needed = n.div_ceil(WORKGROUP as u64);
+        if needed > max_groups {
+            return Err(TissueError::GpuLimit {
+                what: "workgroups per dispatch (particles / 128)",
+                needed,
+                limit: max_groups,
+            });
+        }
+        Ok(())
+    }
+
+    fn new_unchecked(
+        device: &RenderDevice,
+        kernels: &Kernels,
+        model: &Model,
+        state: &State,
+        settings: SolverSettings,
+        knn_k: u32,
+    ) -> Result<Self, TissueError> {
+        settings.validate()?;
+        let n = model.particle_count() as u32;
+        if n == 0 {
+            return Err(TissueError::InvalidParameter {
+                name: "model",
+                value: "0 particles".into(),
+                expected: "at least one body",
+            });
+        }
+        if knn_k > MAX_GPU_K || knn_k >= n {
+            return Err(TissueError::InvalidParameter {
+                name: "knn_k",
+                value: knn_k.to_string(),
+                expected: "K ≤ 64 and smaller than the particle count",
+            });
+        }
+        let packed = Packed::new(model, &settings);
+        let nv = packed.vertex_count() as u32;
+        let contact_k = settings
+            .contact_neighbours
+            .min(n.saturating_sub(1))
+            .min(MAX_GPU_K);
+        let contacts_on = settings.particle_contacts && model.bodies.len() > 1 && contact_k > 0;
+        let (cell, table) = grid_params(n as usize, packed.max_spacing);
+        let level_counts = scan_levels(table + 1);
+        let mut levels = Vec::new();
+        let mut off = 0u32;
+        for &c in &level_counts {
+            levels.push((off, c));
+            off += c;
+        }
+        let scan_len = off + 1;
+        let (x, v, cstate) = pack_state(state);
+        let pins: Vec<[f32; 4]> = state
+            .pin_targets
+            .iter()
+            .map(|p| p.extend(0.0).to_array())
+            .collect();
+        let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
+        let init = |label: &str, bytes: &[u8], usage: BufferUsages| {
+            let mut data = bytes.to_vec();
+            if data.len() < 16 {
+                data.resize(16, 0);
+            }
+            device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
+                label: Some(label),
+                contents: &data,
+                usage,
+            })
+        };
+        let zeroed = |label: &str, bytes: u64, usage: BufferUsages| {
+            device.create_buffer(&BufferDescriptor {
+                label: Some(label),
+                size: bytes.max(16),
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let n64 = n as u64;
+        let b = Buffers {
+            params: zeroed(
+                "tissue params",
+                size_of::<GpuParams>() as u64,
+                BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+            ),
+            colliders: zeroed(
+                "tissue colliders",
+                (MAX_COLLIDERS * size_of::<GpuCollider>()) as u64,
+                BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+            ),
+            x: init("tissue x", bytemuck::cast_slice(&x), st),
+            v: init("tissue v", bytemuck::cast_slice(&v), st),
+            p: init("tissue p", bytemuck::cast_slice(&x), st),
+            p2: init("tissue p2", bytemuck::cast_slice(&x), st),
+            rest: init("tissue rest", bytemuck::cast_slice(&packed.rest), st),
+            pinfo: init("tissue pinfo", bytemuck::cast_slice(&packed.pinfo), st),
+            lists: init("tissue lists", bytemuck::cast_slice(&packed.lists), st),
+            crest: init("tissue crest", bytemuck::cast_slice(&packed.crest), st),
+            bodies: init("tissue bodies", bytemuck::cast_slice(&packed.bodies), st),
+            cstate: init("tissue cstate", bytemuck::cast_slice(&cstate), st),
+            corr: zeroed("tissue corr", n64 * 64, st),
+            pins: init("tissue pins", bytemuck::cast_slice(&pins), st),
+            coldp: zeroed("tissue coldp", n64 * 16, st),
+            contacts: init(
+                "tissue contacts",
+                bytemuck::cast_slice(&vec![NONE; (n * contact_k.max(1)) as usize]),
+                st,
+            ),
+            scan: zeroed("tissue scan", scan_len as u64 * 4, st),
+            cursor: zeroed("tissue cursor", table as u64 * 4, st),
+            sorted: zeroed("tissue sorted", n64 * 16, st),
+            cell_of: zeroed("tissue cell_of", n64 * 4, st),
+            forces: zeroed(
+                "tissue forces",
+                (MAX_COLLIDERS as u64) * (FORCE_GROUPS as u64 + 1) * 16,
+                st,
+            ),
+            fgrad: zeroed("tissue fgrad", n64 * 48, st),
+            vinf: init("tissue vinf", bytemuck::cast_slice(&packed.vinf), st),
+            vwt: init("tissue vwt", bytemuck::cast_slice(&packed.vwt), st),
+            vrest: init("tissue vrest", bytemuck::cast_slice(&packed.vrest), st),
+            adj: init("tissue adj", bytemuck::cast_slice(&packed.adj), st),
+            draw: zeroed(
+                "tissue draw",
+                (model.bodies.len() * size_of::<GpuDrawBody>()) as u64,
+                st,
+            ),
+            knn_out: zeroed("tissue knn", n64 * knn_k.max(1) as u64 * 4, st),
+        };
+        let entries: Vec<BindGroupEntry> = b
+            .in_order()
+            .iter()
+            .enumerate()
+            .map(|(i, buf)| BindGroupEntry {
+                binding: i as u32,
+                resource: buf.as_entire_binding(),
+            })
+            .collect();
+        let world_group = device.create_bind_group("tissue world", &kernels.world_layout, &entries);
+        // Scan levels: one 256-byte uniform record per level (dynamic offsets).
+        let recs: Vec<GpuScanLevel> = levels
+            .iter()
+            .enumerate()
+            .map(|(l, &(o, c))| GpuScanLevel {
+                offset: o,
+                count: c,
+                sums: levels.get(l + 1).map_or(scan_len - 1, |nx| nx.0),
+                pad: [0; 61],
+            })
+            .collect();
+        let level_buf = init(
+            "tissue scan levels",
+            bytemuck::cast_slice(&recs),
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        );
+        let scan_group = device.create_bind_group(
+            "tissue scan level",
+            &kernels.scan_layout,
+            &[BindGroupEntry {
+                binding: 0,
+                resource: BindingResource::Buffer(BufferBinding {
+                    buffer: &level_buf,
+                    offset: 0,
+                    size: std::num::NonZeroU64::new(16),
+                }),
+            }],
+        );
+        let range_buf = zeroed(
+            "tissue skin ranges",
+            (MAX_SKIN_RUNS * size_of::<GpuSkinRange>()) as u64,
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        );
+        let surface = zeroed(
+            "tissue surface",
+            nv as u64 * 32,
+            BufferUsages::STORAGE | BufferUsages::VERTEX | BufferUsages::COPY_SRC,
+        );
+        let ranges = model
+            .bodies
+            .iter()
+            .enumerate()
+            .map(|(i, body)| BodyRange {
+                first: body.first,
+                count: body.count,
+                vfirst: packed.vfirst[i],
+                vcount: body.skin.rest_vertices.len() as u32,
+            })
+            .collect();
+        let h = settings.dt / settings.substeps as f32;
+        let params = GpuParams {
+            gravity: settings.gravity.extend(0.0).to_array(),
+            n,
+            n_colliders: 0,
+            rot_iters: settings.rotation_iterations,
+            contacts: contacts_on as u32,
+            h,
+            h2: h * h,
+            keep: (1.0 - settings.damping * h).max(0.0),
+            omega: settings.relaxation,
+            inv_offset: packed.inv_offset,
+            contact_k,
+            n_vertices: nv,
+            inv_substeps: 1.0 / settings.substeps as f32,
+            grid_cell: cell,
+            grid_table: table,
+            knn_mode: 0,
+            max_radius: packed.max_radius,
+            knn_k,
+            n_bodies: model.bodies.len() as u32,
+            pad: [0; 2],
+        };
+        Ok(Self {
+            settings,
+            step: state.step,
+            ranges,
+            b,
+            surface,
+            level_buf,
+            levels,
+            range_buf,
+            world_group,
+            scan_group,
+            n,
+            n_vertices: nv,
+            n_colliders: 0,
+            contact_k,
+            knn_k,
+            contacts_on,
+            params,
+        })
+    }
+
+    /// Particles in the world.
+    pub fn particle_count(&self) -> u32 {
+        self.n
+    }
+
+    /// Render vertices in the world.
+    pub fn vertex_count(&self) -> u32 {
+        self.n_vertices
+    }
+
+    /// K of the all-particle neighbour search ([`GpuWorld::record_knn_all`]).
+    pub fn knn_k(&self) -> u32 {
+        self.knn_k
+    }
+
+    /// Contact candidates kept per particle (0 when particle contacts are off).
+    pub fn contact_neighbours(&self) -> u32 {
+        if self.contacts_on { self.contact_k } else { 0 }
+    }
+
+    /// The world's own vertex buffer (STORAGE | VERTEX): 8 floats per render vertex
+    /// (position, normal, uv), used when no mesh allocator slab is given.
+    pub fn surface(&self) -> &Buffer {
+        &self.surface
+    }
+
+    /// Positions buffer (vec4 per particle, m).
+    pub fn positions(&self) -> &Buffer {
+        &self.b.x
+    }
+
+    /// Velocities buffer (vec4 per particle, m/s).
+    pub fn velocities(&self) -> &Buffer {
+        &self.b.v
+    }
+
+    /// Contact candidate lists (`contact_neighbours()` per particle, `u32::MAX` padded).
+    pub fn contact_lists(&self) -> &Buffer {
+        &self.b.contacts
+    }
+
+    /// Output of [`GpuWorld::record_knn_all`] (`knn_k` per particle).
+    pub fn knn_lists(&self) -> &Buffer {
+        &self.b.knn_out
+    }
+
+    /// Collider forces buffer: after a step, vec4 (N) per collider at
+    /// [`GpuWorld::force_offset`].
+    pub fn forces(&self) -> &Buffer {
+        &self.b.forces
+    }
+
+    /// Byte offset of the collider force totals in [`GpuWorld::forces`].
+    pub fn force_offset(&self) -> u64 {
+        self.n_colliders as u64 * FORCE_GROUPS as u64 * 16
+    }
+
+    /// Colliders in use.
+    pub fn collider_count(&self) -> u32 {
+        self.n_colliders
+    }
+
+    /// Replaces the colliders (at most [`MAX_COLLIDERS`]; extra ones are an error).
+    pub fn set_colliders(
+        &mut self,
+        queue: &RenderQueue,
+        colliders: &[Collider],
+    ) -> Result<(), TissueError> {
+        if colliders.len() > MAX_COLLIDERS {
+            return Err(TissueError::InvalidParameter {
+                name: "colliders",
+                value: colliders.len().to_string(),
+                expected: "at most 128 colliders per world",
+            });
+        }
+        let data: Vec<GpuCollider> = colliders.iter().map(GpuCollider::from_core).collect();
+        if !data.is_empty() {
+            queue.write_buffer(&self.b.colliders, 0, bytemuck::cast_slice(&data));
+        }
+        self.n_colliders = colliders.len() as u32;
+        Ok(())
+    }
+
+    /// Writes the per-body draw records (one per body, in model order).
+    pub fn set_draw(&self, queue: &RenderQueue, draw: &[GpuDrawBody]) {
+        if !draw.is_empty() {
+            queue.write_buffer(&self.b.draw, 0, bytemuck::cast_slice(draw));
+        }
+    }
+
+    /// Draw records for the world's own [`GpuWorld::surface`] with every body drawn in
+    /// world space.
+    pub fn surface_draw(&self) -> Vec<GpuDrawBody> {
+        self.ranges
+            .iter()
+            .map(|r| GpuDrawBody::new(glam::Affine3A::IDENTITY, r.vfirst * 8, r.vfirst, 8))
+            .collect()
+    }
+
+    /// Moves pinned particles' targets (same order as `Model::pinned`), m.
+    pub fn set_pin_targets(&self, queue: &RenderQueue, targets: &[Vec3]) {
+        let data: Vec<[f32; 4]> = targets.iter().map(|p| p.extend(0.0).to_array()).collect();
+        if !data.is_empty() {
+            queue.write_buffer(&self.b.pins, 0, bytemuck::cast_slice(&data));
+        }
+    }
+
+    /// Writes the per-step constants (call before submitting recorded steps).
+    pub fn write_params(&mut self, queue: &RenderQueue) {
+        self.params.n_colliders = self.n_colliders;
+        queue.write_buffer(&self.b.params, 0, bytemuck::bytes_of(&self.params));
+    }
+
+    fn dispatch(
+        &self,
+        encoder: &mut CommandEncoder,
+        rec: &mut dyn PassRecorder,
+        name: &'static str,
+        pipeline: &ComputePipeline,
+        group1: Option<(&BindGroup, u32)>,
+        workgroups: (u32, u32),
+    ) {
+        let ts = rec.timestamps(name);
+        let timestamp_writes = ts.as_ref().map(|(qs, i)| ComputePassTimestampWrites {
+            query_set: qs,
+            beginning_of_pass_write_index: Some(*i),
+            end_of_pass_write_index: Some(*i + 1),
+        });
+        let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
+            label: Some(name),
+            timestamp_writes,
+        });
+        rec.begin(&mut pass, name);
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &self.world_group, &[]);
+        if let Some((g, off)) = group1 {
+            pass.set_bind_group(1, g, &[off]);
+        }
+        pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
+        rec.end(&mut pass);
+    }
+
+    /// Records the grid build over the current positions (counts, prefix sum, scatter).
+    pub fn record_grid(
+        &self,
+        encoder: &mut CommandEncoder,
+        k: &Kernels,
+        rec: &mut dyn PassRecorder,
+    ) {
+        encoder.clear_buffer(&self.b.scan, 0, None);
+        encoder.clear_buffer(&self.b.cursor, 0, None);
+        let g = groups(self.n, WORKGROUP);
+        let sg = &self.scan_group;
+        self.dispatch(
+            encoder,
+            rec,
+            "tissue/grid_count",
+            &k.grid_count,
+            Some((sg, 0)),
+            (g, 1),
+        );
+        for (l, &(_, c)) in self.levels.iter().enumerate() {
+            let off = (l * size_of::<GpuScanLevel>()) as u32;
+            let wg = groups(c, SCAN_BLOCK);
+            self.dispatch(
+                encoder,
+                rec,
+                "tissue/scan",
+                &k.scan_block,
+                Some((sg, off)),
+                (wg, 1),
+            );
+        }
+        for l in (0..self.levels.len().saturating_sub(1)).rev() {
+            let off = (l * size_of::<GpuScanLevel>()) as u32;
+            let wg = groups(self.levels[l].1, SCAN_BLOCK);
+            self.dispatch(
+                encoder,
+                rec,
+                "tissue/scan",
+                &k.scan_add,
+                Some((sg, off)),
+                (wg, 1),
+            );
+        }
+        self.dispatch(
+            encoder,
+            rec,
+            "tissue/grid_scatter",
+            &k.grid_scatter,
+            Some((sg, 0)),
+            (g, 1),
+        );
+    }
+
+    /// Records the exact K nearest neighbours of every particle (K = `knn_k` given at
+    /// creation) into [`GpuWorld::knn_lists`], grid included.
+    pub fn record_knn_all(
+        &self,
+        encoder: &mut CommandEncoder,
+        k: &Kernels,
+        rec: &mut dyn PassRecorder,
+    ) {
+        self.record_grid(encoder, k, rec);
+        let g = groups(self.n, WORKGROUP);
+        self.dispatch(encoder, rec, "tissue/knn", &k.knn_all, None, (g, 1));
+    }
+
+    /// Records `steps` time steps. Call [`GpuWorld::write_params`] before submitting.
+    pub fn record_steps(
+        &mut self,
+        encoder: &mut CommandEncoder,
+        k: &Kernels,
+        steps: u32,
+        rec: &mut dyn PassRecorder,
+    ) {
+        let g = groups(self.n, WORKGROUP);
+        let s = &self.settings;
+        for _ in 0..steps {
+            if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
+                self.record_grid(encoder, k, rec);
+                self.dispatch(encoder, rec, "tissue/knn", &k.knn_contacts, None, (g, 1));
+            }
+            if self.n_colliders > 0 {
+                encoder.clear_buffer(&self.b.forces, self.force_offset(), None);
+            }
+            for _ in 0..s.substeps {
+                self.dispatch(encoder, rec, "tissue/predict", &k.predict, None, (g, 1));
+                for _ in 0..s.iterations {
+                    self.dispatch(encoder, rec, "tissue/clusters", &k.clusters, None, (g, 1));
+                    self.dispatch(encoder, rec, "tissue/gather", &k.gather, None, (g, 1));
+                    if self.contacts_on {
+                        self.dispatch(encoder, rec, "tissue/contacts", &k.contact, None, (g, 1));
+                    }
+                }
+                if self.n_colliders > 0 {
+                    let nc = self.n_colliders;
+                    self.dispatch(
+                        encoder,
+                        rec,
+                        "tissue/forces",
+                        &k.force_partial,
+                        None,
+                        (FORCE_GROUPS, nc),
+                    );
+                    self.dispatch(encoder, rec, "tissue/forces", &k.force_total, None, (1, 1));
+                }
+                self.dispatch(encoder, rec, "tissue/finish", &k.finish, None, (g, 1));
+            }
+            self.step += 1;
+        }
+    }
+
+    /// Records the draw path into `slab` (the world's own [`GpuWorld::surface`] or a mesh
+    /// allocator slab): deformation gradients, then for each run `(first vertex, end)`
+    /// of bodies whose vertices live in `slab`, skinning and normals. The draw records
+    /// ([`GpuWorld::set_draw`]) say where each body's vertices are.
+    pub fn record_draw(
+        &self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        encoder: &mut CommandEncoder,
+        k: &Kernels,
+        slab: &Buffer,
+        runs: &[(u32, u32)],
+        rec: &mut dyn PassRecorder,
+    ) {
+        let runs = &runs[..runs.len().min(MAX_SKIN_RUNS)];
+        if runs.is_empty() {
+            return;
+        }
+        let recs: Vec<GpuSkinRange> = runs
+            .iter()
+            .map(|&(b, e)| GpuSkinRange {
+                begin: b,
+                end: e,
+                pad: [0; 62],
+            })
+            .collect();
+        queue.write_buffer(&self.range_buf, 0, bytemuck::cast_slice(&recs));
+        let group = device.create_bind_group(
+            "tissue vertex slab",
+            &k.skin_layout,
+            &[
+                BindGroupEntry {
+                    binding: 0,
+                    resource: slab.as_entire_binding(),
+                },
+                BindGroupEntry {
+                    binding: 1,
+                    resource: BindingResource::Buffer(BufferBinding {
+                        buffer: &self.range_buf,
+                        offset: 0,
+                        size: std::num::NonZeroU64::new(16),
+                    }),
+                },
+            ],
+        );
+        let g = groups(self.n, WORKGROUP);
+        self.dispatch(
+            encoder,
+            rec,
+            "tissue/deform",
+            &k.deform,
+            Some((&group, 0)),
+            (g, 1),
+        );
+        for (i, &(b, e)) in runs.iter().enumerate() {
+            let off = (i * size_of::<GpuSkinRange>()) as u32;
+            let wg = groups(e.saturating_sub(b), WORKGROUP);
+            self.dispatch(
+                encoder,
+                rec,
+                "tissue/skin",
+                &k.skin,
+                Some((&group, off)),
+                (wg, 1),
+            );
+        }
+        for (i, &(b, e)) in runs.iter().enumerate() {
+            let off = (i * size_of::<GpuSkinRange>()) as u32;
+            let wg = groups(e.saturating_sub(b), WORKGROUP);
+            self.dispatch(
+                encoder,
+                rec,
+                "tissue/normals",
+                &k.normals,
+                Some((&group, off)),
+                (wg, 1),
+            );
+        }
+    }
+
+    /// Copies `count` particles' positions, velocities and cluster states starting at
+    /// `from` in `other` to `to` in this world (GPU to GPU: a rebuilt world keeps the
+    /// pose of the bodies it had).
+    pub fn copy_state_from(
+        &self,
+        encoder: &mut CommandEncoder,
+        other: &GpuWorld,
+        from: u32,
+        to: u32,
+        count: u32,
+    ) {
+        let (f, t, c) = (from as u64, to as u64, count as u64);
+        encoder.copy_buffer_to_buffer(&other.b.x, f * 16, &self.b.x, t * 16, c * 16);
+        encoder.copy_buffer_to_buffer(&other.b.v, f * 16, &self.b.v, t * 16, c * 16);
+        encoder.copy_buffer_to_buffer(&other.b.cstate, f * 48, &self.b.cstate, t * 48, c * 48);
+    }
+
+    /// The level uniform buffer of the prefix sum (for inspection).
+    pub fn scan_level_buffer(&self) -> &Buffer {
+        &self.level_buf
+    }
+}
+
+/// Blocking read of `size` bytes at `offset` of `buffer` (tests and benchmarks; the
+/// plugin reads back asynchronously).
+pub fn read_buffer(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    buffer: &Buffer,
+    offset: u64,
+    size: u64,
+) -> Vec<u8> {
+    let staging = device.create_buffer(&BufferDescriptor {
+        label: Some("tissue readback"),
+        size: size.max(4),
+        usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut enc = device.create_command_encoder(&Default::default());
+    enc.copy_buffer_to_buffer(buffer, offset, &staging, 0, size);
+    queue.submit([enc.finish()]);
+    let slice = staging.slice(..);
+    slice.map_async(MapMode::Read, |_| {});
+    let _ = device.poll(bevy::render::render_resource::PollType::wait_indefinitely());
+    let out = slice.get_mapped_range()[..size as usize].to_vec();
+    staging.unmap();
+    out
+}
+
+/// Blocking read of a vec4 buffer's first `n` entries as `Vec3`s.
+pub fn read_vec3(device: &RenderDevice, queue: &RenderQueue, buffer: &Buffer, n: u32) -> Vec<Vec3> {
+    let bytes = read_buffer(device, queue, buffer, 0, n as u64 * 16);
+    bytemuck::cast_slice::<u8, [f32; 4]>(&bytes)
+        .iter()
+        .map(|a| Vec3::new(a[0], a[1], a[2]))
+        .collect()
+}
+
+/// Blocking read of a u32 buffer's first `n` entries.
+pub fn read_u32(device: &RenderDevice, queue: &RenderQueue, buffer: &Buffer, n: u64) -> Vec<u32> {
+    let bytes = read_buffer(device, queue, buffer, 0, n * 4);
+    bytemuck::cast_slice(&bytes).to_vec()
+}
