@@ -1,0 +1,200 @@
+//! GPU benchmark of the batched world (SPEC §7), outside Bevy's frame loop: the
+//! procedural liver pinned at its ligament at the paper's largest size, 1,000,000
+//! particles, and 1,000 bodies of 512 particles, K = 32, 10 iterations, dt = 1/60 s,
+//! with the K = 32 neighbour search of every particle refreshed every 10th step.
+//!
+//! For each scene: ms per step (wall clock over many steps recorded into one
+//! submission, GPU synchronised, median of 5 repeats), ms per KNN refresh, and GPU time
+//! per pass from timestamp queries. Markdown on stdout.
+//!
+//! ```text
+//! cargo run --release --example gpu_bench            # the full set (a real GPU)
+//! cargo run --release --example gpu_bench -- --quick # small sizes (lavapipe: seconds)
+//! ```
+use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
+use bevy_tissue::core::procedural;
+use bevy_tissue::core::sampling::Resolution;
+use bevy_tissue::core::solver::{Method, SolverSettings, State};
+use bevy_tissue::gpu::profile::GpuProfiler;
+use bevy_tissue::gpu::world::read_vec3;
+use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, PassRecorder, headless};
+use glam::Vec3;
+use std::time::Instant;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn liver(particles: u32, k: u32, material: Material) -> Model {
+    let (lo, hi) = procedural::liver_ligament();
+    let mut model = Model::new();
+    let desc = BodyDesc {
+        resolution: Resolution::Particles(particles),
+        neighbours: k,
+        material,
+        pins: vec![PinRegion::Box { min: lo, max: hi }],
+        ..Default::default()
+    };
+    model
+        .add_body(&procedural::liver(4), &desc)
+        .expect("liver model");
+    model
+}
+
+fn many(bodies: u32, particles: u32, k: u32, material: Material) -> Model {
+    let mut one = Model::new();
+    let desc = BodyDesc {
+        resolution: Resolution::Particles(particles),
+        neighbours: k,
+        material,
+        ..Default::default()
+    };
+    one.add_body(&procedural::icosphere(0.05, 2), &desc)
+        .expect("body");
+    let mut model = Model::new();
+    let side = (bodies as f32).cbrt().ceil() as u32;
+    for i in 0..bodies {
+        let mut b = one.clone();
+        let (x, y, z) = (i % side, (i / side) % side, i / (side * side));
+        b.bodies[0].translation = Vec3::new(x as f32, y as f32 + 1.0, z as f32) * 0.15;
+        model.append(&b);
+    }
+    model
+}
+
+struct Row {
+    scene: String,
+    particles: u32,
+    ms_step: f64,
+    ms_knn: f64,
+    passes: Vec<(&'static str, f64, f64)>,
+}
+
+fn record(
+    g: &Headless,
+    world: &mut GpuWorld,
+    steps: u32,
+    knn_every: u32,
+    rec: &mut dyn PassRecorder,
+) -> bevy::render::render_resource::CommandEncoder {
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    for _ in 0..steps {
+        if knn_every > 0 && world.step.is_multiple_of(knn_every as u64) {
+            world.record_knn_all(&mut enc, &g.kernels, rec);
+        }
+        world.record_steps(&mut enc, &g.kernels, 1, rec);
+    }
+    enc
+}
+
+fn sync(g: &Headless, world: &GpuWorld) {
+    // A one-particle read waits for all submitted work.
+    let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
+}
+
+fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -> Row {
+    let n = model.particle_count() as u32;
+    eprintln!("{scene}: {n} particles, uploading");
+    let settings = SolverSettings {
+        method: Method::Jacobi,
+        iterations: 10,
+        knn_every: 10,
+        ..Default::default()
+    };
+    let state = State::new(model);
+    let mut world = GpuWorld::new(&g.device, &g.kernels, model, &state, settings, 32)
+        .unwrap_or_else(|e| panic!("{scene}: {e}"));
+    world.write_params(&g.queue);
+    // Warm-up.
+    let enc = record(g, &mut world, 20, 10, &mut NoTiming);
+    g.queue.submit([enc.finish()]);
+    sync(g, &world);
+    let mut per_step = Vec::new();
+    for r in 0..repeats {
+        let enc = record(g, &mut world, steps, 10, &mut NoTiming);
+        let t = Instant::now();
+        g.queue.submit([enc.finish()]);
+        sync(g, &world);
+        let ms = t.elapsed().as_secs_f64() * 1e3 / steps as f64;
+        eprintln!("  repeat {r}: {ms:.4} ms/step");
+        per_step.push(ms);
+    }
+    // KNN refresh alone.
+    let mut knn = Vec::new();
+    for _ in 0..repeats {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        for _ in 0..10 {
+            world.record_knn_all(&mut enc, &g.kernels, &mut NoTiming);
+        }
+        let t = Instant::now();
+        g.queue.submit([enc.finish()]);
+        sync(g, &world);
+        knn.push(t.elapsed().as_secs_f64() * 1e3 / 10.0);
+    }
+    // Per pass: 10 steps (one KNN refresh) under timestamp queries.
+    let mut passes = Vec::new();
+    if let Some(mut prof) = GpuProfiler::new(&g.device, &g.queue, 2048) {
+        let mut enc = record(g, &mut world, 10, 10, &mut prof);
+        prof.resolve(&mut enc);
+        g.queue.submit([enc.finish()]);
+        for (name, (ms, count)) in prof.read(&g.device, &g.queue) {
+            passes.push((name, ms / 10.0, count as f64 / 10.0));
+        }
+    }
+    let x = read_vec3(&g.device, &g.queue, world.positions(), n);
+    assert!(x.iter().all(|p| p.is_finite()), "{scene}: non-finite state");
+    Row {
+        scene: scene.into(),
+        particles: n,
+        ms_step: median(per_step),
+        ms_knn: median(knn),
+        passes,
+    }
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let g = match headless() {
+        Ok(g) => g,
+        Err(e) => {
+            eprintln!("gpu_bench: {e}");
+            std::process::exit(1);
+        }
+    };
+    println!("GPU: {}\n", g.adapter);
+    let sm = Material::ShapeMatching { stiffness: 0.5 };
+    let he = Material::default();
+    let (steps, repeats) = if quick { (20, 3) } else { (300, 5) };
+    let mut rows = Vec::new();
+    if quick {
+        rows.push(bench(&g, "liver 4096, shape matching", &liver(4096, 32, sm), steps, repeats));
+        rows.push(bench(&g, "20 bodies x 512, hyperelastic", &many(20, 512, 32, he), steps, repeats));
+    } else {
+        rows.push(bench(&g, "liver 37982, shape matching", &liver(37982, 32, sm), steps, repeats));
+        rows.push(bench(&g, "liver 37982, hyperelastic", &liver(37982, 32, he), steps, repeats));
+        rows.push(bench(&g, "1000 bodies x 512, hyperelastic", &many(1000, 512, 32, he), steps, repeats));
+        let t = Instant::now();
+        let big = liver(1_000_000, 32, he);
+        eprintln!("1M model built in {:.1} s", t.elapsed().as_secs_f64());
+        rows.push(bench(&g, "liver 1M, hyperelastic", &big, 50, 3));
+    }
+    println!("| scene | particles | ms per step | ms per KNN (K=32) |");
+    println!("|---|---|---|---|");
+    for r in &rows {
+        println!(
+            "| {} | {} | {:.3} | {:.3} |",
+            r.scene, r.particles, r.ms_step, r.ms_knn
+        );
+    }
+    for r in &rows {
+        println!("\nGPU time per pass, {} (per step; timestamp queries):\n", r.scene);
+        println!("| pass | ms per step | dispatches per step |");
+        println!("|---|---|---|");
+        let total: f64 = r.passes.iter().map(|p| p.1).sum();
+        for (name, ms, count) in &r.passes {
+            println!("| {name} | {ms:.4} | {count} |");
+        }
+        println!("| sum | {total:.4} | |");
+    }
+}
