@@ -42,6 +42,22 @@ fn liver(particles: u32, k: u32, material: Material) -> Model {
     model
 }
 
+fn liver_spacing(spacing: f32, k: u32, material: Material) -> Model {
+    let (lo, hi) = procedural::liver_ligament();
+    let mut model = Model::new();
+    let desc = BodyDesc {
+        resolution: Resolution::Spacing(spacing),
+        neighbours: k,
+        material,
+        pins: vec![PinRegion::Box { min: lo, max: hi }],
+        ..Default::default()
+    };
+    model
+        .add_body(&procedural::liver(4), &desc)
+        .expect("liver model");
+    model
+}
+
 fn many(bodies: u32, particles: u32, k: u32, material: Material) -> Model {
     let mut one = Model::new();
     let desc = BodyDesc {
@@ -95,6 +111,7 @@ fn sync(g: &Headless, world: &GpuWorld) {
 
 fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -> Row {
     let n = model.particle_count() as u32;
+    let t0 = Instant::now();
     eprintln!("{scene}: {n} particles, uploading");
     let settings = SolverSettings {
         method: Method::Jacobi,
@@ -106,6 +123,7 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
     let mut world = GpuWorld::new(&g.device, &g.kernels, model, &state, settings, 32)
         .unwrap_or_else(|e| panic!("{scene}: {e}"));
     world.write_params(&g.queue);
+    eprintln!("  uploaded in {:.2} s", t0.elapsed().as_secs_f64());
     // Warm-up.
     let enc = record(g, &mut world, 20, 10, &mut NoTiming);
     g.queue.submit([enc.finish()]);
@@ -120,6 +138,7 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
         eprintln!("  repeat {r}: {ms:.4} ms/step");
         per_step.push(ms);
     }
+    eprintln!("  stepped; {:.2} s so far", t0.elapsed().as_secs_f64());
     // KNN refresh alone.
     let mut knn = Vec::new();
     for _ in 0..repeats {
@@ -143,14 +162,23 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
         }
     }
     let x = read_vec3(&g.device, &g.queue, world.positions(), n);
-    assert!(x.iter().all(|p| p.is_finite()), "{scene}: non-finite state");
-    Row {
-        scene: scene.into(),
+    let finite = x.iter().all(|p| p.is_finite());
+    let r = Row {
+        scene: if finite {
+            scene.into()
+        } else {
+            format!("{scene} (DIVERGED: non-finite state)")
+        },
         particles: n,
         ms_step: median(per_step),
         ms_knn: median(knn),
         passes,
-    }
+    };
+    println!(
+        "| {} | {} | {:.3} | {:.3} |",
+        r.scene, r.particles, r.ms_step, r.ms_knn
+    );
+    r
 }
 
 fn main() {
@@ -167,28 +195,60 @@ fn main() {
     let he = Material::default();
     let (steps, repeats) = if quick { (20, 3) } else { (300, 5) };
     let mut rows = Vec::new();
-    if quick {
-        rows.push(bench(&g, "liver 4096, shape matching", &liver(4096, 32, sm), steps, repeats));
-        rows.push(bench(&g, "20 bodies x 512, hyperelastic", &many(20, 512, 32, he), steps, repeats));
-    } else {
-        rows.push(bench(&g, "liver 37982, shape matching", &liver(37982, 32, sm), steps, repeats));
-        rows.push(bench(&g, "liver 37982, hyperelastic", &liver(37982, 32, he), steps, repeats));
-        rows.push(bench(&g, "1000 bodies x 512, hyperelastic", &many(1000, 512, 32, he), steps, repeats));
-        let t = Instant::now();
-        let big = liver(1_000_000, 32, he);
-        eprintln!("1M model built in {:.1} s", t.elapsed().as_secs_f64());
-        rows.push(bench(&g, "liver 1M, hyperelastic", &big, 50, 3));
-    }
     println!("| scene | particles | ms per step | ms per KNN (K=32) |");
     println!("|---|---|---|---|");
-    for r in &rows {
-        println!(
-            "| {} | {} | {:.3} | {:.3} |",
-            r.scene, r.particles, r.ms_step, r.ms_knn
-        );
+    if quick {
+        rows.push(bench(
+            &g,
+            "liver 4096, shape matching",
+            &liver(4096, 32, sm),
+            steps,
+            repeats,
+        ));
+        rows.push(bench(
+            &g,
+            "20 bodies x 512, hyperelastic",
+            &many(20, 512, 32, he),
+            steps,
+            repeats,
+        ));
+    } else {
+        let t = Instant::now();
+        let l38 = liver(37982, 32, sm);
+        eprintln!("liver 37982 built in {:.1} s", t.elapsed().as_secs_f64());
+        let s38 = l38.bodies[0].spacing;
+        rows.push(bench(
+            &g,
+            "liver 37982, shape matching",
+            &l38,
+            steps,
+            repeats,
+        ));
+        rows.push(bench(
+            &g,
+            "1000 bodies x 512, shape matching",
+            &many(1000, 512, 32, sm),
+            steps,
+            repeats,
+        ));
+        rows.push(bench(
+            &g,
+            "liver 37982, hyperelastic",
+            &liver(37982, 32, he),
+            steps,
+            repeats,
+        ));
+        let t = Instant::now();
+        // Same shape, spacing scaled to ~1M particles (no count search).
+        let big = liver_spacing(s38 * (37982.0f32 / 1.0e6).cbrt(), 32, sm);
+        eprintln!("1M model built in {:.1} s", t.elapsed().as_secs_f64());
+        rows.push(bench(&g, "liver 1M, shape matching", &big, 50, 3));
     }
     for r in &rows {
-        println!("\nGPU time per pass, {} (per step; timestamp queries):\n", r.scene);
+        println!(
+            "\nGPU time per pass, {} (per step; timestamp queries):\n",
+            r.scene
+        );
         println!("| pass | ms per step | dispatches per step |");
         println!("|---|---|---|");
         let total: f64 = r.passes.iter().map(|p| p.1).sum();

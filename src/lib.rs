@@ -4,6 +4,18 @@
 //!
 //! * [`core`] — the simulation core (no Bevy beyond glam): model building, constraint
 //!   math, the CPU reference solver;
-//! * [`gpu`] — buffers, kernels and the batched GPU world.
+//! * [`gpu`] — buffers, kernels and the batched GPU world;
+//! * [`plugin`] — the Bevy plugin: components, build systems, render-graph systems.
 pub mod core;
 pub mod gpu;
+pub mod plugin;
+
+/// Everything a scene needs: `use bevy_tissue::prelude::*;`.
+pub mod prelude {
+    pub use crate::plugin::components::{
+        ColliderForce, ColliderKind, ParticlePositions, PinShape, Pinned, ReadbackParticles,
+        SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock, TissueCollider,
+        TissueMaterial, TissueResolution, TissueSettings,
+    };
+    pub use crate::plugin::{TissuePlugin, TissueSet};
+}

@@ -1,0 +1,216 @@
+//! Model building for new or changed [`SoftBody`] entities, off the main thread
+//! (`AsyncComputeTaskPool`), and the per-body draw mesh the GPU writes into.
+
+use super::components::*;
+use crate::core::TissueError;
+use crate::core::mesh::TriMesh;
+use crate::core::model::{BodyDesc, Model};
+use bevy::asset::RenderAssetUsages;
+use bevy::camera::visibility::NoFrustumCulling;
+use bevy::mesh::{Indices, PrimitiveTopology, VertexAttributeValues};
+use bevy::prelude::*;
+use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, futures_lite::future};
+use std::sync::Arc;
+
+/// The mesh the user gave (kept so that rebuilds start from it, not from the draw mesh).
+#[derive(Component, Debug, Clone)]
+pub struct SourceMesh(pub Handle<Mesh>);
+
+/// A build in flight.
+#[derive(Component)]
+pub struct BuildTask(Task<Result<Model, TissueError>>);
+
+/// A built body, ready for the GPU: its one-body model (world frame at build time), the
+/// entity's draw mesh, and a generation that changes with every rebuild.
+#[derive(Component, Clone)]
+pub struct BuiltBody {
+    /// The model (one body).
+    pub model: Arc<Model>,
+    /// Counts rebuilds (the render world re-uploads when it changes).
+    pub generation: u64,
+    /// The draw mesh the GPU writes (the entity's `Mesh3d`).
+    pub draw_mesh: Handle<Mesh>,
+}
+
+/// Converts a Bevy mesh to the core's triangle mesh, transformed by `to_world`.
+pub fn tri_mesh(mesh: &Mesh, to_world: &GlobalTransform) -> Result<TriMesh, TissueError> {
+    let bad = |value: String, expected: &'static str| TissueError::InvalidParameter {
+        name: "mesh",
+        value,
+        expected,
+    };
+    if mesh.primitive_topology() != PrimitiveTopology::TriangleList {
+        return Err(bad(
+            format!("{:?}", mesh.primitive_topology()),
+            "a TriangleList mesh",
+        ));
+    }
+    let Some(VertexAttributeValues::Float32x3(pos)) = mesh.attribute(Mesh::ATTRIBUTE_POSITION)
+    else {
+        return Err(bad(
+            "no Float32x3 positions".into(),
+            "a mesh with Float32x3 vertex positions",
+        ));
+    };
+    let a = to_world.affine();
+    let positions = pos
+        .iter()
+        .map(|p| a.transform_point3(Vec3::from_array(*p)))
+        .collect::<Vec<_>>();
+    let indices = match mesh.indices() {
+        Some(Indices::U16(i)) => i.iter().map(|&v| v as u32).collect(),
+        Some(Indices::U32(i)) => i.clone(),
+        None => (0..positions.len() as u32).collect(),
+    };
+    Ok(TriMesh::new(positions, indices))
+}
+
+/// The draw mesh: the source mesh's positions, normals and UVs (zeros where absent)
+/// with its indices — exactly the layout the skinning kernel writes (8 floats per
+/// vertex).
+fn draw_mesh(source: &Mesh) -> Mesh {
+    let n = source.count_vertices();
+    let pos = match source.attribute(Mesh::ATTRIBUTE_POSITION) {
+        Some(VertexAttributeValues::Float32x3(p)) => p.clone(),
+        _ => vec![[0.0; 3]; n],
+    };
+    let nrm = match source.attribute(Mesh::ATTRIBUTE_NORMAL) {
+        Some(VertexAttributeValues::Float32x3(p)) => p.clone(),
+        _ => vec![[0.0, 1.0, 0.0]; n],
+    };
+    let uv = match source.attribute(Mesh::ATTRIBUTE_UV_0) {
+        Some(VertexAttributeValues::Float32x2(p)) => p.clone(),
+        _ => vec![[0.0; 2]; n],
+    };
+    let mut m = Mesh::new(
+        PrimitiveTopology::TriangleList,
+        RenderAssetUsages::default(),
+    )
+    .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, pos)
+    .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, nrm)
+    .with_inserted_attribute(Mesh::ATTRIBUTE_UV_0, uv);
+    if let Some(i) = source.indices() {
+        m.insert_indices(i.clone());
+    }
+    m
+}
+
+/// Starts builds for new and changed bodies whose mesh is loaded.
+#[allow(clippy::type_complexity)]
+pub fn start_builds(
+    mut commands: Commands,
+    meshes: Res<Assets<Mesh>>,
+    mut bodies: Query<(
+        Entity,
+        &SoftBody,
+        Option<&Pinned>,
+        &Mesh3d,
+        Option<&SourceMesh>,
+        &GlobalTransform,
+        &mut SoftBodyStatus,
+        Option<&BuiltBody>,
+    )>,
+    changed: Query<Entity, Or<(Changed<SoftBody>, Changed<Pinned>)>>,
+    settings: Res<TissueSettings>,
+) {
+    for (entity, body, pinned, mesh3d, source, to_world, mut status, built) in &mut bodies {
+        let is_changed = changed.contains(entity) && built.is_some();
+        if !(matches!(*status, SoftBodyStatus::Pending) || is_changed) {
+            continue;
+        }
+        let handle = source.map_or(mesh3d.0.clone(), |s| s.0.clone());
+        let Some(mesh) = meshes.get(&handle) else {
+            continue; // not loaded yet
+        };
+        let tri = tri_mesh(mesh, to_world);
+        let desc = BodyDesc {
+            resolution: body.resolution.to_core(),
+            density: body.density,
+            neighbours: body.neighbours,
+            material: body.material.to_core(),
+            pins: pinned
+                .map(|p| p.regions.iter().map(|r| r.to_core(to_world)).collect())
+                .unwrap_or_default(),
+            ..Default::default()
+        };
+        let solver = settings.to_core();
+        let task = AsyncComputeTaskPool::get().spawn(async move {
+            solver.validate()?;
+            let tri = tri?;
+            let mut model = Model::new();
+            model.add_body(&tri, &desc)?;
+            Ok(model)
+        });
+        if source.is_none() {
+            commands.entity(entity).insert(SourceMesh(handle));
+        }
+        commands.entity(entity).insert(BuildTask(task));
+        *status = SoftBodyStatus::Building;
+    }
+}
+
+/// Collects finished builds: a ready body gets its draw mesh and [`BuiltBody`]; a failed
+/// one its error ([`SoftBodyError`], a warning, [`SoftBodyStatus::Failed`]).
+#[allow(clippy::type_complexity)]
+pub fn finish_builds(
+    mut commands: Commands,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut tasks: Query<(
+        Entity,
+        &mut BuildTask,
+        &SourceMesh,
+        &mut SoftBodyStatus,
+        Option<&BuiltBody>,
+    )>,
+    mut errors: MessageWriter<SoftBodyError>,
+    mut ready: MessageWriter<SoftBodyReady>,
+) {
+    for (entity, mut task, source, mut status, built) in &mut tasks {
+        let Some(result) = block_on(future::poll_once(&mut task.0)) else {
+            continue;
+        };
+        commands.entity(entity).remove::<BuildTask>();
+        match result {
+            Ok(model) => {
+                let Some(src) = meshes.get(&source.0) else {
+                    continue;
+                };
+                let draw = match built {
+                    Some(b) => b.draw_mesh.clone(),
+                    None => {
+                        let m = draw_mesh(src);
+                        meshes.add(m)
+                    }
+                };
+                let b = &model.bodies[0];
+                *status = SoftBodyStatus::Ready {
+                    particles: b.count,
+                    vertices: b.skin.rest_vertices.len() as u32,
+                };
+                ready.write(SoftBodyReady {
+                    entity,
+                    particles: b.count,
+                });
+                commands.entity(entity).insert((
+                    Mesh3d(draw.clone()),
+                    NoFrustumCulling,
+                    BuiltBody {
+                        model: Arc::new(model),
+                        generation: built.map_or(0, |b| b.generation + 1),
+                        draw_mesh: draw,
+                    },
+                ));
+            }
+            Err(e) => {
+                let msg = e.to_string();
+                warn!("soft body {entity}: {msg}; left unsimulated");
+                errors.write(SoftBodyError {
+                    entity,
+                    error: msg.clone(),
+                });
+                *status = SoftBodyStatus::Failed(msg);
+                commands.entity(entity).remove::<BuiltBody>();
+            }
+        }
+    }
+}

@@ -1,0 +1,431 @@
+//! What a scene writes: the [`SoftBody`] component and its companions, the global
+//! [`TissueSettings`], the [`TissueClock`], and the messages the plugin sends.
+
+use crate::core::colliders::{Collider, ColliderShape};
+use crate::core::model::{Material, PinRegion};
+use crate::core::sampling::Resolution;
+use crate::core::solver::{Method, SolverSettings};
+use bevy::prelude::*;
+
+/// The elastic model of a body (SPEC §2), in SI units.
+#[derive(Debug, Clone, Copy, PartialEq, Reflect)]
+pub enum TissueMaterial {
+    /// Shape matching (Müller et al. 2005), the paper's model: stiffness `k` in (0, 1]
+    /// reached after a substep's iterations (dimensionless).
+    ShapeMatching {
+        /// Stiffness k in (0, 1].
+        stiffness: f32,
+    },
+    /// XPBD fixed-corotated hyperelasticity on clusters (see
+    /// [`crate::core::constraints::Hyperelastic`]).
+    Hyperelastic {
+        /// Young's modulus E, Pa.
+        youngs_modulus: f32,
+        /// Poisson ratio ν in [0, 0.5).
+        poisson_ratio: f32,
+    },
+}
+
+impl Default for TissueMaterial {
+    /// Shape matching with k = 0.5: stable under the GPU's Jacobi iteration at every
+    /// resolution measured (BENCHMARKS.md); pick `Hyperelastic` for SI stiffness.
+    fn default() -> Self {
+        TissueMaterial::ShapeMatching { stiffness: 0.5 }
+    }
+}
+
+impl TissueMaterial {
+    /// The core's material.
+    pub fn to_core(self) -> Material {
+        match self {
+            TissueMaterial::ShapeMatching { stiffness } => Material::ShapeMatching { stiffness },
+            TissueMaterial::Hyperelastic {
+                youngs_modulus,
+                poisson_ratio,
+            } => Material::Hyperelastic {
+                youngs_modulus,
+                poisson_ratio,
+            },
+        }
+    }
+}
+
+/// How finely a body is sampled with particles.
+#[derive(Debug, Clone, Copy, PartialEq, Reflect)]
+pub enum TissueResolution {
+    /// Lattice spacing, m.
+    Spacing(f32),
+    /// Target particle count (met within 1% where the shape allows it).
+    Particles(u32),
+}
+
+impl Default for TissueResolution {
+    fn default() -> Self {
+        TissueResolution::Particles(2000)
+    }
+}
+
+impl TissueResolution {
+    /// The core's resolution.
+    pub fn to_core(self) -> Resolution {
+        match self {
+            TissueResolution::Spacing(s) => Resolution::Spacing(s),
+            TissueResolution::Particles(n) => Resolution::Particles(n),
+        }
+    }
+}
+
+/// A soft body: put it on an entity with a `Mesh3d` (any closed triangle mesh) and a
+/// material. The plugin samples particles inside the mesh, builds clusters (off the main
+/// thread), simulates the body on the GPU and draws the entity's mesh from the
+/// simulation. Changing any field rebuilds the body.
+///
+/// ```no_run
+/// use bevy::prelude::*;
+/// use bevy_tissue::prelude::*;
+///
+/// fn setup(mut commands: Commands, mut meshes: ResMut<Assets<Mesh>>,
+///          mut materials: ResMut<Assets<StandardMaterial>>) {
+///     commands.spawn((
+///         Mesh3d(meshes.add(Sphere::new(0.5).mesh().ico(4).unwrap())),
+///         MeshMaterial3d(materials.add(Color::srgb(0.8, 0.3, 0.3))),
+///         SoftBody::default(),
+///         Pinned::region(PinShape::HalfSpace { point: Vec3::new(0.0, 0.4, 0.0), normal: Vec3::Y }),
+///     ));
+/// }
+/// ```
+#[derive(Component, Debug, Clone, PartialEq, Reflect)]
+#[reflect(Component, Default)]
+#[require(Transform, Visibility, SoftBodyStatus)]
+pub struct SoftBody {
+    /// Elastic model and stiffness.
+    pub material: TissueMaterial,
+    /// Density, kg/m³ (soft tissue ≈ 1060).
+    pub density: f32,
+    /// Neighbour count K: each cluster is a particle and its K nearest rest neighbours.
+    pub neighbours: u32,
+    /// Particle sampling.
+    pub resolution: TissueResolution,
+}
+
+impl Default for SoftBody {
+    fn default() -> Self {
+        Self {
+            material: TissueMaterial::default(),
+            density: 1060.0,
+            neighbours: 32,
+            resolution: TissueResolution::default(),
+        }
+    }
+}
+
+/// A region of a body's rest shape, in the entity's local frame (the mesh's frame).
+#[derive(Debug, Clone, Copy, PartialEq, Reflect)]
+pub enum PinShape {
+    /// Axis-aligned box, m.
+    Box {
+        /// Lower corner, m.
+        min: Vec3,
+        /// Upper corner, m.
+        max: Vec3,
+    },
+    /// Ball.
+    Sphere {
+        /// Centre, m.
+        center: Vec3,
+        /// Radius, m.
+        radius: f32,
+    },
+    /// Everything on the side of the plane the normal points to.
+    HalfSpace {
+        /// A point on the plane, m.
+        point: Vec3,
+        /// Normal (need not be unit).
+        normal: Vec3,
+    },
+}
+
+impl PinShape {
+    /// The region in world space for a body placed by `to_world`.
+    pub fn to_core(self, to_world: &GlobalTransform) -> PinRegion {
+        let a = to_world.affine();
+        match self {
+            PinShape::Box { min, max } => {
+                // The world-space bounds of the box's corners.
+                let mut lo = Vec3::splat(f32::INFINITY);
+                let mut hi = Vec3::splat(f32::NEG_INFINITY);
+                for i in 0..8 {
+                    let c = Vec3::new(
+                        if i & 1 == 0 { min.x } else { max.x },
+                        if i & 2 == 0 { min.y } else { max.y },
+                        if i & 4 == 0 { min.z } else { max.z },
+                    );
+                    let w = a.transform_point3(c);
+                    lo = lo.min(w);
+                    hi = hi.max(w);
+                }
+                PinRegion::Box { min: lo, max: hi }
+            }
+            PinShape::Sphere { center, radius } => PinRegion::Sphere {
+                center: a.transform_point3(center),
+                radius: radius * to_world.scale().max_element(),
+            },
+            PinShape::HalfSpace { point, normal } => PinRegion::HalfSpace {
+                point: a.transform_point3(point),
+                normal: a.matrix3.inverse().transpose() * normal,
+            },
+        }
+    }
+}
+
+/// Pinned regions of a [`SoftBody`]: particles inside are held where they rest.
+#[derive(Component, Debug, Clone, Default, PartialEq, Reflect)]
+#[reflect(Component, Default)]
+pub struct Pinned {
+    /// The regions (any particle in any region is pinned).
+    pub regions: Vec<PinShape>,
+}
+
+impl Pinned {
+    /// One region.
+    pub fn region(shape: PinShape) -> Self {
+        Self {
+            regions: vec![shape],
+        }
+    }
+}
+
+/// Shape of a [`TissueCollider`], in its entity's local frame.
+#[derive(Debug, Clone, Copy, PartialEq, Reflect)]
+pub enum ColliderKind {
+    /// The half-space below the local XZ plane (normal +Y).
+    Plane,
+    /// Sphere.
+    Sphere {
+        /// Radius, m.
+        radius: f32,
+    },
+    /// Capsule along local Y.
+    Capsule {
+        /// Half the length of the inner segment, m.
+        half_length: f32,
+        /// Radius, m.
+        radius: f32,
+    },
+    /// Box.
+    Cuboid {
+        /// Half extents, m.
+        half_extents: Vec3,
+    },
+}
+
+/// A kinematic collider that pushes tissue: it follows its entity's `Transform` (its
+/// velocity, for friction, from the motion between frames) and is pushed by nothing.
+/// The force the tissue exerts on it is available through [`ColliderForce`].
+#[derive(Component, Debug, Clone, Copy, PartialEq, Reflect)]
+#[reflect(Component)]
+#[require(Transform)]
+pub struct TissueCollider {
+    /// Geometry.
+    pub kind: ColliderKind,
+    /// Coulomb friction coefficient (dimensionless, ≥ 0).
+    pub friction: f32,
+}
+
+impl TissueCollider {
+    /// A collider of the given shape with friction 0.5.
+    pub fn new(kind: ColliderKind) -> Self {
+        Self {
+            kind,
+            friction: 0.5,
+        }
+    }
+
+    /// The core's collider at a world pose.
+    pub fn to_core(&self, pose: &GlobalTransform, velocity: Vec3) -> Collider {
+        let (scale, rotation, position) = pose.to_scale_rotation_translation();
+        let s = scale.max_element();
+        let shape = match self.kind {
+            ColliderKind::Plane => ColliderShape::Plane,
+            ColliderKind::Sphere { radius } => ColliderShape::Sphere { radius: radius * s },
+            ColliderKind::Capsule {
+                half_length,
+                radius,
+            } => ColliderShape::Capsule {
+                half_length: half_length * scale.y,
+                radius: radius * s,
+            },
+            ColliderKind::Cuboid { half_extents } => ColliderShape::Cuboid {
+                half_extents: half_extents * scale,
+            },
+        };
+        Collider {
+            shape,
+            position,
+            rotation,
+            velocity,
+            friction: self.friction.max(0.0),
+        }
+    }
+}
+
+/// The force (N, world frame) the tissue exerted on a [`TissueCollider`] over the last
+/// step read back; insert it on the collider to have it updated (async readback, a frame
+/// or two behind).
+#[derive(Component, Debug, Clone, Copy, Default, PartialEq, Reflect)]
+#[reflect(Component, Default)]
+pub struct ColliderForce(pub Vec3);
+
+/// Ask for a body's particle positions: insert it on a [`SoftBody`] entity; the plugin
+/// reads the positions back asynchronously and puts them in [`ParticlePositions`]. With
+/// `continuous` the request stays and the positions are refreshed every frame; without,
+/// the request is removed once served.
+#[derive(Component, Debug, Clone, Copy, Default, PartialEq, Reflect)]
+#[reflect(Component, Default)]
+pub struct ReadbackParticles {
+    /// Keep reading every frame.
+    pub continuous: bool,
+}
+
+/// Particle positions read back from the GPU (world frame, m).
+#[derive(Component, Debug, Clone, Default, PartialEq, Reflect)]
+#[reflect(Component, Default)]
+pub struct ParticlePositions {
+    /// One per particle, in the body's sampling order.
+    pub positions: Vec<Vec3>,
+    /// The world's step counter when they were read.
+    pub step: u64,
+}
+
+/// Where a [`SoftBody`] is in its life.
+#[derive(Component, Debug, Clone, Default, PartialEq, Reflect)]
+#[reflect(Component, Default)]
+pub enum SoftBodyStatus {
+    /// Waiting for its mesh asset or for a build slot.
+    #[default]
+    Pending,
+    /// Particles and clusters being built off the main thread.
+    Building,
+    /// Simulated.
+    Ready {
+        /// Particles.
+        particles: u32,
+        /// Render vertices.
+        vertices: u32,
+    },
+    /// Not simulated; the message names the problem (also sent as [`SoftBodyError`]).
+    Failed(String),
+}
+
+/// Sent when a soft body cannot be simulated: a bad mesh, bad parameters, a model too
+/// big for the GPU. The entity is left unsimulated; the app keeps running.
+#[derive(Message, Debug, Clone, PartialEq)]
+pub struct SoftBodyError {
+    /// The entity.
+    pub entity: Entity,
+    /// What is wrong.
+    pub error: String,
+}
+
+/// Sent when a soft body starts simulating (after a build or a rebuild).
+#[derive(Message, Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SoftBodyReady {
+    /// The entity.
+    pub entity: Entity,
+    /// Particles sampled.
+    pub particles: u32,
+}
+
+/// Global simulation settings (SPEC §3), in SI units.
+#[derive(Resource, Debug, Clone, PartialEq, Reflect)]
+#[reflect(Resource, Default)]
+pub struct TissueSettings {
+    /// Fixed time step, s.
+    pub dt: f32,
+    /// Substeps per step.
+    pub substeps: u32,
+    /// Constraint iterations per substep.
+    pub iterations: u32,
+    /// Gravity, m/s².
+    pub gravity: Vec3,
+    /// Velocity damping rate, 1/s.
+    pub damping: f32,
+    /// Jacobi relaxation ω.
+    pub relaxation: f32,
+    /// Refresh the contact neighbours every this many steps (the paper: 10).
+    pub knn_every: u32,
+    /// Particle contacts between bodies.
+    pub particle_contacts: bool,
+    /// Contact neighbours per particle.
+    pub contact_neighbours: u32,
+    /// Most steps per frame (the accumulator drops time beyond it, so a slow frame does
+    /// not snowball).
+    pub max_steps_per_frame: u32,
+}
+
+impl Default for TissueSettings {
+    fn default() -> Self {
+        Self {
+            dt: 1.0 / 60.0,
+            substeps: 1,
+            iterations: 10,
+            gravity: Vec3::new(0.0, -9.81, 0.0),
+            damping: 1.0,
+            relaxation: 1.0,
+            knn_every: 10,
+            particle_contacts: true,
+            contact_neighbours: 16,
+            max_steps_per_frame: 4,
+        }
+    }
+}
+
+impl TissueSettings {
+    /// The core solver settings (Jacobi: the GPU's method).
+    pub fn to_core(&self) -> SolverSettings {
+        SolverSettings {
+            dt: self.dt,
+            substeps: self.substeps,
+            iterations: self.iterations,
+            gravity: self.gravity,
+            damping: self.damping,
+            relaxation: self.relaxation,
+            knn_every: self.knn_every,
+            particle_contacts: self.particle_contacts,
+            contact_neighbours: self.contact_neighbours,
+            method: Method::Jacobi,
+            ..Default::default()
+        }
+    }
+}
+
+/// The simulation clock: a fixed-dt accumulator over `Time`, with pause and single step.
+#[derive(Resource, Debug, Clone, Default, PartialEq, Reflect)]
+#[reflect(Resource, Default)]
+pub struct TissueClock {
+    /// No steps while paused (except single steps).
+    pub paused: bool,
+    /// Steps to take on the next frame regardless of time and pause (single stepping;
+    /// also how tests and benchmarks drive an exact number of steps).
+    pub pending_steps: u32,
+    /// When set, exactly this many steps per frame, ignoring `Time` (headless runs).
+    pub fixed_steps_per_frame: Option<u32>,
+    /// Unsimulated time, s.
+    pub accumulator: f32,
+    /// Steps taken so far.
+    pub steps: u64,
+    /// Steps of the current frame.
+    pub steps_this_frame: u32,
+}
+
+impl TissueClock {
+    /// Pause or resume.
+    pub fn toggle_pause(&mut self) {
+        self.paused = !self.paused;
+    }
+
+    /// Take one step on the next frame (also while paused).
+    pub fn step_once(&mut self) {
+        self.pending_steps += 1;
+    }
+}

@@ -1,0 +1,485 @@
+//! The render-world side: extraction of bodies, colliders and the clock; the batched
+//! [`GpuWorld`] kept in step with the scene's bodies; the render-graph system that
+//! records the frame's steps and the draw path; async readback.
+
+use super::build::BuiltBody;
+use super::components::*;
+use crate::core::colliders::Collider;
+use crate::core::model::Model;
+use crate::gpu::buffers::GpuDrawBody;
+use crate::gpu::{GpuWorld, Kernels, PassRecorder};
+use bevy::prelude::*;
+use bevy::render::Extract;
+use bevy::render::diagnostic::{DiagnosticsRecorder, RecordDiagnostics};
+use bevy::render::mesh::allocator::MeshAllocator;
+use bevy::render::render_resource::{Buffer, BufferDescriptor, BufferUsages, ComputePass, MapMode};
+use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue};
+use std::sync::{Arc, Mutex, mpsc};
+
+/// One body as the render world sees it.
+#[derive(Clone)]
+pub struct ExtractedBody {
+    /// The entity.
+    pub entity: Entity,
+    /// Its model.
+    pub model: Arc<Model>,
+    /// Rebuild counter.
+    pub generation: u64,
+    /// The draw mesh.
+    pub mesh: AssetId<Mesh>,
+    /// The entity's world transform now.
+    pub to_world: GlobalTransform,
+    /// Positions requested this frame.
+    pub readback: bool,
+}
+
+/// What the main world hands the render world each frame.
+#[derive(Resource, Default, Clone)]
+pub struct ExtractedTissue {
+    /// Ready bodies, in a stable order (by entity).
+    pub bodies: Vec<ExtractedBody>,
+    /// Colliders, and whether each wants its force read back.
+    pub colliders: Vec<(Entity, Collider, bool)>,
+    /// Settings.
+    pub settings: TissueSettings,
+    /// Steps to take this frame.
+    pub steps: u32,
+}
+
+/// Readback results travelling from the render world to the main world.
+pub enum ReadbackResult {
+    /// Particle positions of a body.
+    Positions(Entity, Vec<Vec3>, u64),
+    /// A collider's force, N.
+    Force(Entity, Vec3),
+    /// A GPU-side error for a body.
+    Error(Entity, String),
+}
+
+/// The channel's receiving end (main world).
+#[derive(Resource)]
+pub struct ReadbackReceiver(pub Mutex<mpsc::Receiver<ReadbackResult>>);
+
+/// The channel's sending end (render world).
+#[derive(Resource, Clone)]
+pub struct ReadbackSender(pub mpsc::Sender<ReadbackResult>);
+
+/// Host ↔ GPU traffic of the last frame (SPEC §4: state stays on the GPU).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct FrameTraffic {
+    /// Bytes written from the host (settings, colliders, draw records).
+    pub uploaded_bytes: u64,
+    /// Bytes copied for readback (only what was asked for).
+    pub readback_bytes: u64,
+}
+
+/// The render world's simulation state.
+#[derive(Resource, Default)]
+pub struct TissueGpu {
+    traffic: FrameTraffic,
+    kernels: Option<Result<Kernels, String>>,
+    world: Option<GpuWorld>,
+    keys: Vec<(Entity, u64)>,
+    bodies: Vec<ExtractedBody>,
+    settings: Option<TissueSettings>,
+    steps: u32,
+    colliders: Vec<(Entity, Collider, bool)>,
+    pending: Vec<Pending>,
+}
+
+impl TissueGpu {
+    /// Host ↔ GPU traffic of the last frame.
+    pub fn stats(&self) -> FrameTraffic {
+        self.traffic
+    }
+
+    /// The batched GPU world, once bodies exist.
+    pub fn world(&self) -> Option<&GpuWorld> {
+        self.world.as_ref()
+    }
+}
+
+struct Pending {
+    buffer: Buffer,
+    items: Vec<(Entity, u64, u64, bool)>, // entity, byte offset, bytes, is_force
+    step: u64,
+}
+
+/// Main-world clock: how many steps this frame takes.
+pub fn advance_clock(
+    time: Res<Time>,
+    settings: Res<TissueSettings>,
+    mut clock: ResMut<TissueClock>,
+) {
+    let mut steps = 0;
+    if let Some(n) = clock.fixed_steps_per_frame {
+        if !clock.paused {
+            steps = n;
+        }
+    } else if !clock.paused && settings.dt > 0.0 {
+        clock.accumulator += time.delta_secs();
+        let due = (clock.accumulator / settings.dt).floor() as u32;
+        steps = due.min(settings.max_steps_per_frame);
+        clock.accumulator -= due as f32 * settings.dt;
+    }
+    steps += std::mem::take(&mut clock.pending_steps);
+    clock.steps_this_frame = steps;
+    clock.steps += steps as u64;
+}
+
+/// Tracks collider velocities from their motion between frames.
+#[derive(Component, Default)]
+pub struct LastPose(pub Option<Vec3>);
+
+/// Copies what the GPU needs into the render world.
+#[allow(clippy::type_complexity)]
+pub fn extract_tissue(
+    mut commands: Commands,
+    bodies: Extract<
+        Query<(
+            Entity,
+            &BuiltBody,
+            &GlobalTransform,
+            Option<&ReadbackParticles>,
+        )>,
+    >,
+    colliders: Extract<
+        Query<(
+            Entity,
+            &TissueCollider,
+            &GlobalTransform,
+            Option<&LastPose>,
+            Option<&ColliderForce>,
+        )>,
+    >,
+    settings: Extract<Res<TissueSettings>>,
+    clock: Extract<Res<TissueClock>>,
+    time: Extract<Res<Time>>,
+) {
+    let mut list: Vec<ExtractedBody> = bodies
+        .iter()
+        .map(|(e, b, t, r)| ExtractedBody {
+            entity: e,
+            model: b.model.clone(),
+            generation: b.generation,
+            mesh: b.draw_mesh.id(),
+            to_world: *t,
+            readback: r.is_some(),
+        })
+        .collect();
+    list.sort_by_key(|b| b.entity);
+    let dt = time.delta_secs().max(1e-6);
+    let cols = colliders
+        .iter()
+        .map(|(e, c, t, last, force)| {
+            let pos = t.translation();
+            let vel = last
+                .and_then(|l| l.0)
+                .map_or(Vec3::ZERO, |p| (pos - p) / dt);
+            (e, c.to_core(t, vel), force.is_some())
+        })
+        .collect();
+    commands.insert_resource(ExtractedTissue {
+        bodies: list,
+        colliders: cols,
+        settings: settings.clone(),
+        steps: clock.steps_this_frame,
+    });
+}
+
+/// Records collider positions for the next frame's velocity.
+pub fn remember_collider_poses(mut q: Query<(&GlobalTransform, &mut LastPose)>) {
+    for (t, mut last) in &mut q {
+        last.0 = Some(t.translation());
+    }
+}
+
+/// Keeps the GPU world in step with the extracted bodies: rebuilds (keeping the state of
+/// surviving bodies) when bodies come, go or are rebuilt; updates colliders and params.
+pub fn prepare_tissue(
+    mut gpu: ResMut<TissueGpu>,
+    extracted: Option<Res<ExtractedTissue>>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+    sender: Res<ReadbackSender>,
+) {
+    let Some(ex) = extracted else { return };
+    gpu.traffic = FrameTraffic::default();
+    if gpu.kernels.is_none() {
+        gpu.kernels = Some(Kernels::new(&device).map_err(|e| e.to_string()));
+        if let Some(Err(e)) = &gpu.kernels {
+            error!("bevy_tissue: the GPU cannot run the simulation: {e}");
+        }
+    }
+    let Some(Ok(_)) = &gpu.kernels else { return };
+    let keys: Vec<(Entity, u64)> = ex.bodies.iter().map(|b| (b.entity, b.generation)).collect();
+    let settings_changed = gpu.settings.as_ref() != Some(&ex.settings);
+    if keys != gpu.keys || settings_changed {
+        rebuild(&mut gpu, &ex, &device, &queue, &sender, keys);
+    }
+    gpu.bodies = ex.bodies.clone();
+    gpu.steps = ex.steps;
+    gpu.colliders = ex.colliders.clone();
+    let cols: Vec<Collider> = ex.colliders.iter().map(|c| c.1).collect();
+    if let Some(world) = gpu.world.as_mut() {
+        if let Err(e) = world.set_colliders(&queue, &cols) {
+            warn!("bevy_tissue: {e}");
+        }
+        world.write_params(&queue);
+        gpu.traffic.uploaded_bytes += (size_of::<crate::gpu::buffers::GpuParams>()
+            + cols.len() * size_of::<crate::gpu::buffers::GpuCollider>())
+            as u64;
+    }
+}
+
+fn rebuild(
+    gpu: &mut TissueGpu,
+    ex: &ExtractedTissue,
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    sender: &ReadbackSender,
+    keys: Vec<(Entity, u64)>,
+) {
+    let old_keys = std::mem::take(&mut gpu.keys);
+    let old_world = gpu.world.take();
+    gpu.settings = Some(ex.settings.clone());
+    if ex.bodies.is_empty() {
+        gpu.keys = keys;
+        return;
+    }
+    // A body too big for the adapter on its own is reported and left out.
+    let solver = ex.settings.to_core();
+    let limits = device.limits();
+    let mut fits = Vec::new();
+    for b in &ex.bodies {
+        match GpuWorld::check_limits(&limits, &b.model, &solver) {
+            Ok(()) => fits.push(b),
+            Err(e) => {
+                let _ = sender
+                    .0
+                    .send(ReadbackResult::Error(b.entity, e.to_string()));
+            }
+        }
+    }
+    let mut model = Model::new();
+    for b in &fits {
+        model.append(&b.model);
+    }
+    if fits.is_empty() {
+        gpu.keys = keys;
+        return;
+    }
+    let state = crate::core::solver::State::new(&model);
+    let Some(Ok(kernels)) = &gpu.kernels else {
+        return;
+    };
+    match GpuWorld::new(device, kernels, &model, &state, ex.settings.to_core(), 0) {
+        Ok(world) => {
+            // Keep the pose of bodies that were already simulated (same generation).
+            if let Some(old) = &old_world {
+                let mut enc = device.create_command_encoder(&Default::default());
+                for (i, key) in keys.iter().enumerate() {
+                    if let Some(j) = old_keys.iter().position(|k| k == key) {
+                        let (from, to) = (old.ranges[j], world.ranges[i]);
+                        world.copy_state_from(&mut enc, old, from.first, to.first, to.count);
+                    }
+                }
+                queue.submit([enc.finish()]);
+            }
+            gpu.world = Some(world);
+            gpu.keys = keys;
+        }
+        Err(e) => {
+            // The whole batch does not fit: report every body, simulate none.
+            error!("bevy_tissue: {e}");
+            for b in &ex.bodies {
+                let _ = sender
+                    .0
+                    .send(ReadbackResult::Error(b.entity, e.to_string()));
+            }
+            gpu.keys = keys;
+        }
+    }
+}
+
+/// Bevy's render-diagnostic spans around each pass (`RenderDiagnosticsPlugin`).
+struct Spans<'a>(Option<&'a DiagnosticsRecorder>);
+
+impl PassRecorder for Spans<'_> {
+    fn begin(&mut self, pass: &mut ComputePass<'_>, name: &'static str) {
+        if let Some(r) = self.0 {
+            r.begin_pass_span(pass, name.into());
+        }
+    }
+    fn end(&mut self, pass: &mut ComputePass<'_>) {
+        if let Some(r) = self.0 {
+            r.end_pass_span(pass);
+        }
+    }
+}
+
+/// The render-graph work of a frame: the frame's steps, then each body's surface
+/// skinned straight into its mesh's vertex slab, then the readback copies.
+pub fn run_tissue(
+    mut ctx: RenderContext,
+    mut gpu: ResMut<TissueGpu>,
+    allocator: Res<MeshAllocator>,
+    queue: Res<RenderQueue>,
+) {
+    let gpu = &mut *gpu;
+    let (Some(Ok(kernels)), Some(world)) = (&gpu.kernels, gpu.world.as_mut()) else {
+        return;
+    };
+    let device = ctx.render_device().clone();
+    let recorder = ctx.diagnostic_recorder();
+    let recorder = recorder.as_deref();
+    let steps = gpu.steps;
+    // Draw records: where each body's vertices are in the allocator's slabs (slabs can
+    // move, so this is looked up every frame).
+    let mut draws = Vec::with_capacity(gpu.bodies.len());
+    let mut slabs: Vec<(Buffer, Vec<(u32, u32)>)> = Vec::new();
+    for (b, r) in gpu.bodies.iter().zip(&world.ranges) {
+        let slice = allocator.mesh_vertex_slice(&b.mesh);
+        let Some(slice) = slice.filter(|s| s.range.len() as u32 == r.vcount) else {
+            draws.push(GpuDrawBody::default());
+            continue;
+        };
+        draws.push(GpuDrawBody::new(
+            b.to_world.affine(),
+            slice.range.start * 8,
+            r.vfirst,
+            8,
+        ));
+        let run = (r.vfirst, r.vfirst + r.vcount);
+        match slabs
+            .iter_mut()
+            .find(|(buf, _)| buf.id() == slice.buffer.id())
+        {
+            Some((_, runs)) => match runs.last_mut() {
+                Some(last) if last.1 == run.0 => last.1 = run.1,
+                _ => runs.push(run),
+            },
+            None => slabs.push((slice.buffer.clone(), vec![run])),
+        }
+    }
+    world.set_draw(&queue, &draws);
+    gpu.traffic.uploaded_bytes += (draws.len() * size_of::<GpuDrawBody>()
+        + slabs.iter().map(|s| s.1.len()).sum::<usize>()
+            * size_of::<crate::gpu::buffers::GpuSkinRange>())
+        as u64;
+    let encoder = ctx.command_encoder();
+    let mut spans = Spans(recorder);
+    world.record_steps(encoder, kernels, steps, &mut spans);
+    for (slab, runs) in &slabs {
+        world.record_draw(&device, &queue, encoder, kernels, slab, runs, &mut spans);
+    }
+    // Readback copies.
+    let mut items = Vec::new();
+    for (b, r) in gpu.bodies.iter().zip(&world.ranges) {
+        if b.readback {
+            items.push((b.entity, r.first as u64 * 16, r.count as u64 * 16, false));
+        }
+    }
+    for (k, (e, _, wants)) in gpu.colliders.iter().enumerate() {
+        if *wants {
+            items.push((*e, world.force_offset() + k as u64 * 16, 16, true));
+        }
+    }
+    if items.is_empty() {
+        return;
+    }
+    let total: u64 = items.iter().map(|i| i.2).sum();
+    gpu.traffic.readback_bytes = total;
+    let staging = device.create_buffer(&BufferDescriptor {
+        label: Some("tissue readback"),
+        size: total,
+        usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut at = 0;
+    let mut placed = Vec::new();
+    for (e, off, len, is_force) in items {
+        let src = if is_force {
+            world.forces()
+        } else {
+            world.positions()
+        };
+        encoder.copy_buffer_to_buffer(src, off, &staging, at, len);
+        placed.push((e, at, len, is_force));
+        at += len;
+    }
+    gpu.pending.push(Pending {
+        buffer: staging,
+        items: placed,
+        step: world.step,
+    });
+}
+
+/// After the frame is submitted: map this frame's readback buffers; the callbacks send
+/// the data to the main world when the GPU is done.
+pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
+    for p in gpu.pending.drain(..) {
+        let tx = sender.0.clone();
+        let buf = p.buffer.clone();
+        let items = p.items;
+        let step = p.step;
+        p.buffer.slice(..).map_async(MapMode::Read, move |res| {
+            if res.is_err() {
+                return;
+            }
+            {
+                let data = buf.slice(..).get_mapped_range();
+                for (e, at, len, is_force) in items {
+                    let bytes = &data[at as usize..(at + len) as usize];
+                    let v: &[[f32; 4]] = bytemuck::cast_slice(bytes);
+                    let msg = if is_force {
+                        ReadbackResult::Force(e, Vec3::new(v[0][0], v[0][1], v[0][2]))
+                    } else {
+                        let p = v.iter().map(|a| Vec3::new(a[0], a[1], a[2])).collect();
+                        ReadbackResult::Positions(e, p, step)
+                    };
+                    let _ = tx.send(msg);
+                }
+            }
+            buf.unmap();
+        });
+    }
+}
+
+/// Main world: delivers readback results to their entities.
+pub fn receive_readbacks(
+    mut commands: Commands,
+    rx: Res<ReadbackReceiver>,
+    requests: Query<&ReadbackParticles>,
+    mut status: Query<&mut SoftBodyStatus>,
+    mut errors: MessageWriter<SoftBodyError>,
+) {
+    let Ok(rx) = rx.0.lock() else { return };
+    while let Ok(msg) = rx.try_recv() {
+        match msg {
+            ReadbackResult::Positions(e, positions, step) => {
+                let Ok(mut ec) = commands.get_entity(e) else {
+                    continue;
+                };
+                ec.insert(ParticlePositions { positions, step });
+                if requests.get(e).is_ok_and(|r| !r.continuous) {
+                    ec.remove::<ReadbackParticles>();
+                }
+            }
+            ReadbackResult::Force(e, f) => {
+                if let Ok(mut ec) = commands.get_entity(e) {
+                    ec.insert(ColliderForce(f));
+                }
+            }
+            ReadbackResult::Error(e, error) => {
+                if let Ok(mut s) = status.get_mut(e) {
+                    *s = SoftBodyStatus::Failed(error.clone());
+                }
+                if let Ok(mut ec) = commands.get_entity(e) {
+                    ec.remove::<BuiltBody>();
+                }
+                errors.write(SoftBodyError { entity: e, error });
+            }
+        }
+    }
+}

@@ -1,0 +1,371 @@
+//! The plugin in a headless Bevy app (no window; Mesa's lavapipe in CI): a body
+//! simulated through the render graph matches the CPU Jacobi solver, the mesh's own
+//! vertex buffer holds the CPU skinning of the same particles, bad input becomes an
+//! error message while the app keeps running, and no particle data crosses to the host
+//! unless asked for.
+
+use bevy::prelude::*;
+use bevy::render::RenderApp;
+use bevy::render::mesh::allocator::MeshAllocator;
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use bevy::render::settings::{RenderCreation, WgpuSettings};
+use bevy::window::ExitCondition;
+use bevy_tissue::core::model::{BodyDesc, Model};
+use bevy_tissue::core::solver::{Control, Solver, State};
+use bevy_tissue::gpu::world::read_buffer;
+use bevy_tissue::plugin::build::{BuiltBody, tri_mesh};
+use bevy_tissue::plugin::render::TissueGpu;
+use bevy_tissue::prelude::*;
+use std::sync::Mutex;
+
+/// Bevy apps in one process one at a time.
+static ONE_APP: Mutex<()> = Mutex::new(());
+
+fn gpu_available() -> bool {
+    match bevy_tissue::gpu::headless() {
+        Ok(_) => true,
+        Err(e) => {
+            if std::env::var("CI").is_ok_and(|v| v == "true") {
+                panic!("CI=true but no GPU adapter: {e}");
+            }
+            eprintln!("skipped: {e}");
+            false
+        }
+    }
+}
+
+fn app(wgpu: WgpuSettings) -> App {
+    let mut app = App::new();
+    app.add_plugins(
+        DefaultPlugins
+            .set(WindowPlugin {
+                primary_window: None,
+                exit_condition: ExitCondition::DontExit,
+                ..default()
+            })
+            .set(bevy::render::RenderPlugin {
+                render_creation: RenderCreation::Automatic(Box::new(wgpu)),
+                synchronous_pipeline_compilation: true,
+                ..default()
+            })
+            .disable::<bevy::winit::WinitPlugin>()
+            // The render world stays on this thread, so the test can inspect it.
+            .disable::<bevy::render::pipelined_rendering::PipelinedRenderingPlugin>(),
+    )
+    .add_plugins(TissuePlugin::default());
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    while app.plugins_state() == bevy::app::PluginsState::Adding {
+        bevy::tasks::tick_global_task_pools_on_main_thread();
+    }
+    app.finish();
+    app.cleanup();
+    app
+}
+
+fn box_mesh() -> Mesh {
+    Cuboid::new(0.12, 0.05, 0.05).mesh().build()
+}
+
+fn spawn_body(app: &mut App, at: Vec3, body: SoftBody, pinned: Option<Pinned>) -> Entity {
+    let mesh = app
+        .world_mut()
+        .resource_mut::<Assets<Mesh>>()
+        .add(box_mesh());
+    let mat = app
+        .world_mut()
+        .resource_mut::<Assets<StandardMaterial>>()
+        .add(Color::WHITE);
+    let mut e = app.world_mut().spawn((
+        Mesh3d(mesh),
+        MeshMaterial3d(mat),
+        Transform::from_translation(at),
+        body,
+    ));
+    if let Some(p) = pinned {
+        e.insert(p);
+    }
+    e.id()
+}
+
+/// Updates until `done` holds (at most `max` frames).
+fn until(app: &mut App, max: u32, mut done: impl FnMut(&mut App) -> bool) -> bool {
+    for _ in 0..max {
+        app.update();
+        if done(app) {
+            return true;
+        }
+    }
+    false
+}
+
+fn body_spec() -> (SoftBody, Pinned) {
+    (
+        SoftBody {
+            resolution: TissueResolution::Particles(500),
+            neighbours: 16,
+            material: TissueMaterial::Hyperelastic {
+                youngs_modulus: 20_000.0,
+                poisson_ratio: 0.4,
+            },
+            ..default()
+        },
+        Pinned::region(PinShape::HalfSpace {
+            point: Vec3::new(0.0, 0.02, 0.0),
+            normal: Vec3::Y,
+        }),
+    )
+}
+
+/// The same body built and stepped `steps` times on the CPU (Jacobi), in world space.
+fn cpu_reference(at: Vec3, steps: u64, settings: &TissueSettings) -> (Model, Vec<Vec3>) {
+    let (body, pinned) = body_spec();
+    let to_world = GlobalTransform::from(Transform::from_translation(at));
+    let tri = tri_mesh(&box_mesh(), &to_world).unwrap();
+    let desc = BodyDesc {
+        resolution: body.resolution.to_core(),
+        density: body.density,
+        neighbours: body.neighbours,
+        material: body.material.to_core(),
+        pins: pinned
+            .regions
+            .iter()
+            .map(|r| r.to_core(&to_world))
+            .collect(),
+        ..Default::default()
+    };
+    let mut model = Model::new();
+    model.add_body(&tri, &desc).unwrap();
+    let mut state = State::new(&model);
+    let mut solver = Solver::new(&model, settings.to_core()).unwrap();
+    for _ in 0..steps {
+        solver
+            .step(&model, &mut state, &Control::default())
+            .unwrap();
+    }
+    (model, state.x)
+}
+
+#[test]
+fn a_body_in_a_headless_app_matches_the_cpu_and_is_drawn_from_the_gpu() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    let at = Vec3::new(0.0, 0.5, 0.0);
+    let (body, pinned) = body_spec();
+    let e = spawn_body(&mut app, at, body, Some(pinned));
+    assert!(
+        until(&mut app, 600, |app| matches!(
+            app.world().get::<SoftBodyStatus>(e),
+            Some(SoftBodyStatus::Ready { .. })
+        )),
+        "the body never became ready: {:?}",
+        app.world().get::<SoftBodyStatus>(e)
+    );
+    // Let the render world upload it, then take exactly 200 steps, 20 per frame.
+    for _ in 0..3 {
+        app.update();
+    }
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(20);
+    }
+    for _ in 0..10 {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    for _ in 0..3 {
+        app.update();
+    }
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles::default());
+    assert!(
+        until(&mut app, 30, |app| app
+            .world()
+            .get::<ParticlePositions>(e)
+            .is_some()),
+        "no readback arrived"
+    );
+    let got = app.world().get::<ParticlePositions>(e).unwrap().clone();
+    assert!(
+        app.world().get::<ReadbackParticles>(e).is_none(),
+        "a one-shot request is removed once served"
+    );
+    assert_eq!(
+        got.step, 200,
+        "the GPU world took a different number of steps"
+    );
+    let settings = app.world().resource::<TissueSettings>().clone();
+    let (model, cpu) = cpu_reference(at, got.step, &settings);
+    let size = model.bodies[0].size;
+    let d = got
+        .positions
+        .iter()
+        .zip(&cpu)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    let sag = cpu
+        .iter()
+        .zip(&model.placed_rest())
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    eprintln!("GPU–CPU after 200 steps: {d:.3e} m (size {size:.3} m, sag {sag:.3e} m)");
+    assert!(sag > 0.002, "the body must sag under gravity ({sag} m)");
+    assert!(d < 1e-4 * size, "GPU and CPU differ by {d} m");
+
+    // The mesh's own vertex buffer (the allocator slab) holds the CPU skinning of the
+    // same particle positions, in the entity's local frame.
+    let draw = app.world().get::<BuiltBody>(e).unwrap().draw_mesh.id();
+    let rw = app.sub_app(RenderApp).world();
+    let alloc = rw.resource::<MeshAllocator>();
+    let slice = alloc.mesh_vertex_slice(&draw).expect("mesh uploaded");
+    let (dev, queue) = (rw.resource::<RenderDevice>(), rw.resource::<RenderQueue>());
+    let nv = slice.range.len() as u64;
+    let bytes = read_buffer(
+        dev,
+        queue,
+        slice.buffer,
+        slice.range.start as u64 * 32,
+        nv * 32,
+    );
+    let vtx: &[[f32; 8]] = bytemuck::cast_slice(&bytes);
+    let skinned = {
+        let sk = &model.bodies[0].skin;
+        let f = Solver::deformation_gradients(&model, &got.positions);
+        let mut out = vec![Vec3::ZERO; sk.rest_vertices.len()];
+        bevy_tissue::core::skin::skin_positions(sk, &got.positions, &model.rest, &f, &mut out);
+        out
+    };
+    assert_eq!(vtx.len(), skinned.len());
+    let dv = vtx
+        .iter()
+        .zip(&skinned)
+        .map(|(v, s)| Vec3::new(v[0], v[1], v[2]).distance(*s - at))
+        .fold(0.0f32, f32::max);
+    assert!(
+        dv < 1e-5 * size,
+        "drawn vertices differ from the CPU skinning by {dv} m"
+    );
+
+    // Nothing per particle crosses to the host unless asked for.
+    let stats = rw.resource::<TissueGpu>().stats();
+    assert_eq!(stats.readback_bytes, 0, "no readback requested this frame");
+    assert!(
+        stats.uploaded_bytes < 2048,
+        "per-frame uploads must not scale with particles: {} bytes",
+        stats.uploaded_bytes
+    );
+}
+
+#[test]
+fn a_bad_mesh_is_an_error_message_and_the_app_keeps_running() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    // An open mesh: a box without its last face.
+    let mut open = box_mesh();
+    if let Some(bevy::mesh::Indices::U32(i)) = open.indices_mut() {
+        i.truncate(i.len() - 6);
+    }
+    let open = app.world_mut().resource_mut::<Assets<Mesh>>().add(open);
+    let bad = app
+        .world_mut()
+        .spawn((Mesh3d(open), SoftBody::default()))
+        .id();
+    let (body, pinned) = body_spec();
+    let good = spawn_body(&mut app, Vec3::ZERO, body, Some(pinned));
+    // K larger than the body: a clear error too.
+    let tiny = spawn_body(
+        &mut app,
+        Vec3::X,
+        SoftBody {
+            resolution: TissueResolution::Particles(20),
+            neighbours: 64,
+            ..default()
+        },
+        None,
+    );
+    let mut errors: Vec<SoftBodyError> = Vec::new();
+    until(&mut app, 600, |app| {
+        let msgs = app.world().resource::<Messages<SoftBodyError>>();
+        errors.extend(msgs.iter_current_update_messages().cloned());
+        errors.len() >= 2
+            && matches!(
+                app.world().get::<SoftBodyStatus>(good),
+                Some(SoftBodyStatus::Ready { .. })
+            )
+    });
+    let bad_err = errors
+        .iter()
+        .find(|m| m.entity == bad)
+        .expect("error for the open mesh");
+    assert!(bad_err.error.contains("not closed"), "{}", bad_err.error);
+    let tiny_err = errors
+        .iter()
+        .find(|m| m.entity == tiny)
+        .expect("error for K too large");
+    assert!(
+        tiny_err.error.contains("neighbour count"),
+        "{}",
+        tiny_err.error
+    );
+    assert!(matches!(
+        app.world().get::<SoftBodyStatus>(bad),
+        Some(SoftBodyStatus::Failed(_))
+    ));
+    // The good body simulates on.
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(5);
+    }
+    app.world_mut()
+        .entity_mut(good)
+        .insert(ReadbackParticles { continuous: true });
+    assert!(until(&mut app, 60, |app| app
+        .world()
+        .get::<ParticlePositions>(good)
+        .is_some_and(|p| p.step >= 50)));
+    let p = app.world().get::<ParticlePositions>(good).unwrap();
+    assert!(p.positions.iter().all(|x| x.is_finite()));
+}
+
+#[test]
+fn a_body_too_big_for_the_adapter_is_a_clear_error() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut limits = bevy_tissue::gpu::headless().unwrap().device.limits();
+    limits.max_storage_buffer_binding_size = 256 * 1024;
+    let mut app = app(WgpuSettings {
+        constrained_limits: Some(limits),
+        ..default()
+    });
+    let big = spawn_body(
+        &mut app,
+        Vec3::ZERO,
+        SoftBody {
+            resolution: TissueResolution::Particles(3000),
+            neighbours: 8,
+            ..default()
+        },
+        None,
+    );
+    let mut errors: Vec<SoftBodyError> = Vec::new();
+    until(&mut app, 600, |app| {
+        let msgs = app.world().resource::<Messages<SoftBodyError>>();
+        errors.extend(msgs.iter_current_update_messages().cloned());
+        !errors.is_empty()
+    });
+    let e = errors
+        .iter()
+        .find(|m| m.entity == big)
+        .expect("an error for the big body");
+    assert!(e.error.contains("too big for the GPU"), "{}", e.error);
+}
