@@ -178,6 +178,12 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
         "| {} | {} | {:.3} | {:.3} |",
         r.scene, r.particles, r.ms_step, r.ms_knn
     );
+    let per_pass: Vec<String> = r
+        .passes
+        .iter()
+        .map(|(name, ms, count)| format!("{name} {ms:.4} ms ({count} dispatches)"))
+        .collect();
+    eprintln!("  per step: {}", per_pass.join(", "));
     r
 }
 

@@ -61,8 +61,8 @@ pub struct GpuParams {
     pub grid_cell: f32,
     /// Hash buckets (power of two).
     pub grid_table: u32,
-    /// Unused (kept for layout).
-    pub knn_mode: u32,
+    /// A particle faster than this counts as diverged, m/s.
+    pub max_speed: f32,
     /// Largest particle radius, m.
     pub max_radius: f32,
     /// K of the unfiltered neighbour search.

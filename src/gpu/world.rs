@@ -71,10 +71,11 @@ struct Buffers {
     adj: Buffer,
     draw: Buffer,
     knn_out: Buffer,
+    status: Buffer,
 }
 
 impl Buffers {
-    fn in_order(&self) -> [&Buffer; 28] {
+    fn in_order(&self) -> [&Buffer; 29] {
         [
             &self.params,
             &self.colliders,
@@ -104,6 +105,7 @@ impl Buffers {
             &self.adj,
             &self.draw,
             &self.knn_out,
+            &self.status,
         ]
     }
 }
@@ -151,6 +153,22 @@ pub const MAX_SKIN_RUNS: usize = 64;
 
 fn groups(n: u32, per: u32) -> u32 {
     n.div_ceil(per).max(1)
+}
+
+/// Particles (or clusters) handled by one workgroup of the lane kernels (clusters,
+/// gather: 8 threads each).
+pub const PER_LANE_GROUP: u32 = WORKGROUP / 8;
+
+/// A 2-D grid of workgroups for the lane kernels (the kernels linearise it), so that
+/// millions of particles stay under the 65,535 groups per dimension.
+fn lane_groups(n: u32) -> (u32, u32) {
+    let g = groups(n, PER_LANE_GROUP);
+    if g <= 65_535 {
+        (g, 1)
+    } else {
+        let y = g.div_ceil(65_535);
+        (g.div_ceil(y), y)
+    }
 }
 
 impl GpuWorld {
@@ -331,6 +349,7 @@ impl GpuWorld {
                 st,
             ),
             knn_out: zeroed("tissue knn", n64 * knn_k.max(1) as u64 * 4, st),
+            status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
         };
         let entries: Vec<BindGroupEntry> = b
             .in_order()
@@ -408,7 +427,7 @@ impl GpuWorld {
             inv_substeps: 1.0 / settings.substeps as f32,
             grid_cell: cell,
             grid_table: table,
-            knn_mode: 0,
+            max_speed: settings.max_speed,
             max_radius: packed.max_radius,
             knn_k,
             n_bodies: model.bodies.len() as u32,
@@ -490,6 +509,17 @@ impl GpuWorld {
     /// Byte offset of the collider force totals in [`GpuWorld::forces`].
     pub fn force_offset(&self) -> u64 {
         self.n_colliders as u64 * FORCE_GROUPS as u64 * 16
+    }
+
+    /// Per-body divergence flags (u32 per body; nonzero once a particle of the body
+    /// diverged and was held). Clear with [`GpuWorld::clear_status`].
+    pub fn status(&self) -> &Buffer {
+        &self.b.status
+    }
+
+    /// Clears the divergence flags.
+    pub fn clear_status(&self, encoder: &mut CommandEncoder) {
+        encoder.clear_buffer(&self.b.status, 0, None);
     }
 
     /// Colliders in use.
@@ -652,6 +682,7 @@ impl GpuWorld {
         rec: &mut dyn PassRecorder,
     ) {
         let g = groups(self.n, WORKGROUP);
+        let lg = lane_groups(self.n);
         let s = &self.settings;
         for _ in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
@@ -664,8 +695,8 @@ impl GpuWorld {
             for _ in 0..s.substeps {
                 self.dispatch(encoder, rec, "tissue/predict", &k.predict, None, (g, 1));
                 for _ in 0..s.iterations {
-                    self.dispatch(encoder, rec, "tissue/clusters", &k.clusters, None, (g, 1));
-                    self.dispatch(encoder, rec, "tissue/gather", &k.gather, None, (g, 1));
+                    self.dispatch(encoder, rec, "tissue/clusters", &k.clusters, None, lg);
+                    self.dispatch(encoder, rec, "tissue/gather", &k.gather, None, lg);
                     if self.contacts_on {
                         self.dispatch(encoder, rec, "tissue/contacts", &k.contact, None, (g, 1));
                     }

@@ -30,16 +30,69 @@ fn store_corr(c: u32, m: mat3x3<f32>, t: vec3<f32>, a: f32) {
                    vec4<f32>(a, 0.0, 0.0, 0.0));
 }
 
+// LANES threads share a cluster: each sums every LANES-th member, the partial sums are
+// combined in lane order (deterministic), and lane 0 solves. Eight times the threads of
+// one-thread-per-cluster hides the latency of the scattered member reads.
+const LANES: u32 = 8u;
+var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
+
 @compute @workgroup_size(128)
-fn solve_clusters(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let c = gid.x;
-    if (c >= params.n) {
+fn solve_clusters(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let c = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
+    let lane = lid % LANES;
+    let valid = c < params.n;
+    var mp = vec3<f32>(0.0);
+    var mq = vec3<f32>(0.0);
+    var a0 = vec3<f32>(0.0);
+    var a1 = vec3<f32>(0.0);
+    var a2 = vec3<f32>(0.0);
+    var origin = vec3<f32>(0.0);
+    var com = vec3<f32>(0.0);
+    if (valid) {
+        let start = pinfo[c].w;
+        let end = pinfo[c + 1u].w;
+        com = crest[c].com_mass.xyz;
+        origin = p[lists[start]].xyz;
+        for (var s = start + lane; s < end; s = s + LANES) {
+            let j = lists[s];
+            let r = rest[j];
+            let m = r.w;
+            let md = (p[j].xyz - origin) * m;
+            let q = r.xyz - com;
+            mp = mp + md;
+            mq = mq + q * m;
+            a0 = a0 + md * q.x;
+            a1 = a1 + md * q.y;
+            a2 = a2 + md * q.z;
+        }
+    }
+    part[lid] = array<vec4<f32>, 4>(vec4<f32>(mp, a0.x), vec4<f32>(mq, a0.y), vec4<f32>(a1, a0.z), vec4<f32>(a2, 0.0));
+    workgroupBarrier();
+    if (!valid || lane != 0u) {
         return;
     }
+    for (var l = 1u; l < LANES; l = l + 1u) {
+        let o = part[lid + l];
+        mp = mp + o[0].xyz;
+        mq = mq + o[1].xyz;
+        a0 = a0 + vec3<f32>(o[0].w, o[1].w, o[2].w);
+        a1 = a1 + o[2].xyz;
+        a2 = a2 + o[3].xyz;
+    }
+    let inv_m = 1.0 / crest[c].com_mass.w;
+    let c_rel = mp * inv_m;
+    let mo = Moments(origin + c_rel, mat3x3<f32>(a0, a1, a2) - outer(c_rel, mq), com + mq * inv_m);
+    solve_cluster(c, mo);
+}
+
+fn solve_cluster(c: u32, mo: Moments) {
     let info = pinfo[c];
     let body = bodies[info.x];
     let cr = crest[c];
-    let mo = cluster_moments(c, true);
     var st = cstate[c];
     if (body.kind == 0u) {
         // Shape matching (Müller et al. 2005), averaged with the cluster weight.

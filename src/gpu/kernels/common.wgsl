@@ -20,7 +20,7 @@ struct Params {
     inv_substeps: f32,       // 1 / substeps
     grid_cell: f32,          // grid cell edge, m
     grid_table: u32,         // hash buckets (power of two)
-    knn_mode: u32,           // 0: K nearest of all particles (knn_out), 1: contacts
+    max_speed: f32,          // a particle faster than this (m/s) counts as diverged
     max_radius: f32,         // largest particle radius of any body, m
     knn_k: u32,              // K of the unfiltered search (knn_out stride)
     n_bodies: u32,

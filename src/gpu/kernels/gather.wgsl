@@ -100,25 +100,47 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     return q;
 }
 
+// LANES threads share a particle: each sums every LANES-th cluster correction; the
+// partial sums are combined in lane order and lane 0 finishes.
+const LANES: u32 = 8u;
+var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
+
 @compute @workgroup_size(128)
-fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let j = gid.x;
-    if (j >= params.n) {
-        return;
-    }
-    let s0 = pinfo[j].z;
-    let s1 = pinfo[j + 1u].z;
+fn gather(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let j = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
+    let lane = lid % LANES;
+    let valid = j < params.n;
     var c0 = vec4<f32>(0.0);
     var c1 = vec4<f32>(0.0);
     var c2 = vec4<f32>(0.0);
     var a = 0.0;
-    for (var s = s0; s < s1; s = s + 1u) {
-        let k = lists[params.inv_offset + s];
-        let w = corr[k];
-        c0 = c0 + w.c0;
-        c1 = c1 + w.c1;
-        c2 = c2 + w.c2;
-        a = a + w.a.x;
+    if (valid) {
+        let s0 = pinfo[j].z;
+        let s1 = pinfo[j + 1u].z;
+        for (var s = s0 + lane; s < s1; s = s + LANES) {
+            let k = lists[params.inv_offset + s];
+            let w = corr[k];
+            c0 = c0 + w.c0;
+            c1 = c1 + w.c1;
+            c2 = c2 + w.c2;
+            a = a + w.a.x;
+        }
+    }
+    part[lid] = array<vec4<f32>, 4>(c0, c1, c2, vec4<f32>(a, 0.0, 0.0, 0.0));
+    workgroupBarrier();
+    if (!valid || lane != 0u) {
+        return;
+    }
+    for (var l = 1u; l < LANES; l = l + 1u) {
+        let o = part[lid + l];
+        c0 = c0 + o[0];
+        c1 = c1 + o[1];
+        c2 = c2 + o[2];
+        a = a + o[3].x;
     }
     let xr = rest[j].xyz;
     let pj = p[j].xyz;

@@ -1,6 +1,7 @@
 // Predict (`v += h g`, `p = x + h v`, pinned particles at their targets; multipliers and
 // collider records reset) and finish (`v = (p − x)/h` with damping, `x = p`).
-// CPU twin: core::solver::Solver::step, stages 1 and 3.
+// CPU twin: core::solver::Solver::step, stages 1 and 3 (where the CPU restores the whole
+// state of a diverged step, the GPU holds each diverged particle and flags its body).
 
 @compute @workgroup_size(128)
 fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -29,6 +30,15 @@ fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let pp = p[i].xyz;
     let xx = x[i].xyz;
-    v[i] = vec4<f32>((pp - xx) / params.h * params.keep, 0.0);
+    let vel = (pp - xx) / params.h * params.keep;
+    let speed = length(vel);
+    if (!(speed <= params.max_speed)) {
+        // Diverged (NaN, infinite or too fast): the particle stays where it was, at rest,
+        // and its body is flagged, so nothing non-finite reaches the grid or other bodies.
+        v[i] = vec4<f32>(0.0);
+        atomicOr(&status[pinfo[i].x], 1u);
+        return;
+    }
+    v[i] = vec4<f32>(vel, 0.0);
     x[i] = vec4<f32>(pp, 0.0);
 }
