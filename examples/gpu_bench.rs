@@ -199,7 +199,20 @@ fn main() {
     println!("GPU: {}\n", g.adapter);
     let sm = Material::ShapeMatching { stiffness: 0.5 };
     let he = Material::default();
-    let (steps, repeats) = if quick { (20, 3) } else { (300, 5) };
+    let arg = |name: &str| {
+        let a: Vec<String> = std::env::args().collect();
+        a.iter()
+            .position(|x| x == name)
+            .and_then(|i| a.get(i + 1))
+            .and_then(|v| v.parse::<u32>().ok())
+    };
+    let (mut steps, mut repeats) = if quick { (20, 3) } else { (300, 5) };
+    if let Some(s) = arg("--steps") {
+        steps = s;
+    }
+    if let Some(r) = arg("--repeats") {
+        repeats = r as usize;
+    }
     let mut rows = Vec::new();
     println!("| scene | particles | ms per step | ms per KNN (K=32) |");
     println!("|---|---|---|---|");

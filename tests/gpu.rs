@@ -382,16 +382,29 @@ fn a_diverging_body_is_held_and_flagged_and_does_not_poison_the_others() {
     state.v[3] = Vec3::NAN; // body 0 is poisoned
     let mut world = GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
     let x = run_gpu(g, &mut world, &[Collider::ground(0.0)], 30);
-    assert!(x.iter().all(|p| p.is_finite()), "NaN escaped into the positions");
+    assert!(
+        x.iter().all(|p| p.is_finite()),
+        "NaN escaped into the positions"
+    );
     let flags = read_u32(&g.device, &g.queue, world.status(), 2);
     assert!(flags[0] != 0 && flags[1] == 0, "status flags {flags:?}");
     // Body 1 is exactly what it would be alone.
     let mut alone = Model::new();
     alone
-        .add_body(&mesh, &body(Material::default(), Vec3::new(0.5, 0.1, 0.0), 300, vec![]))
+        .add_body(
+            &mesh,
+            &body(Material::default(), Vec3::new(0.5, 0.1, 0.0), 300, vec![]),
+        )
         .unwrap();
-    let mut w1 =
-        GpuWorld::new(&g.device, &g.kernels, &alone, &State::new(&alone), settings(), 0).unwrap();
+    let mut w1 = GpuWorld::new(
+        &g.device,
+        &g.kernels,
+        &alone,
+        &State::new(&alone),
+        settings(),
+        0,
+    )
+    .unwrap();
     let x1 = run_gpu(g, &mut w1, &[Collider::ground(0.0)], 30);
     let n0 = model.bodies[0].count as usize;
     assert_eq!(max_dist(&x[n0..], &x1), 0.0);

@@ -69,8 +69,10 @@ pub struct GpuParams {
     pub knn_k: u32,
     /// Bodies.
     pub n_bodies: u32,
+    /// Grid cell edge of the all-particle search, m.
+    pub knn_cell: f32,
     /// Padding.
-    pub pad: [u32; 2],
+    pub pad: u32,
 }
 
 /// Per-body constants (`Body` in WGSL).
@@ -217,8 +219,10 @@ pub struct GpuScanLevel {
     pub count: u32,
     /// Where this level's block sums go.
     pub sums: u32,
+    /// Grid cell edge of a build (read by the count and scatter kernels), m.
+    pub cell: f32,
     /// Padding.
-    pub pad: [u32; 61],
+    pub pad: [u32; 60],
 }
 
 /// Vertex range of one skin dispatch (`SkinRange` in WGSL), padded to 256 bytes.
@@ -438,11 +442,15 @@ pub fn pack_state(state: &State) -> (Vec<[f32; 4]>, Vec<[f32; 4]>, Vec<GpuCluste
 }
 
 /// Grid parameters for `n` particles whose largest lattice spacing is `spacing` (m):
-/// cell edge (m) and hash buckets (a power of two, ≥ 2n). A cell of two spacings covers
-/// the contact reach `2 (r_i + r_max)` within one ring.
-pub fn grid_params(n: usize, spacing: f32) -> (f32, u32) {
+/// the contact grid's cell edge (m), the all-particle search's cell edge (m) and the
+/// hash buckets (a power of two, ≥ 2n). A contact cell of two spacings covers the contact
+/// reach `2 (r_i + r_max)` within one ring; the K-nearest search uses cells of 1.25
+/// spacings (about two particles each), so that K = 32 is found within two rings of few
+/// candidates.
+pub fn grid_params(n: usize, spacing: f32) -> (f32, f32, u32) {
     let table = (2 * n).max(1024).next_power_of_two() as u32;
-    (2.0 * spacing.max(1e-6), table)
+    let s = spacing.max(1e-6);
+    (2.0 * s, 1.25 * s, table)
 }
 
 /// Element counts of each level of the prefix sum over `count` elements (level 0 first;

@@ -41,6 +41,71 @@ pub trait PassRecorder {
 pub struct NoTiming;
 impl PassRecorder for NoTiming {}
 
+/// Dispatches recorded into one compute pass, or into a pass each when the recorder
+/// times passes (timestamp writes are per pass). One pass per step spares the per-pass
+/// cost of wgpu's resource tracking, which on an H100 was measured to exceed the kernels'
+/// own time at 38k particles.
+struct Recording<'e, 'r> {
+    encoder: &'e mut CommandEncoder,
+    pass: Option<ComputePass<'static>>,
+    rec: &'r mut dyn PassRecorder,
+}
+
+impl<'e, 'r> Recording<'e, 'r> {
+    fn new(encoder: &'e mut CommandEncoder, rec: &'r mut dyn PassRecorder) -> Self {
+        Self {
+            encoder,
+            pass: None,
+            rec,
+        }
+    }
+
+    fn dispatch(
+        &mut self,
+        world: &BindGroup,
+        name: &'static str,
+        pipeline: &ComputePipeline,
+        group1: Option<(&BindGroup, u32)>,
+        workgroups: (u32, u32),
+    ) {
+        let ts = self.rec.timestamps(name);
+        let mut own;
+        let pass: &mut ComputePass<'static> = if ts.is_some() {
+            let timestamp_writes = ts.as_ref().map(|(qs, i)| ComputePassTimestampWrites {
+                query_set: qs,
+                beginning_of_pass_write_index: Some(*i),
+                end_of_pass_write_index: Some(*i + 1),
+            });
+            self.pass = None;
+            own = self
+                .encoder
+                .begin_compute_pass(&ComputePassDescriptor {
+                    label: Some(name),
+                    timestamp_writes,
+                })
+                .forget_lifetime();
+            &mut own
+        } else {
+            let enc = &mut *self.encoder;
+            self.pass.get_or_insert_with(|| {
+                enc.begin_compute_pass(&ComputePassDescriptor {
+                    label: Some("tissue"),
+                    timestamp_writes: None,
+                })
+                .forget_lifetime()
+            })
+        };
+        self.rec.begin(pass, name);
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, world, &[]);
+        if let Some((g, off)) = group1 {
+            pass.set_bind_group(1, g, &[off]);
+        }
+        pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
+        self.rec.end(pass);
+    }
+}
+
 /// Bindings, in world-group order (see `kernels/bindings.wgsl`).
 struct Buffers {
     params: Buffer,
@@ -136,6 +201,7 @@ pub struct GpuWorld {
     surface: Buffer,
     level_buf: Buffer,
     levels: Vec<(u32, u32)>,
+    scan_len: u32,
     range_buf: Buffer,
     world_group: BindGroup,
     scan_group: BindGroup,
@@ -264,7 +330,7 @@ impl GpuWorld {
             .min(n.saturating_sub(1))
             .min(MAX_GPU_K);
         let contacts_on = settings.particle_contacts && model.bodies.len() > 1 && contact_k > 0;
-        let (cell, table) = grid_params(n as usize, packed.max_spacing);
+        let (cell, knn_cell, table) = grid_params(n as usize, packed.max_spacing);
         let level_counts = scan_levels(table + 1);
         let mut levels = Vec::new();
         let mut off = 0u32;
@@ -362,16 +428,28 @@ impl GpuWorld {
             .collect();
         let world_group = device.create_bind_group("tissue world", &kernels.world_layout, &entries);
         // Scan levels: one 256-byte uniform record per level (dynamic offsets).
-        let recs: Vec<GpuScanLevel> = levels
+        let mut recs: Vec<GpuScanLevel> = levels
             .iter()
             .enumerate()
             .map(|(l, &(o, c))| GpuScanLevel {
                 offset: o,
                 count: c,
                 sums: levels.get(l + 1).map_or(scan_len - 1, |nx| nx.0),
-                pad: [0; 61],
+                cell,
+                pad: [0; 60],
             })
             .collect();
+        // Two build configurations after the levels: contacts, then the all-particle
+        // search.
+        for c in [cell, knn_cell] {
+            recs.push(GpuScanLevel {
+                offset: 0,
+                count: 0,
+                sums: 0,
+                cell: c,
+                pad: [0; 60],
+            });
+        }
         let level_buf = init(
             "tissue scan levels",
             bytemuck::cast_slice(&recs),
@@ -431,7 +509,8 @@ impl GpuWorld {
             max_radius: packed.max_radius,
             knn_k,
             n_bodies: model.bodies.len() as u32,
-            pad: [0; 2],
+            knn_cell,
+            pad: 0,
         };
         Ok(Self {
             settings,
@@ -441,6 +520,7 @@ impl GpuWorld {
             surface,
             level_buf,
             levels,
+            scan_len,
             range_buf,
             world_group,
             scan_group,
@@ -578,86 +658,27 @@ impl GpuWorld {
         queue.write_buffer(&self.b.params, 0, bytemuck::bytes_of(&self.params));
     }
 
-    fn dispatch(
-        &self,
-        encoder: &mut CommandEncoder,
-        rec: &mut dyn PassRecorder,
-        name: &'static str,
-        pipeline: &ComputePipeline,
-        group1: Option<(&BindGroup, u32)>,
-        workgroups: (u32, u32),
-    ) {
-        let ts = rec.timestamps(name);
-        let timestamp_writes = ts.as_ref().map(|(qs, i)| ComputePassTimestampWrites {
-            query_set: qs,
-            beginning_of_pass_write_index: Some(*i),
-            end_of_pass_write_index: Some(*i + 1),
-        });
-        let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
-            label: Some(name),
-            timestamp_writes,
-        });
-        rec.begin(&mut pass, name);
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, &self.world_group, &[]);
-        if let Some((g, off)) = group1 {
-            pass.set_bind_group(1, g, &[off]);
-        }
-        pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
-        rec.end(&mut pass);
-    }
-
-    /// Records the grid build over the current positions (counts, prefix sum, scatter).
-    pub fn record_grid(
-        &self,
-        encoder: &mut CommandEncoder,
-        k: &Kernels,
-        rec: &mut dyn PassRecorder,
-    ) {
-        encoder.clear_buffer(&self.b.scan, 0, None);
-        encoder.clear_buffer(&self.b.cursor, 0, None);
+    /// Records the grid build over the current positions (clear, counts, prefix sum,
+    /// scatter); `all` picks the all-particle search's cell size, else the contacts'.
+    fn record_grid(&self, r: &mut Recording<'_, '_>, k: &Kernels, all: bool) {
         let g = groups(self.n, WORKGROUP);
         let sg = &self.scan_group;
-        self.dispatch(
-            encoder,
-            rec,
-            "tissue/grid_count",
-            &k.grid_count,
-            Some((sg, 0)),
-            (g, 1),
-        );
+        let cfg = ((self.levels.len() + all as usize) * size_of::<GpuScanLevel>()) as u32;
+        let clear = groups(self.scan_len.max(self.params.grid_table), WORKGROUP);
+        let w = &self.world_group;
+        r.dispatch(w, "tissue/grid", &k.grid_clear, Some((sg, cfg)), (clear, 1));
+        r.dispatch(w, "tissue/grid", &k.grid_count, Some((sg, cfg)), (g, 1));
         for (l, &(_, c)) in self.levels.iter().enumerate() {
             let off = (l * size_of::<GpuScanLevel>()) as u32;
             let wg = groups(c, SCAN_BLOCK);
-            self.dispatch(
-                encoder,
-                rec,
-                "tissue/scan",
-                &k.scan_block,
-                Some((sg, off)),
-                (wg, 1),
-            );
+            r.dispatch(w, "tissue/scan", &k.scan_block, Some((sg, off)), (wg, 1));
         }
         for l in (0..self.levels.len().saturating_sub(1)).rev() {
             let off = (l * size_of::<GpuScanLevel>()) as u32;
             let wg = groups(self.levels[l].1, SCAN_BLOCK);
-            self.dispatch(
-                encoder,
-                rec,
-                "tissue/scan",
-                &k.scan_add,
-                Some((sg, off)),
-                (wg, 1),
-            );
+            r.dispatch(w, "tissue/scan", &k.scan_add, Some((sg, off)), (wg, 1));
         }
-        self.dispatch(
-            encoder,
-            rec,
-            "tissue/grid_scatter",
-            &k.grid_scatter,
-            Some((sg, 0)),
-            (g, 1),
-        );
+        r.dispatch(w, "tissue/grid", &k.grid_scatter, Some((sg, cfg)), (g, 1));
     }
 
     /// Records the exact K nearest neighbours of every particle (K = `knn_k` given at
@@ -668,12 +689,14 @@ impl GpuWorld {
         k: &Kernels,
         rec: &mut dyn PassRecorder,
     ) {
-        self.record_grid(encoder, k, rec);
+        let mut r = Recording::new(encoder, rec);
+        self.record_grid(&mut r, k, true);
         let g = groups(self.n, WORKGROUP);
-        self.dispatch(encoder, rec, "tissue/knn", &k.knn_all, None, (g, 1));
+        r.dispatch(&self.world_group, "tissue/knn", &k.knn_all, None, (g, 1));
     }
 
-    /// Records `steps` time steps. Call [`GpuWorld::write_params`] before submitting.
+    /// Records `steps` time steps (one compute pass, unless the recorder times passes).
+    /// Call [`GpuWorld::write_params`] before submitting.
     pub fn record_steps(
         &mut self,
         encoder: &mut CommandEncoder,
@@ -683,37 +706,33 @@ impl GpuWorld {
     ) {
         let g = groups(self.n, WORKGROUP);
         let lg = lane_groups(self.n);
+        let mut r = Recording::new(encoder, rec);
+        let w = &self.world_group;
         let s = &self.settings;
         for _ in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
-                self.record_grid(encoder, k, rec);
-                self.dispatch(encoder, rec, "tissue/knn", &k.knn_contacts, None, (g, 1));
+                self.record_grid(&mut r, k, false);
+                r.dispatch(w, "tissue/knn", &k.knn_contacts, None, (g, 1));
             }
-            if self.n_colliders > 0 {
-                encoder.clear_buffer(&self.b.forces, self.force_offset(), None);
+            let nc = self.n_colliders;
+            if nc > 0 {
+                r.dispatch(w, "tissue/forces", &k.force_clear, None, (1, 1));
             }
             for _ in 0..s.substeps {
-                self.dispatch(encoder, rec, "tissue/predict", &k.predict, None, (g, 1));
+                r.dispatch(w, "tissue/predict", &k.predict, None, (g, 1));
                 for _ in 0..s.iterations {
-                    self.dispatch(encoder, rec, "tissue/clusters", &k.clusters, None, lg);
-                    self.dispatch(encoder, rec, "tissue/gather", &k.gather, None, lg);
+                    r.dispatch(w, "tissue/clusters", &k.clusters, None, lg);
+                    r.dispatch(w, "tissue/gather", &k.gather, None, lg);
                     if self.contacts_on {
-                        self.dispatch(encoder, rec, "tissue/contacts", &k.contact, None, (g, 1));
+                        r.dispatch(w, "tissue/contacts", &k.contact, None, (g, 1));
                     }
                 }
-                if self.n_colliders > 0 {
-                    let nc = self.n_colliders;
-                    self.dispatch(
-                        encoder,
-                        rec,
-                        "tissue/forces",
-                        &k.force_partial,
-                        None,
-                        (FORCE_GROUPS, nc),
-                    );
-                    self.dispatch(encoder, rec, "tissue/forces", &k.force_total, None, (1, 1));
+                if nc > 0 {
+                    let fg = (FORCE_GROUPS, nc);
+                    r.dispatch(w, "tissue/forces", &k.force_partial, None, fg);
+                    r.dispatch(w, "tissue/forces", &k.force_total, None, (1, 1));
                 }
-                self.dispatch(encoder, rec, "tissue/finish", &k.finish, None, (g, 1));
+                r.dispatch(w, "tissue/finish", &k.finish, None, (g, 1));
             }
             self.step += 1;
         }
@@ -723,6 +742,7 @@ impl GpuWorld {
     /// allocator slab): deformation gradients, then for each run `(first vertex, end)`
     /// of bodies whose vertices live in `slab`, skinning and normals. The draw records
     /// ([`GpuWorld::set_draw`]) say where each body's vertices are.
+    #[allow(clippy::too_many_arguments)]
     pub fn record_draw(
         &self,
         device: &RenderDevice,
@@ -765,32 +785,19 @@ impl GpuWorld {
             ],
         );
         let g = groups(self.n, WORKGROUP);
-        self.dispatch(
-            encoder,
-            rec,
-            "tissue/deform",
-            &k.deform,
-            Some((&group, 0)),
-            (g, 1),
-        );
+        let mut r = Recording::new(encoder, rec);
+        let w = &self.world_group;
+        r.dispatch(w, "tissue/deform", &k.deform, Some((&group, 0)), (g, 1));
         for (i, &(b, e)) in runs.iter().enumerate() {
             let off = (i * size_of::<GpuSkinRange>()) as u32;
             let wg = groups(e.saturating_sub(b), WORKGROUP);
-            self.dispatch(
-                encoder,
-                rec,
-                "tissue/skin",
-                &k.skin,
-                Some((&group, off)),
-                (wg, 1),
-            );
+            r.dispatch(w, "tissue/skin", &k.skin, Some((&group, off)), (wg, 1));
         }
         for (i, &(b, e)) in runs.iter().enumerate() {
             let off = (i * size_of::<GpuSkinRange>()) as u32;
             let wg = groups(e.saturating_sub(b), WORKGROUP);
-            self.dispatch(
-                encoder,
-                rec,
+            r.dispatch(
+                w,
                 "tissue/normals",
                 &k.normals,
                 Some((&group, off)),

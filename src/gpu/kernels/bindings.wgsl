@@ -42,8 +42,8 @@ fn inv_mass(i: u32) -> f32 {
 }
 
 // Grid cell of a point (unbounded integer coordinates) and its hash bucket.
-fn cell_coords(q: vec3<f32>) -> vec3<i32> {
-    return vec3<i32>(floor(q / params.grid_cell));
+fn cell_coords(q: vec3<f32>, cell: f32) -> vec3<i32> {
+    return vec3<i32>(floor(q / cell));
 }
 
 fn cell_hash(c: vec3<i32>) -> u32 {

@@ -24,7 +24,7 @@ struct Params {
     max_radius: f32,         // largest particle radius of any body, m
     knn_k: u32,              // K of the unfiltered search (knn_out stride)
     n_bodies: u32,
-    _pad0: u32,
+    knn_cell: f32,           // grid cell edge of the all-particle search, m
     _pad1: u32,
 };
 

@@ -33,6 +33,14 @@ fn force_partial(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocatio
     }
 }
 
+// Zeroes the totals at the start of a step.
+@compute @workgroup_size(128)
+fn force_clear(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x < params.n_colliders) {
+        forces[params.n_colliders * FORCE_GROUPS + gid.x] = vec4<f32>(0.0);
+    }
+}
+
 // Totals after the partials: forces[n_colliders * FORCE_GROUPS + k] += Σ_g partial / substeps.
 @compute @workgroup_size(64)
 fn force_total(@builtin(global_invocation_id) gid: vec3<u32>) {

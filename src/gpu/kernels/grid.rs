@@ -10,4 +10,10 @@ pub const SOURCE: &str = concat!(
 );
 
 /// Entry points of the module.
-pub const ENTRY_POINTS: &[&str] = &["grid_count", "scan_block", "scan_add", "grid_scatter"];
+pub const ENTRY_POINTS: &[&str] = &[
+    "grid_clear",
+    "grid_count",
+    "scan_block",
+    "scan_add",
+    "grid_scatter",
+];

@@ -8,7 +8,7 @@ struct ScanLevel {
     offset: u32,             // first element of this level in `scan`
     count: u32,              // elements at this level
     sums: u32,               // where this level's block sums go (next level's offset)
-    _pad: u32,
+    cell: f32,               // grid cell edge of this build (grid_count, grid_scatter), m
 };
 
 @group(1) @binding(0) var<uniform> level: ScanLevel;
@@ -17,13 +17,25 @@ const SCAN_WG: u32 = 256u;
 const SCAN_BLOCK: u32 = 1024u;
 var<workgroup> tsum: array<u32, 256>;
 
+// Zeroes the bucket counts and cursors (in the pass, instead of a buffer clear).
+@compute @workgroup_size(128)
+fn grid_clear(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i < arrayLength(&scan)) {
+        atomicStore(&scan[i], 0u);
+    }
+    if (i < arrayLength(&cursor)) {
+        atomicStore(&cursor[i], 0u);
+    }
+}
+
 @compute @workgroup_size(128)
 fn grid_count(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
     if (i >= params.n) {
         return;
     }
-    let h = cell_hash(cell_coords(x[i].xyz));
+    let h = cell_hash(cell_coords(x[i].xyz, level.cell));
     cell_of[i] = h;
     atomicAdd(&scan[h], 1u);
 }

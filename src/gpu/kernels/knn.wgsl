@@ -25,8 +25,11 @@ fn knn_query(i: u32, mode: u32) {
         max2 = reach * reach;
     }
     k = min(k, MAX_K);
-    let cell = params.grid_cell;
-    let c = cell_coords(q);
+    var cell = params.knn_cell;
+    if (mode == 1u) {
+        cell = params.grid_cell;
+    }
+    let c = cell_coords(q, cell);
     let rel = q / cell;
     for (var r = 0; r <= MAX_RING; r = r + 1) {
         for (var dz = -r; dz <= r; dz = dz + 1) {
@@ -48,7 +51,7 @@ fn knn_query(i: u32, mode: u32) {
                         let e = sorted[s];
                         let j = bitcast<u32>(e.w);
                         if (j == i) { continue; }
-                        if (any(cell_coords(e.xyz) != cc)) { continue; }
+                        if (any(cell_coords(e.xyz, cell) != cc)) { continue; }
                         if (mode == 1u && pinfo[j].x == body_i) { continue; }
                         let d2 = dist2(q, e.xyz);
                         if (d2 > max2) { continue; }

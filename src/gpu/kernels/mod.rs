@@ -69,6 +69,10 @@ pub struct Kernels {
     pub predict: ComputePipeline,
     /// `integrate.wgsl`: finish.
     pub finish: ComputePipeline,
+    /// `grid.wgsl`: zero the counts.
+    pub grid_clear: ComputePipeline,
+    /// `forces.wgsl`: zero the totals.
+    pub force_clear: ComputePipeline,
     /// `grid.wgsl`: cell counts.
     pub grid_count: ComputePipeline,
     /// `grid.wgsl`: block scan.
@@ -163,6 +167,8 @@ impl Kernels {
         Ok(Self {
             predict: pipe(&integrate_m, &world_only, "predict"),
             finish: pipe(&integrate_m, &world_only, "finish"),
+            grid_clear: pipe(&grid_m, &with_scan, "grid_clear"),
+            force_clear: pipe(&forces_m, &world_only, "force_clear"),
             grid_count: pipe(&grid_m, &with_scan, "grid_count"),
             scan_block: pipe(&grid_m, &with_scan, "scan_block"),
             scan_add: pipe(&grid_m, &with_scan, "scan_add"),
