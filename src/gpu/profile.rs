@@ -47,6 +47,39 @@ impl GpuProfiler {
         })
     }
 
+    /// Records an empty pass that writes one timestamp on the GPU timeline (the time
+    /// between two marks covers everything the GPU did in between, gaps included).
+    pub fn mark(&mut self, encoder: &mut CommandEncoder) {
+        let i = self.names.len() as u32 * 2;
+        if i + 2 > self.capacity {
+            return;
+        }
+        self.names.push("mark");
+        let _ = encoder.begin_compute_pass(&bevy::render::render_resource::ComputePassDescriptor {
+            label: Some("tissue mark"),
+            timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                query_set: &self.set,
+                beginning_of_pass_write_index: Some(i),
+                end_of_pass_write_index: Some(i + 1),
+            }),
+        });
+    }
+
+    /// Reads the marks back (blocking): the raw end-of-mark times in ms, in order.
+    pub fn read_marks(&mut self, device: &RenderDevice, queue: &RenderQueue) -> Vec<f64> {
+        let used = self.names.len() as u64 * 2;
+        if used == 0 {
+            return Vec::new();
+        }
+        let bytes = super::world::read_buffer(device, queue, &self.resolve, 0, used * 8);
+        let ts: &[u64] = bytemuck::cast_slice(&bytes);
+        let out = (0..self.names.len())
+            .map(|i| ts[2 * i + 1] as f64 * self.period_ns as f64 * 1e-6)
+            .collect();
+        self.names.clear();
+        out
+    }
+
     /// Records the resolve of this submission's queries (call after the passes).
     pub fn resolve(&self, encoder: &mut CommandEncoder) {
         let used = self.names.len() as u32 * 2;
