@@ -369,3 +369,55 @@ fn a_body_too_big_for_the_adapter_is_a_clear_error() {
         .expect("an error for the big body");
     assert!(e.error.contains("too big for the GPU"), "{}", e.error);
 }
+
+#[test]
+fn changing_k_rebuilds_and_removing_the_component_stops_the_simulation() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    let (body, pinned) = body_spec();
+    let e = spawn_body(&mut app, Vec3::ZERO, body, Some(pinned));
+    let other = spawn_body(&mut app, Vec3::new(1.0, 0.0, 0.0), body_spec().0, None);
+    let ready = |app: &mut App, e: Entity| {
+        matches!(
+            app.world().get::<SoftBodyStatus>(e),
+            Some(SoftBodyStatus::Ready { .. })
+        )
+    };
+    assert!(until(&mut app, 600, |app| ready(app, e) && ready(app, other)));
+    let particles = |app: &App| {
+        app.sub_app(RenderApp)
+            .world()
+            .resource::<TissueGpu>()
+            .world()
+            .map(|w| w.particle_count())
+    };
+    assert!(until(&mut app, 10, |app| particles(app).is_some()));
+    let before = particles(&app).unwrap();
+    let gen0 = app.world().get::<BuiltBody>(e).unwrap().generation;
+    app.world_mut().get_mut::<SoftBody>(e).unwrap().neighbours = 8;
+    assert!(until(&mut app, 600, |app| app
+        .world()
+        .get::<BuiltBody>(e)
+        .is_some_and(
+            |b| b.generation == gen0 + 1 && b.model.bodies[0].neighbours == 8
+        )));
+    app.update();
+    app.update();
+    assert_eq!(
+        particles(&app),
+        Some(before),
+        "same particles, new clusters"
+    );
+    // Removing the component drops the body from the GPU world.
+    app.world_mut().entity_mut(e).remove::<SoftBody>();
+    let other_count = app
+        .world()
+        .get::<BuiltBody>(other)
+        .unwrap()
+        .model
+        .particle_count() as u32;
+    assert!(until(&mut app, 10, |app| particles(app) == Some(other_count)));
+}

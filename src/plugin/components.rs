@@ -27,10 +27,13 @@ pub enum TissueMaterial {
 }
 
 impl Default for TissueMaterial {
-    /// Shape matching with k = 0.5: stable under the GPU's Jacobi iteration at every
-    /// resolution measured (BENCHMARKS.md); pick `Hyperelastic` for SI stiffness.
+    /// Shape matching with k = 1 (as stiff as the iterations allow). Under the GPU's
+    /// Jacobi iteration each cluster's correction is averaged over the ~K clusters that
+    /// share a particle, so softer k collapse bodies under gravity (k = 0.5 flattened a
+    /// dropped ball), and the hyperelastic model still blows up on impacts there
+    /// (BENCHMARKS.md, "GPU"): the hierarchy (issue 4) is the cure for both.
     fn default() -> Self {
-        TissueMaterial::ShapeMatching { stiffness: 0.5 }
+        TissueMaterial::ShapeMatching { stiffness: 1.0 }
     }
 }
 

@@ -85,7 +85,8 @@ impl Plugin for TissuePlugin {
                 ),
             )
             .add_systems(Last, render::remember_collider_poses)
-            .add_observer(add_last_pose);
+            .add_observer(add_last_pose)
+            .add_observer(remove_soft_body);
         let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
             return;
         };
@@ -122,6 +123,14 @@ impl Plugin for TissuePlugin {
             .world_mut()
             .resource_mut::<MeshAllocatorSettings>()
             .extra_buffer_usages |= BufferUsages::STORAGE;
+    }
+}
+
+/// A removed `SoftBody` stops being simulated; its entity keeps the draw mesh (at its
+/// last pose) and the user's source mesh handle.
+fn remove_soft_body(remove: On<Remove, SoftBody>, mut commands: Commands) {
+    if let Ok(mut e) = commands.get_entity(remove.entity) {
+        e.remove::<(build::BuiltBody, build::BuildTask)>();
     }
 }
 
