@@ -135,12 +135,12 @@ fn finish(
 ) {
     *frame += 1;
     let Some(frames) = options.frames else { return };
-    if *frame == frames {
-        if let Some(path) = &options.screenshot {
-            commands
-                .spawn(Screenshot::primary_window())
-                .observe(save_to_disk(path.clone()));
-        }
+    if *frame == frames
+        && let Some(path) = &options.screenshot
+    {
+        commands
+            .spawn(Screenshot::primary_window())
+            .observe(save_to_disk(path.clone()));
     }
     if *frame >= frames + 10 {
         exit.write(AppExit::Success);

@@ -6,6 +6,8 @@
 //!   math, the CPU reference solver;
 //! * [`gpu`] — buffers, kernels and the batched GPU world;
 //! * [`plugin`] — the Bevy plugin: components, build systems, render-graph systems.
+#![warn(missing_docs)]
+
 pub mod core;
 pub mod gpu;
 pub mod plugin;

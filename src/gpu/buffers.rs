@@ -378,12 +378,9 @@ impl Packed {
             let vfirst = p.vinf.len() as u32;
             p.vfirst.push(vfirst);
             for v in 0..skin.rest_vertices.len() {
-                let mut inf = [0u32; 4];
-                let mut wt = [0.0f32; 4];
-                for s in 0..SKIN_INFLUENCES.min(4) {
-                    inf[s] = skin.particles[v][s];
-                    wt[s] = skin.weights[v][s];
-                }
+                const { assert!(SKIN_INFLUENCES == 4) };
+                let inf: [u32; 4] = skin.particles[v];
+                let wt: [f32; 4] = skin.weights[v];
                 p.vinf.push(inf);
                 p.vwt.push(wt);
                 let r = skin.rest_vertices[v];
