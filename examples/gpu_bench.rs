@@ -26,27 +26,11 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-fn liver(particles: u32, k: u32, material: Material) -> Model {
+fn liver(resolution: Resolution, k: u32, material: Material) -> Model {
     let (lo, hi) = procedural::liver_ligament();
     let mut model = Model::new();
     let desc = BodyDesc {
-        resolution: Resolution::Particles(particles),
-        neighbours: k,
-        material,
-        pins: vec![PinRegion::Box { min: lo, max: hi }],
-        ..Default::default()
-    };
-    model
-        .add_body(&procedural::liver(4), &desc)
-        .expect("liver model");
-    model
-}
-
-fn liver_spacing(spacing: f32, k: u32, material: Material) -> Model {
-    let (lo, hi) = procedural::liver_ligament();
-    let mut model = Model::new();
-    let desc = BodyDesc {
-        resolution: Resolution::Spacing(spacing),
+        resolution,
         neighbours: k,
         material,
         pins: vec![PinRegion::Box { min: lo, max: hi }],
@@ -244,7 +228,7 @@ fn main() {
         rows.push(bench(
             &g,
             "liver 4096, shape matching",
-            &liver(4096, 32, sm),
+            &liver(Resolution::Particles(4096), 32, sm),
             steps,
             repeats,
         ));
@@ -257,7 +241,7 @@ fn main() {
         ));
     } else {
         let t = Instant::now();
-        let l38 = liver(37982, 32, sm);
+        let l38 = liver(Resolution::Particles(37982), 32, sm);
         eprintln!("liver 37982 built in {:.1} s", t.elapsed().as_secs_f64());
         let s38 = l38.bodies[0].spacing;
         rows.push(bench(
@@ -277,13 +261,17 @@ fn main() {
         rows.push(bench(
             &g,
             "liver 13824, hyperelastic",
-            &liver(13824, 32, he),
+            &liver(Resolution::Particles(13824), 32, he),
             steps,
             repeats,
         ));
         let t = Instant::now();
         // Same shape, spacing scaled to ~1M particles (no count search).
-        let big = liver_spacing(s38 * (37982.0f32 / 1.0e6).cbrt(), 32, sm);
+        let big = liver(
+            Resolution::Spacing(s38 * (37982.0f32 / 1.0e6).cbrt()),
+            32,
+            sm,
+        );
         eprintln!("1M model built in {:.1} s", t.elapsed().as_secs_f64());
         rows.push(bench(&g, "liver 1M, shape matching", &big, 50, 3));
     }

@@ -4,16 +4,17 @@
 //! error message while the app keeps running, and no particle data crosses to the host
 //! unless asked for.
 
+use bevy::camera::primitives::Aabb;
 use bevy::prelude::*;
 use bevy::render::RenderApp;
 use bevy::render::mesh::allocator::MeshAllocator;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::settings::{RenderCreation, WgpuSettings};
 use bevy::window::ExitCondition;
-use bevy_tissue::core::model::{BodyDesc, Model};
+use bevy_tissue::core::model::Model;
 use bevy_tissue::core::solver::{Control, Solver, State};
 use bevy_tissue::gpu::world::read_buffer;
-use bevy_tissue::plugin::build::{BuiltBody, tri_mesh};
+use bevy_tissue::plugin::build::{BuiltBody, body_desc, tri_mesh};
 use bevy_tissue::plugin::render::TissueGpu;
 use bevy_tissue::prelude::*;
 use std::sync::Mutex;
@@ -98,15 +99,22 @@ fn until(app: &mut App, max: u32, mut done: impl FnMut(&mut App) -> bool) -> boo
     false
 }
 
+const HYPER: TissueMaterial = TissueMaterial::Hyperelastic {
+    youngs_modulus: 20_000.0,
+    poisson_ratio: 0.4,
+};
+const SHAPE: TissueMaterial = TissueMaterial::ShapeMatching { stiffness: 0.8 };
+
 fn body_spec() -> (SoftBody, Pinned) {
+    body_of(HYPER)
+}
+
+fn body_of(material: TissueMaterial) -> (SoftBody, Pinned) {
     (
         SoftBody {
             resolution: TissueResolution::Particles(500),
             neighbours: 16,
-            material: TissueMaterial::Hyperelastic {
-                youngs_modulus: 20_000.0,
-                poisson_ratio: 0.4,
-            },
+            material,
             ..default()
         },
         Pinned::region(PinShape::HalfSpace {
@@ -117,22 +125,16 @@ fn body_spec() -> (SoftBody, Pinned) {
 }
 
 /// The same body built and stepped `steps` times on the CPU (Jacobi), in world space.
-fn cpu_reference(at: Vec3, steps: u64, settings: &TissueSettings) -> (Model, Vec<Vec3>) {
-    let (body, pinned) = body_spec();
+fn cpu_reference(
+    material: TissueMaterial,
+    at: Vec3,
+    steps: u64,
+    settings: &TissueSettings,
+) -> (Model, Vec<Vec3>) {
+    let (body, pinned) = body_of(material);
     let to_world = GlobalTransform::from(Transform::from_translation(at));
     let tri = tri_mesh(&box_mesh(), &to_world).unwrap();
-    let desc = BodyDesc {
-        resolution: body.resolution.to_core(),
-        density: body.density,
-        neighbours: body.neighbours,
-        material: body.material.to_core(),
-        pins: pinned
-            .regions
-            .iter()
-            .map(|r| r.to_core(&to_world))
-            .collect(),
-        ..Default::default()
-    };
+    let desc = body_desc(&body, Some(&pinned), &to_world);
     let mut model = Model::new();
     model.add_body(&tri, &desc).unwrap();
     let mut state = State::new(&model);
@@ -152,15 +154,22 @@ fn a_body_in_a_headless_app_matches_the_cpu_and_is_drawn_from_the_gpu() {
         return;
     }
     let mut app = app(WgpuSettings::default());
+    // Both elastic models, batched in one world (far apart: no contacts).
     let at = Vec3::new(0.0, 0.5, 0.0);
-    let (body, pinned) = body_spec();
+    let at2 = Vec3::new(1.0, 0.5, 0.0);
+    let (body, pinned) = body_of(HYPER);
     let e = spawn_body(&mut app, at, body, Some(pinned));
-    assert!(
-        until(&mut app, 600, |app| matches!(
+    let (body2, pinned2) = body_of(SHAPE);
+    let e2 = spawn_body(&mut app, at2, body2, Some(pinned2));
+    let ready = |app: &mut App, e: Entity| {
+        matches!(
             app.world().get::<SoftBodyStatus>(e),
             Some(SoftBodyStatus::Ready { .. })
-        )),
-        "the body never became ready: {:?}",
+        )
+    };
+    assert!(
+        until(&mut app, 600, |app| ready(app, e) && ready(app, e2)),
+        "the bodies never became ready: {:?}",
         app.world().get::<SoftBodyStatus>(e)
     );
     // Let the render world upload it, then take exactly 200 steps, 20 per frame.
@@ -199,7 +208,7 @@ fn a_body_in_a_headless_app_matches_the_cpu_and_is_drawn_from_the_gpu() {
         "the GPU world took a different number of steps"
     );
     let settings = app.world().resource::<TissueSettings>().clone();
-    let (model, cpu) = cpu_reference(at, got.step, &settings);
+    let (model, cpu) = cpu_reference(HYPER, at, got.step, &settings);
     let size = model.bodies[0].size;
     let d = got
         .positions
@@ -245,6 +254,25 @@ fn a_body_in_a_headless_app_matches_the_cpu_and_is_drawn_from_the_gpu() {
         .zip(&skinned)
         .map(|(v, s)| Vec3::new(v[0], v[1], v[2]).distance(*s - at))
         .fold(0.0f32, f32::max);
+    // Culling bounds follow the deformed body: the entity's Aabb (local frame) holds
+    // every drawn vertex.
+    let aabb = *app.world().get::<Aabb>(e).expect("culling bounds");
+    let (c, he) = (Vec3::from(aabb.center), Vec3::from(aabb.half_extents));
+    for v in vtx {
+        let p = Vec3::new(v[0], v[1], v[2]);
+        assert!(
+            ((p - c).abs() - he).max_element() <= 1e-6,
+            "vertex {p} outside the culling box {c} ± {he}"
+        );
+    }
+    // ... and it is the particles' own box (read back, paused) grown by three spacings.
+    let m = 3.0 * model.bodies[0].spacing;
+    let lo = got.positions.iter().fold(Vec3::MAX, |a, p| a.min(*p)) - at - m;
+    let hi = got.positions.iter().fold(Vec3::MIN, |a, p| a.max(*p)) - at + m;
+    assert!(
+        (c - he - lo).abs().max_element() < 1e-5 && (c + he - hi).abs().max_element() < 1e-5,
+        "culling box {c} ± {he} is not the particles' box {lo}..{hi} grown by {m} m"
+    );
     assert!(
         dv < 1e-5 * size,
         "drawn vertices differ from the CPU skinning by {dv} m"

@@ -137,10 +137,11 @@ struct Buffers {
     draw: Buffer,
     knn_out: Buffer,
     status: Buffer,
+    bounds: Buffer,
 }
 
 impl Buffers {
-    fn in_order(&self) -> [&Buffer; 29] {
+    fn in_order(&self) -> [&Buffer; 30] {
         [
             &self.params,
             &self.colliders,
@@ -171,6 +172,7 @@ impl Buffers {
             &self.draw,
             &self.knn_out,
             &self.status,
+            &self.bounds,
         ]
     }
 }
@@ -416,6 +418,7 @@ impl GpuWorld {
             ),
             knn_out: zeroed("tissue knn", n64 * knn_k.max(1) as u64 * 4, st),
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
+            bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 32, st),
         };
         let entries: Vec<BindGroupEntry> = b
             .in_order()
@@ -595,6 +598,31 @@ impl GpuWorld {
     /// diverged and was held). Clear with [`GpuWorld::clear_status`].
     pub fn status(&self) -> &Buffer {
         &self.b.status
+    }
+
+    /// Per-body bounding boxes of the particles (two vec4 per body: min, max; m, world
+    /// frame), written by [`GpuWorld::record_bounds`].
+    pub fn bounds(&self) -> &Buffer {
+        &self.b.bounds
+    }
+
+    /// Records the per-body bounding boxes of the current positions.
+    pub fn record_bounds(
+        &self,
+        encoder: &mut CommandEncoder,
+        k: &Kernels,
+        rec: &mut dyn PassRecorder,
+    ) {
+        let nb = self.ranges.len() as u32;
+        let groups = (nb.min(65_535), nb.div_ceil(65_535));
+        let mut r = Recording::new(encoder, rec);
+        r.dispatch(
+            &self.world_group,
+            "tissue/bounds",
+            &k.body_bounds,
+            None,
+            groups,
+        );
     }
 
     /// Clears the divergence flags.

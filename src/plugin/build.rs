@@ -6,7 +6,6 @@ use crate::core::TissueError;
 use crate::core::mesh::TriMesh;
 use crate::core::model::{BodyDesc, Model};
 use bevy::asset::RenderAssetUsages;
-use bevy::camera::visibility::NoFrustumCulling;
 use bevy::mesh::{Indices, PrimitiveTopology, VertexAttributeValues};
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, futures_lite::future};
@@ -95,6 +94,20 @@ fn draw_mesh(source: &Mesh) -> Mesh {
     m
 }
 
+/// The core's description of a body placed by `to_world` (pins in world space).
+pub fn body_desc(body: &SoftBody, pinned: Option<&Pinned>, to_world: &GlobalTransform) -> BodyDesc {
+    BodyDesc {
+        resolution: body.resolution.to_core(),
+        density: body.density,
+        neighbours: body.neighbours,
+        material: body.material.to_core(),
+        pins: pinned
+            .map(|p| p.regions.iter().map(|r| r.to_core(to_world)).collect())
+            .unwrap_or_default(),
+        ..Default::default()
+    }
+}
+
 /// Starts builds for new and changed bodies whose mesh is loaded.
 #[allow(clippy::type_complexity)]
 pub fn start_builds(
@@ -123,16 +136,7 @@ pub fn start_builds(
             continue; // not loaded yet
         };
         let tri = tri_mesh(mesh, to_world);
-        let desc = BodyDesc {
-            resolution: body.resolution.to_core(),
-            density: body.density,
-            neighbours: body.neighbours,
-            material: body.material.to_core(),
-            pins: pinned
-                .map(|p| p.regions.iter().map(|r| r.to_core(to_world)).collect())
-                .unwrap_or_default(),
-            ..Default::default()
-        };
+        let desc = body_desc(body, pinned, to_world);
         let solver = settings.to_core();
         let task = AsyncComputeTaskPool::get().spawn(async move {
             solver.validate()?;
@@ -193,7 +197,6 @@ pub fn finish_builds(
                 });
                 commands.entity(entity).insert((
                     Mesh3d(draw.clone()),
-                    NoFrustumCulling,
                     BuiltBody {
                         model: Arc::new(model),
                         generation: built.map_or(0, |b| b.generation + 1),

@@ -367,17 +367,20 @@ pub struct TissueSettings {
 }
 
 impl Default for TissueSettings {
+    /// The core solver's defaults (the paper's dt, iterations and KNN interval), at most
+    /// 4 steps per frame.
     fn default() -> Self {
+        let c = SolverSettings::default();
         Self {
-            dt: 1.0 / 60.0,
-            substeps: 1,
-            iterations: 10,
-            gravity: Vec3::new(0.0, -9.81, 0.0),
-            damping: 1.0,
-            relaxation: 1.0,
-            knn_every: 10,
-            particle_contacts: true,
-            contact_neighbours: 16,
+            dt: c.dt,
+            substeps: c.substeps,
+            iterations: c.iterations,
+            gravity: c.gravity,
+            damping: c.damping,
+            relaxation: c.relaxation,
+            knn_every: c.knn_every,
+            particle_contacts: c.particle_contacts,
+            contact_neighbours: c.contact_neighbours,
             max_steps_per_frame: 4,
         }
     }

@@ -8,6 +8,7 @@ use crate::core::colliders::Collider;
 use crate::core::model::Model;
 use crate::gpu::buffers::GpuDrawBody;
 use crate::gpu::{GpuWorld, Kernels, PassRecorder};
+use bevy::camera::primitives::Aabb;
 use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::diagnostic::{DiagnosticsRecorder, RecordDiagnostics};
@@ -54,6 +55,16 @@ pub enum ReadbackResult {
     Force(Entity, Vec3),
     /// A GPU-side error for a body.
     Error(Entity, String),
+    /// A body's particle bounds (world frame, m), for culling.
+    Bounds(Entity, Vec3, Vec3),
+}
+
+/// What a readback item is.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Item {
+    Positions,
+    Force,
+    Bounds,
 }
 
 /// The channel's receiving end (main world).
@@ -71,6 +82,8 @@ pub struct FrameTraffic {
     pub uploaded_bytes: u64,
     /// Bytes copied for readback (only what was asked for).
     pub readback_bytes: u64,
+    /// Bytes of per-body bounds copied for culling (32 per body).
+    pub bounds_bytes: u64,
 }
 
 /// The render world's simulation state.
@@ -101,7 +114,7 @@ impl TissueGpu {
 
 struct Pending {
     buffer: Buffer,
-    items: Vec<(Entity, u64, u64, bool)>, // entity, byte offset, bytes, is_force
+    items: Vec<(Entity, u64, u64, Item)>, // entity, byte offset in staging, bytes, kind
     step: u64,
 }
 
@@ -373,23 +386,39 @@ pub fn run_tissue(
     for (slab, runs) in &slabs {
         world.record_draw(&device, &queue, encoder, kernels, slab, runs, &mut spans);
     }
+    // Per-body bounds, every frame (32 bytes a body), for frustum culling.
+    world.record_bounds(encoder, kernels, &mut spans);
     // Readback copies.
     let mut items = Vec::new();
+    for (i, b) in gpu.bodies.iter().enumerate() {
+        items.push((b.entity, i as u64 * 32, 32, Item::Bounds));
+    }
     for (b, r) in gpu.bodies.iter().zip(&world.ranges) {
         if b.readback {
-            items.push((b.entity, r.first as u64 * 16, r.count as u64 * 16, false));
+            let item = (
+                b.entity,
+                r.first as u64 * 16,
+                r.count as u64 * 16,
+                Item::Positions,
+            );
+            items.push(item);
         }
     }
     for (k, (e, _, wants)) in gpu.colliders.iter().enumerate() {
         if *wants {
-            items.push((*e, world.force_offset() + k as u64 * 16, 16, true));
+            items.push((*e, world.force_offset() + k as u64 * 16, 16, Item::Force));
         }
     }
     if items.is_empty() {
         return;
     }
     let total: u64 = items.iter().map(|i| i.2).sum();
-    gpu.traffic.readback_bytes = total;
+    gpu.traffic.readback_bytes = items
+        .iter()
+        .filter(|i| i.3 != Item::Bounds)
+        .map(|i| i.2)
+        .sum();
+    gpu.traffic.bounds_bytes = total - gpu.traffic.readback_bytes;
     let staging = device.create_buffer(&BufferDescriptor {
         label: Some("tissue readback"),
         size: total,
@@ -398,14 +427,14 @@ pub fn run_tissue(
     });
     let mut at = 0;
     let mut placed = Vec::new();
-    for (e, off, len, is_force) in items {
-        let src = if is_force {
-            world.forces()
-        } else {
-            world.positions()
+    for (e, off, len, kind) in items {
+        let src = match kind {
+            Item::Force => world.forces(),
+            Item::Positions => world.positions(),
+            Item::Bounds => world.bounds(),
         };
         encoder.copy_buffer_to_buffer(src, off, &staging, at, len);
-        placed.push((e, at, len, is_force));
+        placed.push((e, at, len, kind));
         at += len;
     }
     gpu.pending.push(Pending {
@@ -429,14 +458,14 @@ pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
             }
             {
                 let data = buf.slice(..).get_mapped_range();
-                for (e, at, len, is_force) in items {
+                for (e, at, len, kind) in items {
                     let bytes = &data[at as usize..(at + len) as usize];
                     let v: &[[f32; 4]] = bytemuck::cast_slice(bytes);
-                    let msg = if is_force {
-                        ReadbackResult::Force(e, Vec3::new(v[0][0], v[0][1], v[0][2]))
-                    } else {
-                        let p = v.iter().map(|a| Vec3::new(a[0], a[1], a[2])).collect();
-                        ReadbackResult::Positions(e, p, step)
+                    let p: Vec<Vec3> = v.iter().map(|a| Vec3::new(a[0], a[1], a[2])).collect();
+                    let msg = match kind {
+                        Item::Force => ReadbackResult::Force(e, p[0]),
+                        Item::Positions => ReadbackResult::Positions(e, p, step),
+                        Item::Bounds => ReadbackResult::Bounds(e, p[0], p[1]),
                     };
                     let _ = tx.send(msg);
                 }
@@ -450,6 +479,7 @@ pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
 pub fn receive_readbacks(
     mut commands: Commands,
     rx: Res<ReadbackReceiver>,
+    bodies: Query<(&BuiltBody, &GlobalTransform)>,
     requests: Query<&ReadbackParticles>,
     mut status: Query<&mut SoftBodyStatus>,
     mut errors: MessageWriter<SoftBodyError>,
@@ -471,6 +501,22 @@ pub fn receive_readbacks(
                     ec.insert(ColliderForce(f));
                 }
             }
+            ReadbackResult::Bounds(e, lo, hi) => {
+                // The entity-local box of the particles, grown by the skin's reach past
+                // them (a few lattice spacings) and the motion of a frame or two.
+                let Ok((b, to_world)) = bodies.get(e) else {
+                    continue;
+                };
+                if !(lo.is_finite() && hi.is_finite()) || lo.cmpgt(hi).any() {
+                    continue;
+                }
+                let spacing = b.model.bodies.first().map_or(0.0, |b| b.spacing);
+                let m = Vec3::splat(3.0 * spacing);
+                let (l, h) = local_box(to_world, lo - m, hi + m);
+                if let Ok(mut ec) = commands.get_entity(e) {
+                    ec.insert(Aabb::from_min_max(l, h));
+                }
+            }
             ReadbackResult::Error(e, error) => {
                 if let Ok(mut s) = status.get_mut(e) {
                     *s = SoftBodyStatus::Failed(error.clone());
@@ -482,4 +528,21 @@ pub fn receive_readbacks(
             }
         }
     }
+}
+
+/// The entity-local axis-aligned box around the world box `lo..hi`.
+fn local_box(to_world: &GlobalTransform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
+    let inv = to_world.affine().inverse();
+    let (mut l, mut h) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for i in 0..8 {
+        let c = Vec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        );
+        let p = inv.transform_point3(c);
+        l = l.min(p);
+        h = h.max(p);
+    }
+    (l, h)
 }

@@ -10,4 +10,4 @@ pub const SOURCE: &str = concat!(
 );
 
 /// Entry points of the module.
-pub const ENTRY_POINTS: &[&str] = &["force_clear", "force_partial", "force_total"];
+pub const ENTRY_POINTS: &[&str] = &["body_bounds", "force_clear", "force_partial", "force_total"];

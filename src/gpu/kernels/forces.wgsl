@@ -33,6 +33,40 @@ fn force_partial(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocatio
     }
 }
 
+var<workgroup> lo_red: array<vec3<f32>, 256>;
+
+// Each body's bounding box (bounds[2b] = min, bounds[2b + 1] = max, m, world frame): one
+// workgroup per body, a fixed-shape tree reduction. Read back a frame later for culling.
+@compute @workgroup_size(256)
+fn body_bounds(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let b = wid.x + wid.y * 65535u;
+    if (b >= params.n_bodies) {
+        return;
+    }
+    let body = bodies[b];
+    var lo = vec3<f32>(3.4e38);
+    var hi = vec3<f32>(-3.4e38);
+    for (var i = lid.x; i < body.count; i = i + FWG) {
+        let q = x[body.first + i].xyz;
+        lo = min(lo, q);
+        hi = max(hi, q);
+    }
+    lo_red[lid.x] = lo;
+    red[lid.x] = hi;
+    workgroupBarrier();
+    for (var s = FWG / 2u; s > 0u; s = s >> 1u) {
+        if (lid.x < s) {
+            lo_red[lid.x] = min(lo_red[lid.x], lo_red[lid.x + s]);
+            red[lid.x] = max(red[lid.x], red[lid.x + s]);
+        }
+        workgroupBarrier();
+    }
+    if (lid.x == 0u) {
+        bounds[2u * b] = vec4<f32>(lo_red[0], 0.0);
+        bounds[2u * b + 1u] = vec4<f32>(red[0], 0.0);
+    }
+}
+
 // Zeroes the totals at the start of a step.
 @compute @workgroup_size(128)
 fn force_clear(@builtin(global_invocation_id) gid: vec3<u32>) {

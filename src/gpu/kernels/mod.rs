@@ -27,7 +27,7 @@ use std::borrow::Cow;
 /// Bindings of the world group that the kernels only read.
 const READ_ONLY: &[u32] = &[6, 7, 8, 9, 10, 13, 22, 23, 24, 25, 26];
 /// Bindings of the world group (0 and 1 are uniforms, the rest storage buffers).
-pub const WORLD_BINDINGS: u32 = 29;
+pub const WORLD_BINDINGS: u32 = 30;
 /// Storage buffers a kernel binds at most (world group plus the vertex slab).
 pub const STORAGE_BUFFERS_NEEDED: u32 = WORLD_BINDINGS - 2 + 1;
 
@@ -71,6 +71,8 @@ pub struct Kernels {
     pub finish: ComputePipeline,
     /// `grid.wgsl`: zero the counts.
     pub grid_clear: ComputePipeline,
+    /// `forces.wgsl`: each body's bounding box.
+    pub body_bounds: ComputePipeline,
     /// `forces.wgsl`: zero the totals.
     pub force_clear: ComputePipeline,
     /// `grid.wgsl`: cell counts.
@@ -169,6 +171,7 @@ impl Kernels {
             finish: pipe(&integrate_m, &world_only, "finish"),
             grid_clear: pipe(&grid_m, &with_scan, "grid_clear"),
             force_clear: pipe(&forces_m, &world_only, "force_clear"),
+            body_bounds: pipe(&forces_m, &world_only, "body_bounds"),
             grid_count: pipe(&grid_m, &with_scan, "grid_count"),
             scan_block: pipe(&grid_m, &with_scan, "scan_block"),
             scan_add: pipe(&grid_m, &with_scan, "scan_add"),
