@@ -6,6 +6,7 @@
 //! * [`knn`] — uniform grid (counting sort) and exact K nearest neighbours;
 //! * [`constraints`] — shape matching, stable neo-Hookean XPBD, contacts (pure functions);
 //! * [`colliders`] — kinematic plane, sphere, capsule and box with friction;
+//! * [`colouring`] — cluster colouring for a coloured Gauss–Seidel iteration;
 //! * [`model`] — the batched rest data of all bodies;
 //! * [`skin`] — the render surface embedded in the particles;
 //! * [`solver`] — CPU Gauss–Seidel and Jacobi time stepping;
@@ -23,6 +24,7 @@
 //! ```
 
 pub mod colliders;
+pub mod colouring;
 pub mod constraints;
 pub mod error;
 pub mod knn;
