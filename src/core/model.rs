@@ -25,7 +25,7 @@ pub enum Material {
     },
     /// XPBD hyperelasticity on clusters: fixed-corotated energy (Stomakhin et al. 2012) as
     /// deviatoric + hydrostatic constraints (Macklin & Müller 2021's split, both zero at
-    /// rest; see [`Hyperelastic`]). Stiffness set in SI units, independent of time step and
+    /// rest; see [`super::constraints::Hyperelastic`]). Stiffness set in SI units, independent of time step and
     /// iteration count once converged.
     Hyperelastic {
         /// Young's modulus E, Pa.
