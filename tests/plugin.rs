@@ -449,3 +449,58 @@ fn changing_k_rebuilds_and_removing_the_component_stops_the_simulation() {
         .particle_count() as u32;
     assert!(until(&mut app, 10, |app| particles(app) == Some(other_count)));
 }
+
+#[test]
+fn a_diverging_body_is_reported_once_and_the_others_simulate_on() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    // Nearly incompressible and very stiff, dropped hard onto the ground: too stiff for
+    // 10 Jacobi iterations at 1/60 s.
+    let wild = spawn_body(
+        &mut app,
+        Vec3::new(0.0, 0.3, 0.0),
+        SoftBody {
+            resolution: TissueResolution::Particles(400),
+            neighbours: 16,
+            material: TissueMaterial::Hyperelastic {
+                youngs_modulus: 1.0e9,
+                poisson_ratio: 0.499,
+            },
+            ..default()
+        },
+        None,
+    );
+    let (calm, pinned) = body_of(SHAPE);
+    let calm = spawn_body(&mut app, Vec3::new(2.0, 0.5, 0.0), calm, Some(pinned));
+    app.world_mut()
+        .spawn(TissueCollider::new(ColliderKind::Plane));
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(4);
+    }
+    app.world_mut()
+        .entity_mut(calm)
+        .insert(ReadbackParticles { continuous: true });
+    let mut errors: Vec<SoftBodyError> = Vec::new();
+    until(&mut app, 200, |app| {
+        let msgs = app.world().resource::<Messages<SoftBodyError>>();
+        errors.extend(msgs.iter_current_update_messages().cloned());
+        app.world()
+            .get::<ParticlePositions>(calm)
+            .is_some_and(|p| p.step >= 300)
+    });
+    let wild_errors: Vec<_> = errors.iter().filter(|m| m.entity == wild).collect();
+    assert_eq!(wild_errors.len(), 1, "exactly one report: {errors:?}");
+    assert!(
+        wild_errors[0].error.contains("diverged"),
+        "{}",
+        wild_errors[0].error
+    );
+    assert!(errors.iter().all(|m| m.entity != calm), "{errors:?}");
+    let p = app.world().get::<ParticlePositions>(calm).unwrap();
+    assert!(p.positions.iter().all(|x| x.is_finite() && x.y > 0.3));
+}

@@ -601,7 +601,8 @@ impl GpuWorld {
     }
 
     /// Per-body bounding boxes of the particles (two vec4 per body: min, max; m, world
-    /// frame), written by [`GpuWorld::record_bounds`].
+    /// frame; the min's w is the body's divergence flag), written by
+    /// [`GpuWorld::record_bounds`].
     pub fn bounds(&self) -> &Buffer {
         &self.b.bounds
     }

@@ -195,6 +195,9 @@ pub fn finish_builds(
                     entity,
                     particles: b.count,
                 });
+                commands
+                    .entity(entity)
+                    .remove::<super::render::DivergenceReported>();
                 commands.entity(entity).insert((
                     Mesh3d(draw.clone()),
                     BuiltBody {

@@ -55,8 +55,9 @@ pub enum ReadbackResult {
     Force(Entity, Vec3),
     /// A GPU-side error for a body.
     Error(Entity, String),
-    /// A body's particle bounds (world frame, m), for culling.
-    Bounds(Entity, Vec3, Vec3),
+    /// A body's particle bounds (world frame, m), for culling, and whether any of its
+    /// particles diverged (and was held).
+    Bounds(Entity, Vec3, Vec3, bool),
 }
 
 /// What a readback item is.
@@ -465,7 +466,7 @@ pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
                     let msg = match kind {
                         Item::Force => ReadbackResult::Force(e, p[0]),
                         Item::Positions => ReadbackResult::Positions(e, p, step),
-                        Item::Bounds => ReadbackResult::Bounds(e, p[0], p[1]),
+                        Item::Bounds => ReadbackResult::Bounds(e, p[0], p[1], v[0][3] != 0.0),
                     };
                     let _ = tx.send(msg);
                 }
@@ -475,11 +476,16 @@ pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
     }
 }
 
+/// Marks a body whose divergence was reported (once per build).
+#[derive(Component)]
+pub struct DivergenceReported;
+
 /// Main world: delivers readback results to their entities.
 pub fn receive_readbacks(
     mut commands: Commands,
     rx: Res<ReadbackReceiver>,
     bodies: Query<(&BuiltBody, &GlobalTransform)>,
+    reported: Query<(), With<DivergenceReported>>,
     requests: Query<&ReadbackParticles>,
     mut status: Query<&mut SoftBodyStatus>,
     mut errors: MessageWriter<SoftBodyError>,
@@ -501,7 +507,18 @@ pub fn receive_readbacks(
                     ec.insert(ColliderForce(f));
                 }
             }
-            ReadbackResult::Bounds(e, lo, hi) => {
+            ReadbackResult::Bounds(e, lo, hi, diverged) => {
+                if diverged && !reported.contains(e) {
+                    let error = "the simulation diverged (NaN or a particle faster than \
+                        max_speed): the offending particles are held in place; lower dt or \
+                        raise iterations/substeps, or use shape matching"
+                        .to_string();
+                    warn!("soft body {e}: {error}");
+                    errors.write(SoftBodyError { entity: e, error });
+                    if let Ok(mut ec) = commands.get_entity(e) {
+                        ec.insert(DivergenceReported);
+                    }
+                }
                 // The entity-local box of the particles, grown by the skin's reach past
                 // them (a few lattice spacings) and the motion of a frame or two.
                 let Ok((b, to_world)) = bodies.get(e) else {

@@ -62,7 +62,9 @@ fn body_bounds(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
         workgroupBarrier();
     }
     if (lid.x == 0u) {
-        bounds[2u * b] = vec4<f32>(lo_red[0], 0.0);
+        // w of the minimum carries the body's divergence flag (so one small readback
+        // serves culling and the warning).
+        bounds[2u * b] = vec4<f32>(lo_red[0], f32(atomicLoad(&status[b])));
         bounds[2u * b + 1u] = vec4<f32>(red[0], 0.0);
     }
 }
