@@ -88,6 +88,20 @@ fn spawn_body(app: &mut App, at: Vec3, body: SoftBody, pinned: Option<Pinned>) -
     e.id()
 }
 
+/// Updates until `done` holds (at most `max` frames), collecting every `SoftBodyError`.
+fn until_collecting(
+    app: &mut App,
+    max: u32,
+    errors: &mut Vec<SoftBodyError>,
+    mut done: impl FnMut(&mut App, &[SoftBodyError]) -> bool,
+) -> bool {
+    until(app, max, |app| {
+        let msgs = app.world().resource::<Messages<SoftBodyError>>();
+        errors.extend(msgs.iter_current_update_messages().cloned());
+        done(app, errors)
+    })
+}
+
 /// Updates until `done` holds (at most `max` frames).
 fn until(app: &mut App, max: u32, mut done: impl FnMut(&mut App) -> bool) -> bool {
     for _ in 0..max {
@@ -319,9 +333,7 @@ fn a_bad_mesh_is_an_error_message_and_the_app_keeps_running() {
         None,
     );
     let mut errors: Vec<SoftBodyError> = Vec::new();
-    until(&mut app, 600, |app| {
-        let msgs = app.world().resource::<Messages<SoftBodyError>>();
-        errors.extend(msgs.iter_current_update_messages().cloned());
+    until_collecting(&mut app, 600, &mut errors, |app, errors| {
         errors.len() >= 2
             && matches!(
                 app.world().get::<SoftBodyStatus>(good),
@@ -386,11 +398,7 @@ fn a_body_too_big_for_the_adapter_is_a_clear_error() {
         None,
     );
     let mut errors: Vec<SoftBodyError> = Vec::new();
-    until(&mut app, 600, |app| {
-        let msgs = app.world().resource::<Messages<SoftBodyError>>();
-        errors.extend(msgs.iter_current_update_messages().cloned());
-        !errors.is_empty()
-    });
+    until_collecting(&mut app, 600, &mut errors, |_, errors| !errors.is_empty());
     let e = errors
         .iter()
         .find(|m| m.entity == big)
@@ -486,9 +494,7 @@ fn a_diverging_body_is_reported_once_and_the_others_simulate_on() {
         .entity_mut(calm)
         .insert(ReadbackParticles { continuous: true });
     let mut errors: Vec<SoftBodyError> = Vec::new();
-    until(&mut app, 200, |app| {
-        let msgs = app.world().resource::<Messages<SoftBodyError>>();
-        errors.extend(msgs.iter_current_update_messages().cloned());
+    until_collecting(&mut app, 200, &mut errors, |app, _| {
         app.world()
             .get::<ParticlePositions>(calm)
             .is_some_and(|p| p.step >= 300)

@@ -154,19 +154,7 @@ impl PinShape {
         let a = to_world.affine();
         match self {
             PinShape::Box { min, max } => {
-                // The world-space bounds of the box's corners.
-                let mut lo = Vec3::splat(f32::INFINITY);
-                let mut hi = Vec3::splat(f32::NEG_INFINITY);
-                for i in 0..8 {
-                    let c = Vec3::new(
-                        if i & 1 == 0 { min.x } else { max.x },
-                        if i & 2 == 0 { min.y } else { max.y },
-                        if i & 4 == 0 { min.z } else { max.z },
-                    );
-                    let w = a.transform_point3(c);
-                    lo = lo.min(w);
-                    hi = hi.max(w);
-                }
+                let (lo, hi) = transform_box(&a, min, max);
                 PinRegion::Box { min: lo, max: hi }
             }
             PinShape::Sphere { center, radius } => PinRegion::Sphere {
@@ -179,6 +167,22 @@ impl PinShape {
             },
         }
     }
+}
+
+/// The axis-aligned box around the image of the box `lo..hi` under `a` (its 8 corners).
+pub fn transform_box(a: &bevy::math::Affine3A, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
+    let (mut l, mut h) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for i in 0..8 {
+        let c = Vec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        );
+        let p = a.transform_point3(c);
+        l = l.min(p);
+        h = h.max(p);
+    }
+    (l, h)
 }
 
 /// Pinned regions of a [`SoftBody`]: particles inside are held where they rest.

@@ -529,7 +529,7 @@ pub fn receive_readbacks(
                 }
                 let spacing = b.model.bodies.first().map_or(0.0, |b| b.spacing);
                 let m = Vec3::splat(3.0 * spacing);
-                let (l, h) = local_box(to_world, lo - m, hi + m);
+                let (l, h) = transform_box(&to_world.affine().inverse(), lo - m, hi + m);
                 if let Ok(mut ec) = commands.get_entity(e) {
                     ec.insert(Aabb::from_min_max(l, h));
                 }
@@ -545,21 +545,4 @@ pub fn receive_readbacks(
             }
         }
     }
-}
-
-/// The entity-local axis-aligned box around the world box `lo..hi`.
-fn local_box(to_world: &GlobalTransform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
-    let inv = to_world.affine().inverse();
-    let (mut l, mut h) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for i in 0..8 {
-        let c = Vec3::new(
-            if i & 1 == 0 { lo.x } else { hi.x },
-            if i & 2 == 0 { lo.y } else { hi.y },
-            if i & 4 == 0 { lo.z } else { hi.z },
-        );
-        let p = inv.transform_point3(c);
-        l = l.min(p);
-        h = h.max(p);
-    }
-    (l, h)
 }
