@@ -36,6 +36,10 @@ fn gpu_available() -> bool {
 }
 
 fn app(wgpu: WgpuSettings) -> App {
+    app_with(wgpu, |_| {})
+}
+
+fn app_with(wgpu: WgpuSettings, extra: impl FnOnce(&mut App)) -> App {
     let mut app = App::new();
     app.add_plugins(
         DefaultPlugins
@@ -54,6 +58,7 @@ fn app(wgpu: WgpuSettings) -> App {
             .disable::<bevy::render::pipelined_rendering::PipelinedRenderingPlugin>(),
     )
     .add_plugins(TissuePlugin::default());
+    extra(&mut app);
     app.world_mut().resource_mut::<TissueClock>().paused = true;
     while app.plugins_state() == bevy::app::PluginsState::Adding {
         bevy::tasks::tick_global_task_pools_on_main_thread();
@@ -509,4 +514,47 @@ fn a_diverging_body_is_reported_once_and_the_others_simulate_on() {
     assert!(errors.iter().all(|m| m.entity != calm), "{errors:?}");
     let p = app.world().get::<ParticlePositions>(calm).unwrap();
     assert!(p.positions.iter().all(|x| x.is_finite() && x.y > 0.3));
+}
+
+#[test]
+fn gpu_passes_are_reported_through_render_diagnostics() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app_with(WgpuSettings::default(), |app| {
+        app.add_plugins(bevy::render::diagnostic::RenderDiagnosticsPlugin);
+    });
+    let (body, pinned) = body_spec();
+    spawn_body(&mut app, Vec3::ZERO, body, Some(pinned));
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(2);
+    }
+    let has = |app: &App, name: &str| {
+        app.world()
+            .resource::<bevy::diagnostic::DiagnosticsStore>()
+            .iter()
+            .any(|d| d.path().as_str().starts_with(name) && d.measurement().is_some())
+    };
+    let found = until(&mut app, 600, |app| {
+        [
+            "render/tissue/clusters",
+            "render/tissue/gather",
+            "render/tissue/skin",
+        ]
+        .iter()
+        .all(|n| has(app, n))
+    });
+    let paths: Vec<String> = app
+        .world()
+        .resource::<bevy::diagnostic::DiagnosticsStore>()
+        .iter()
+        .map(|d| d.path().as_str().to_string())
+        .collect();
+    assert!(
+        found,
+        "tissue passes missing from the render diagnostics: {paths:?}"
+    );
 }

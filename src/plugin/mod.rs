@@ -28,7 +28,7 @@ pub mod render;
 use bevy::prelude::*;
 use bevy::render::mesh::allocator::MeshAllocatorSettings;
 use bevy::render::render_resource::BufferUsages;
-use bevy::render::renderer::RenderGraph;
+use bevy::render::renderer::{RenderGraph, RenderGraphSystems};
 use bevy::render::{ExtractSchedule, Render, RenderApp, RenderSystems};
 use components::*;
 use std::sync::{Mutex, mpsc};
@@ -109,7 +109,9 @@ impl Plugin for TissuePlugin {
             )
             .add_systems(
                 RenderGraph,
-                render::run_tissue.before(bevy::core_pipeline::schedule::camera_driver),
+                render::run_tissue
+                    .in_set(RenderGraphSystems::Render)
+                    .before(bevy::core_pipeline::schedule::camera_driver),
             );
     }
 

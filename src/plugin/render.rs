@@ -316,18 +316,32 @@ fn rebuild(
     }
 }
 
-/// Bevy's render-diagnostic spans around each pass (`RenderDiagnosticsPlugin`).
-struct Spans<'a>(Option<&'a DiagnosticsRecorder>);
+/// Bevy's render-diagnostic spans (`RenderDiagnosticsPlugin`): the first dispatch of
+/// each kernel in a frame, so that every pass is reported while the frame's ~35
+/// dispatches per step leave Bevy's 256 timestamp queries to its own passes.
+struct Spans<'a> {
+    recorder: Option<&'a DiagnosticsRecorder>,
+    seen: Vec<&'static str>,
+    open: bool,
+}
 
 impl PassRecorder for Spans<'_> {
     fn begin(&mut self, pass: &mut ComputePass<'_>, name: &'static str) {
-        if let Some(r) = self.0 {
+        self.open = false;
+        if let Some(r) = self.recorder
+            && !self.seen.contains(&name)
+        {
+            self.seen.push(name);
             r.begin_pass_span(pass, name.into());
+            self.open = true;
         }
     }
     fn end(&mut self, pass: &mut ComputePass<'_>) {
-        if let Some(r) = self.0 {
+        if let Some(r) = self.recorder
+            && self.open
+        {
             r.end_pass_span(pass);
+            self.open = false;
         }
     }
 }
@@ -382,7 +396,11 @@ pub fn run_tissue(
             * size_of::<crate::gpu::buffers::GpuSkinRange>())
         as u64;
     let encoder = ctx.command_encoder();
-    let mut spans = Spans(recorder);
+    let mut spans = Spans {
+        recorder,
+        seen: Vec::new(),
+        open: false,
+    };
     world.record_steps(encoder, kernels, steps, &mut spans);
     for (slab, runs) in &slabs {
         world.record_draw(&device, &queue, encoder, kernels, slab, runs, &mut spans);
