@@ -3,6 +3,7 @@
 //!
 //! * [`mesh`] — closed-surface checks, welding, the lattice inside test;
 //! * [`sampling`] — particles on a lattice from a spacing or a count;
+//! * [`hierarchy`] — the particle levels of hierarchical PBD (Müller 2008);
 //! * [`knn`] — uniform grid (counting sort) and exact K nearest neighbours;
 //! * [`constraints`] — shape matching, stable neo-Hookean XPBD, contacts (pure functions);
 //! * [`colliders`] — kinematic plane, sphere, capsule and box with friction;
@@ -27,6 +28,7 @@ pub mod colliders;
 pub mod colouring;
 pub mod constraints;
 pub mod error;
+pub mod hierarchy;
 pub mod knn;
 pub mod mesh;
 pub mod model;
