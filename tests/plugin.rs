@@ -437,6 +437,40 @@ fn changing_k_rebuilds_and_removing_the_component_stops_the_simulation() {
     };
     assert!(until(&mut app, 10, |app| particles(app).is_some()));
     let before = particles(&app).unwrap();
+    // Let it sag, pause, and note the pose.
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(10);
+    }
+    for _ in 0..6 {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    app.update();
+    let read = |app: &mut App| {
+        app.world_mut().entity_mut(e).remove::<ParticlePositions>();
+        app.world_mut()
+            .entity_mut(e)
+            .insert(ReadbackParticles::default());
+        assert!(until(app, 30, |app| app
+            .world()
+            .get::<ParticlePositions>(e)
+            .is_some()));
+        app.world()
+            .get::<ParticlePositions>(e)
+            .unwrap()
+            .positions
+            .clone()
+    };
+    let sagged = read(&mut app);
+    let rest = app.world().get::<BuiltBody>(e).unwrap().model.placed_rest();
+    let sag = sagged
+        .iter()
+        .zip(&rest)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    assert!(sag > 1e-3, "the body must have moved ({sag} m)");
     let gen0 = app.world().get::<BuiltBody>(e).unwrap().generation;
     app.world_mut().get_mut::<SoftBody>(e).unwrap().neighbours = 8;
     assert!(until(&mut app, 600, |app| app
@@ -452,6 +486,9 @@ fn changing_k_rebuilds_and_removing_the_component_stops_the_simulation() {
         Some(before),
         "same particles, new clusters"
     );
+    // The rebuilt body keeps its pose (paused: exactly).
+    let after = read(&mut app);
+    assert_eq!(after, sagged, "the rebuild lost the body's pose");
     // Removing the component drops the body from the GPU world.
     app.world_mut().entity_mut(e).remove::<SoftBody>();
     let other_count = app

@@ -93,7 +93,10 @@ pub struct TissueGpu {
     traffic: FrameTraffic,
     kernels: Option<Result<Kernels, String>>,
     world: Option<GpuWorld>,
+    /// Extracted bodies (entity, generation) the world was last built for.
     keys: Vec<(Entity, u64)>,
+    /// The bodies in the world, in its order (some extracted ones may not fit).
+    world_keys: Vec<(Entity, u64)>,
     bodies: Vec<ExtractedBody>,
     settings: Option<TissueSettings>,
     steps: u32,
@@ -231,7 +234,12 @@ pub fn prepare_tissue(
     if keys != gpu.keys || settings_changed {
         rebuild(&mut gpu, &ex, &device, &queue, &sender, keys);
     }
-    gpu.bodies = ex.bodies.clone();
+    // The bodies in the world's order (bodies left out by a rebuild are not drawn).
+    gpu.bodies = gpu
+        .world_keys
+        .iter()
+        .filter_map(|k| ex.bodies.iter().find(|b| b.entity == k.0).cloned())
+        .collect();
     gpu.steps = ex.steps;
     gpu.colliders = ex.colliders.clone();
     let cols: Vec<Collider> = ex.colliders.iter().map(|c| c.1).collect();
@@ -254,11 +262,11 @@ fn rebuild(
     sender: &ReadbackSender,
     keys: Vec<(Entity, u64)>,
 ) {
-    let old_keys = std::mem::take(&mut gpu.keys);
+    let old_keys = std::mem::take(&mut gpu.world_keys);
     let old_world = gpu.world.take();
     gpu.settings = Some(ex.settings.clone());
+    gpu.keys = keys;
     if ex.bodies.is_empty() {
-        gpu.keys = keys;
         return;
     }
     // A body too big for the adapter on its own is reported and left out.
@@ -280,38 +288,42 @@ fn rebuild(
         model.append(&b.model);
     }
     if fits.is_empty() {
-        gpu.keys = keys;
         return;
     }
+    let new_keys: Vec<(Entity, u64)> = fits.iter().map(|b| (b.entity, b.generation)).collect();
     let state = crate::core::solver::State::new(&model);
     let Some(Ok(kernels)) = &gpu.kernels else {
         return;
     };
     match GpuWorld::new(device, kernels, &model, &state, ex.settings.to_core(), 0) {
         Ok(world) => {
-            // Keep the pose of bodies that were already simulated (same generation).
+            // Keep the pose of bodies that were already simulated: unchanged ones, and
+            // rebuilt ones with the same particles (a new K or material resamples
+            // nothing, so particle i is the same point of the body).
             if let Some(old) = &old_world {
                 let mut enc = device.create_command_encoder(&Default::default());
-                for (i, key) in keys.iter().enumerate() {
-                    if let Some(j) = old_keys.iter().position(|k| k == key) {
-                        let (from, to) = (old.ranges[j], world.ranges[i]);
+                for (i, key) in new_keys.iter().enumerate() {
+                    let Some(j) = old_keys.iter().position(|k| k.0 == key.0) else {
+                        continue;
+                    };
+                    let (from, to) = (old.ranges[j], world.ranges[i]);
+                    if from.count == to.count {
                         world.copy_state_from(&mut enc, old, from.first, to.first, to.count);
                     }
                 }
                 queue.submit([enc.finish()]);
             }
             gpu.world = Some(world);
-            gpu.keys = keys;
+            gpu.world_keys = new_keys;
         }
         Err(e) => {
             // The whole batch does not fit: report every body, simulate none.
             error!("bevy_tissue: {e}");
-            for b in &ex.bodies {
+            for b in &fits {
                 let _ = sender
                     .0
                     .send(ReadbackResult::Error(b.entity, e.to_string()));
             }
-            gpu.keys = keys;
         }
     }
 }
