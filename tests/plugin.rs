@@ -595,3 +595,45 @@ fn gpu_passes_are_reported_through_render_diagnostics() {
         "tissue passes missing from the render diagnostics: {paths:?}"
     );
 }
+
+#[test]
+fn more_colliders_than_the_gpu_takes_are_capped_not_fatal() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    // The ground first (the first-spawned colliders are kept), then 200 far-away spheres.
+    app.world_mut()
+        .spawn(TissueCollider::new(ColliderKind::Plane));
+    for i in 0..200 {
+        app.world_mut().spawn((
+            TissueCollider::new(ColliderKind::Sphere { radius: 0.01 }),
+            Transform::from_xyz(10.0 + i as f32, 0.0, 0.0),
+        ));
+    }
+    let (body, _) = body_of(SHAPE);
+    let e = spawn_body(&mut app, Vec3::new(0.0, 0.1, 0.0), body, None);
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(5);
+    }
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles { continuous: true });
+    assert!(until(&mut app, 400, |app| app
+        .world()
+        .get::<ParticlePositions>(e)
+        .is_some_and(|p| p.step >= 120)));
+    let rw = app.sub_app(RenderApp).world();
+    let world = rw.resource::<TissueGpu>().world().unwrap();
+    assert_eq!(world.collider_count(), 128);
+    // The body fell 2 s onto the ground and rests on it (the plane acts).
+    let p = app.world().get::<ParticlePositions>(e).unwrap();
+    let lowest = p.positions.iter().map(|x| x.y).fold(f32::MAX, f32::min);
+    assert!(
+        (-0.01..0.05).contains(&lowest),
+        "lowest particle at y = {lowest} m"
+    );
+}

@@ -37,7 +37,7 @@ pub struct ExtractedBody {
 /// What the main world hands the render world each frame.
 #[derive(Resource, Default, Clone)]
 pub struct ExtractedTissue {
-    /// Ready bodies, in a stable order (by entity).
+    /// Ready bodies, in a stable order (spawn order: entity index).
     pub bodies: Vec<ExtractedBody>,
     /// Colliders, and whether each wants its force read back.
     pub colliders: Vec<(Entity, Collider, bool)>,
@@ -97,6 +97,7 @@ pub struct TissueGpu {
     keys: Vec<(Entity, u64)>,
     /// The bodies in the world, in its order (some extracted ones may not fit).
     world_keys: Vec<(Entity, u64)>,
+    warned_colliders: bool,
     bodies: Vec<ExtractedBody>,
     settings: Option<TissueSettings>,
     steps: u32,
@@ -184,9 +185,9 @@ pub fn extract_tissue(
             readback: r.is_some(),
         })
         .collect();
-    list.sort_by_key(|b| b.entity);
+    list.sort_by_key(|b| b.entity.index_u32());
     let dt = time.delta_secs().max(1e-6);
-    let cols = colliders
+    let mut cols: Vec<(Entity, Collider, bool)> = colliders
         .iter()
         .map(|(e, c, t, last, force)| {
             let pos = t.translation();
@@ -196,6 +197,9 @@ pub fn extract_tissue(
             (e, c.to_core(t, vel), force.is_some())
         })
         .collect();
+    // Spawn order (entity index), stable: colliders act in sequence within a projection
+    // pass, and the first MAX_COLLIDERS are the ones kept.
+    cols.sort_by_key(|c| c.0.index_u32());
     commands.insert_resource(ExtractedTissue {
         bodies: list,
         colliders: cols,
@@ -241,8 +245,18 @@ pub fn prepare_tissue(
         .filter_map(|k| ex.bodies.iter().find(|b| b.entity == k.0).cloned())
         .collect();
     gpu.steps = ex.steps;
-    gpu.colliders = ex.colliders.clone();
-    let cols: Vec<Collider> = ex.colliders.iter().map(|c| c.1).collect();
+    // At most MAX_COLLIDERS colliders act (the first spawned); the rest are ignored,
+    // with one warning.
+    let max = crate::gpu::buffers::MAX_COLLIDERS;
+    if ex.colliders.len() > max && !gpu.warned_colliders {
+        warn!(
+            "bevy_tissue: {} colliders, only the first {max} act on soft bodies",
+            ex.colliders.len()
+        );
+        gpu.warned_colliders = true;
+    }
+    gpu.colliders = ex.colliders.iter().take(max).cloned().collect();
+    let cols: Vec<Collider> = gpu.colliders.iter().map(|c| c.1).collect();
     if let Some(world) = gpu.world.as_mut() {
         if let Err(e) = world.set_colliders(&queue, &cols) {
             warn!("bevy_tissue: {e}");
