@@ -311,14 +311,13 @@ fn drawn_surface_equals_cpu_skinning() {
         .iter()
         .map(|r| (r.vfirst, r.vfirst + r.vcount))
         .collect();
+    let group = world.slab_group(&g.device, &g.kernels, world.surface());
     let mut enc = g.device.create_command_encoder(&Default::default());
     world.record_draw(
-        &g.device,
         &g.queue,
         &mut enc,
         &g.kernels,
-        world.surface(),
-        &runs,
+        &[(&group, &runs[..])],
         &mut NoTiming,
     );
     g.queue.submit([enc.finish()]);

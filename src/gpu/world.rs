@@ -201,7 +201,6 @@ pub struct GpuWorld {
     pub ranges: Vec<BodyRange>,
     b: Buffers,
     surface: Buffer,
-    level_buf: Buffer,
     levels: Vec<(u32, u32)>,
     scan_len: u32,
     range_buf: Buffer,
@@ -521,7 +520,6 @@ impl GpuWorld {
             ranges,
             b,
             surface,
-            level_buf,
             levels,
             scan_len,
             range_buf,
@@ -767,35 +765,11 @@ impl GpuWorld {
         }
     }
 
-    /// Records the draw path into `slab` (the world's own [`GpuWorld::surface`] or a mesh
-    /// allocator slab): deformation gradients, then for each run `(first vertex, end)`
-    /// of bodies whose vertices live in `slab`, skinning and normals. The draw records
-    /// ([`GpuWorld::set_draw`]) say where each body's vertices are.
-    #[allow(clippy::too_many_arguments)]
-    pub fn record_draw(
-        &self,
-        device: &RenderDevice,
-        queue: &RenderQueue,
-        encoder: &mut CommandEncoder,
-        k: &Kernels,
-        slab: &Buffer,
-        runs: &[(u32, u32)],
-        rec: &mut dyn PassRecorder,
-    ) {
-        let runs = &runs[..runs.len().min(MAX_SKIN_RUNS)];
-        if runs.is_empty() {
-            return;
-        }
-        let recs: Vec<GpuSkinRange> = runs
-            .iter()
-            .map(|&(b, e)| GpuSkinRange {
-                begin: b,
-                end: e,
-                pad: [0; 62],
-            })
-            .collect();
-        queue.write_buffer(&self.range_buf, 0, bytemuck::cast_slice(&recs));
-        let group = device.create_bind_group(
+    /// The bind group that lets the draw kernels write into `slab` (the world's own
+    /// [`GpuWorld::surface`] or a mesh allocator slab). Callers keep it while the slab
+    /// lives (the plugin caches one per slab buffer).
+    pub fn slab_group(&self, device: &RenderDevice, k: &Kernels, slab: &Buffer) -> BindGroup {
+        device.create_bind_group(
             "tissue vertex slab",
             &k.skin_layout,
             &[
@@ -812,26 +786,54 @@ impl GpuWorld {
                     }),
                 },
             ],
-        );
+        )
+    }
+
+    /// Records the draw path: deformation gradients once, then for every slab (a group
+    /// from [`GpuWorld::slab_group`]) and every run `(first vertex, end)` of bodies whose
+    /// vertices live in it, skinning and normals. The draw records
+    /// ([`GpuWorld::set_draw`]) say where each body's vertices are. At most
+    /// [`MAX_SKIN_RUNS`] runs in all.
+    pub fn record_draw(
+        &self,
+        queue: &RenderQueue,
+        encoder: &mut CommandEncoder,
+        k: &Kernels,
+        slabs: &[(&BindGroup, &[(u32, u32)])],
+        rec: &mut dyn PassRecorder,
+    ) {
+        // Every run gets its own range record (one write), so runs of different slabs
+        // never share an offset.
+        let mut jobs: Vec<(&BindGroup, u32, u32, u32)> = Vec::new();
+        for (group, runs) in slabs {
+            for &(b, e) in runs.iter() {
+                if jobs.len() < MAX_SKIN_RUNS {
+                    let off = (jobs.len() * size_of::<GpuSkinRange>()) as u32;
+                    jobs.push((group, off, b, e));
+                }
+            }
+        }
+        let Some(first) = jobs.first() else { return };
+        let recs: Vec<GpuSkinRange> = jobs
+            .iter()
+            .map(|&(_, _, b, e)| GpuSkinRange {
+                begin: b,
+                end: e,
+                pad: [0; 62],
+            })
+            .collect();
+        queue.write_buffer(&self.range_buf, 0, bytemuck::cast_slice(&recs));
         let g = groups(self.n, WORKGROUP);
         let mut r = Recording::new(encoder, rec);
         let w = &self.world_group;
-        r.dispatch(w, "tissue/deform", &k.deform, Some((&group, 0)), (g, 1));
-        for (i, &(b, e)) in runs.iter().enumerate() {
-            let off = (i * size_of::<GpuSkinRange>()) as u32;
+        r.dispatch(w, "tissue/deform", &k.deform, Some((first.0, 0)), (g, 1));
+        for &(group, off, b, e) in &jobs {
             let wg = groups(e.saturating_sub(b), WORKGROUP);
-            r.dispatch(w, "tissue/skin", &k.skin, Some((&group, off)), (wg, 1));
+            r.dispatch(w, "tissue/skin", &k.skin, Some((group, off)), (wg, 1));
         }
-        for (i, &(b, e)) in runs.iter().enumerate() {
-            let off = (i * size_of::<GpuSkinRange>()) as u32;
+        for &(group, off, b, e) in &jobs {
             let wg = groups(e.saturating_sub(b), WORKGROUP);
-            r.dispatch(
-                w,
-                "tissue/normals",
-                &k.normals,
-                Some((&group, off)),
-                (wg, 1),
-            );
+            r.dispatch(w, "tissue/normals", &k.normals, Some((group, off)), (wg, 1));
         }
     }
 
@@ -850,11 +852,6 @@ impl GpuWorld {
         encoder.copy_buffer_to_buffer(&other.b.x, f * 16, &self.b.x, t * 16, c * 16);
         encoder.copy_buffer_to_buffer(&other.b.v, f * 16, &self.b.v, t * 16, c * 16);
         encoder.copy_buffer_to_buffer(&other.b.cstate, f * 48, &self.b.cstate, t * 48, c * 48);
-    }
-
-    /// The level uniform buffer of the prefix sum (for inspection).
-    pub fn scan_level_buffer(&self) -> &Buffer {
-        &self.level_buf
     }
 }
 

@@ -13,7 +13,9 @@ use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::diagnostic::{DiagnosticsRecorder, RecordDiagnostics};
 use bevy::render::mesh::allocator::MeshAllocator;
-use bevy::render::render_resource::{Buffer, BufferDescriptor, BufferUsages, ComputePass, MapMode};
+use bevy::render::render_resource::{
+    BindGroup, Buffer, BufferDescriptor, BufferUsages, ComputePass, MapMode,
+};
 use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue};
 use std::sync::{Arc, Mutex, mpsc};
 
@@ -103,6 +105,11 @@ pub struct TissueGpu {
     steps: u32,
     colliders: Vec<(Entity, Collider, bool)>,
     pending: Vec<Pending>,
+    /// Vertex-slab bind groups of the current world, by slab buffer (slabs can move:
+    /// a new buffer gets a new group, groups of slabs no longer used are dropped).
+    slab_groups: Vec<(bevy::render::render_resource::BufferId, BindGroup)>,
+    /// Mapped-and-read staging buffers, reused by later readbacks.
+    staging: Arc<Mutex<Vec<Buffer>>>,
 }
 
 impl TissueGpu {
@@ -329,6 +336,7 @@ fn rebuild(
             }
             gpu.world = Some(world);
             gpu.world_keys = new_keys;
+            gpu.slab_groups.clear();
         }
         Err(e) => {
             // The whole batch does not fit: report every body, simulate none.
@@ -421,6 +429,21 @@ pub fn run_tissue(
         + slabs.iter().map(|s| s.1.len()).sum::<usize>()
             * size_of::<crate::gpu::buffers::GpuSkinRange>())
         as u64;
+    gpu.slab_groups
+        .retain(|(id, _)| slabs.iter().any(|(b, _)| b.id() == *id));
+    for (slab, _) in &slabs {
+        if !gpu.slab_groups.iter().any(|(id, _)| *id == slab.id()) {
+            let group = world.slab_group(&device, kernels, slab);
+            gpu.slab_groups.push((slab.id(), group));
+        }
+    }
+    let draw_jobs: Vec<(&BindGroup, &[(u32, u32)])> = slabs
+        .iter()
+        .filter_map(|(slab, runs)| {
+            let (_, g) = gpu.slab_groups.iter().find(|(id, _)| *id == slab.id())?;
+            Some((g, &runs[..]))
+        })
+        .collect();
     let encoder = ctx.command_encoder();
     let mut spans = Spans {
         recorder,
@@ -428,9 +451,7 @@ pub fn run_tissue(
         open: false,
     };
     world.record_steps(encoder, kernels, steps, &mut spans);
-    for (slab, runs) in &slabs {
-        world.record_draw(&device, &queue, encoder, kernels, slab, runs, &mut spans);
-    }
+    world.record_draw(&queue, encoder, kernels, &draw_jobs, &mut spans);
     // Per-body bounds, every frame (32 bytes a body), for frustum culling.
     world.record_bounds(encoder, kernels, &mut spans);
     // Readback copies.
@@ -464,11 +485,17 @@ pub fn run_tissue(
         .map(|i| i.2)
         .sum();
     gpu.traffic.bounds_bytes = total - gpu.traffic.readback_bytes;
-    let staging = device.create_buffer(&BufferDescriptor {
-        label: Some("tissue readback"),
-        size: total,
-        usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
-        mapped_at_creation: false,
+    let reused = gpu.staging.lock().ok().and_then(|mut pool| {
+        let i = pool.iter().position(|b| b.size() >= total)?;
+        Some(pool.swap_remove(i))
+    });
+    let staging = reused.unwrap_or_else(|| {
+        device.create_buffer(&BufferDescriptor {
+            label: Some("tissue readback"),
+            size: total,
+            usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
     });
     let mut at = 0;
     let mut placed = Vec::new();
@@ -492,8 +519,10 @@ pub fn run_tissue(
 /// After the frame is submitted: map this frame's readback buffers; the callbacks send
 /// the data to the main world when the GPU is done.
 pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
+    let pool = gpu.staging.clone();
     for p in gpu.pending.drain(..) {
         let tx = sender.0.clone();
+        let pool = pool.clone();
         let buf = p.buffer.clone();
         let items = p.items;
         let step = p.step;
@@ -516,6 +545,9 @@ pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
                 }
             }
             buf.unmap();
+            if let Ok(mut pool) = pool.lock() {
+                pool.push(buf);
+            }
         });
     }
 }
