@@ -164,6 +164,64 @@ fn gpu_matches_cpu_jacobi_after_200_steps_both_models() {
 }
 
 #[test]
+fn gpu_hierarchy_matches_the_cpu_hierarchy_after_200_steps() {
+    // A bar with two coarse levels hanging from one end and touching the ground (the
+    // coarse levels meet the collider too), batched with a flat body: levels exist for
+    // one body only.
+    let Some(g) = gpu() else { return };
+    let hd = bevy_tissue::core::hierarchy::HierarchyDesc {
+        levels: Some(3),
+        ..Default::default()
+    };
+    for material in [
+        Material::ShapeMatching { stiffness: 1.0 },
+        Material::Hyperelastic {
+            youngs_modulus: 50_000.0,
+            poisson_ratio: 0.4,
+        },
+    ] {
+        let mut model = Model::new();
+        let pin = PinRegion::HalfSpace {
+            point: Vec3::new(-0.05, 0.0, 0.0),
+            normal: -Vec3::X,
+        };
+        let mut desc = body(material, Vec3::new(0.0, 0.2, 0.0), 1500, vec![pin]);
+        desc.hierarchy = Some(hd);
+        model
+            .add_body(&procedural::cuboid(Vec3::new(0.06, 0.03, 0.03), 4), &desc)
+            .unwrap();
+        let top = PinRegion::HalfSpace {
+            point: Vec3::new(0.0, 0.01, 0.0),
+            normal: Vec3::Y,
+        };
+        model
+            .add_body(
+                &procedural::icosphere(0.02, 2),
+                &body(material, Vec3::new(0.15, 0.25, 0.0), 200, vec![top]),
+            )
+            .unwrap();
+        assert_eq!(model.levels.len(), 2);
+        let colliders = vec![Collider::ground(0.15)];
+        let (cpu, _) = run_cpu(&model, &colliders, 200);
+        let state = State::new(&model);
+        let mut world =
+            GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
+        let x = run_gpu(g, &mut world, &colliders, 200);
+        let size = model.bodies[0].size;
+        let moved = max_dist(&cpu.x, &State::new(&model).x);
+        let d = max_dist(&x, &cpu.x);
+        eprintln!(
+            "hierarchy, {material:?}: GPU–CPU {d:.3e} m, size {size:.3} m, moved {moved:.3e} m"
+        );
+        assert!(moved > 0.01 * size, "the scene must deform ({moved} m)");
+        assert!(
+            d < 1e-4 * size,
+            "{material:?}: GPU and CPU hierarchies differ by {d} m after 200 steps (size {size} m)"
+        );
+    }
+}
+
+#[test]
 fn knn_on_the_gpu_equals_the_cpu() {
     let Some(g) = gpu() else { return };
     let mut model = Model::new();

@@ -7,6 +7,7 @@
 
 use super::constraints::{ClusterRest, init_cluster};
 use super::error::{TissueError, in_range, positive};
+use super::hierarchy::{Hierarchy, HierarchyDesc};
 use super::mesh::{Surface, TriMesh};
 use super::sampling::{Resolution, sample};
 use super::skin::{Skin, embed};
@@ -132,6 +133,10 @@ pub struct BodyDesc {
     pub translation: Vec3,
     /// Rigid placement of the body frame in the world: rotation.
     pub rotation: Quat,
+    /// Hierarchical PBD (Müller 2008): the coarse levels to build, or `None` for a flat
+    /// body. Solved only when the solver's schedule asks for it
+    /// ([`super::solver::SolverSettings::coarse_iterations`]).
+    pub hierarchy: Option<HierarchyDesc>,
 }
 
 impl Default for BodyDesc {
@@ -144,6 +149,7 @@ impl Default for BodyDesc {
             pins: Vec::new(),
             translation: Vec3::ZERO,
             rotation: Quat::IDENTITY,
+            hierarchy: None,
         }
     }
 }
@@ -213,6 +219,62 @@ pub struct Model {
     pub inv_clusters: Vec<u32>,
     /// Pinned particles (global indices).
     pub pinned: Vec<u32>,
+    /// Coarse levels of hierarchical PBD, level 1 first (empty: every body is flat). A
+    /// body with fewer levels than another is simply absent from the deeper ones.
+    pub levels: Vec<Level>,
+}
+
+/// One coarse level of the hierarchy (Müller 2008), batched over all bodies that have it.
+///
+/// Its particles are a subset of the finer level's, which are a subset of level 0's: a
+/// coarse particle is a level-0 particle that also carries coarse clusters. Each is a
+/// particle of [`Level::model`] (its own compact indices, rest positions, masses, clusters
+/// and pins, the body's material), so a level is solved by the same code as level 0.
+/// After a level is solved, the finer level's particles that are not on it follow their
+/// parents by prolongation: `Δx_i = Σ_j w_ij Δx_j`.
+#[derive(Debug, Clone, Default)]
+pub struct Level {
+    /// The level's particles and coarse clusters as a model: masses are the finer
+    /// level's restricted by the interpolation weights (`M_j = Σ_i w_ij m_i`, so the total
+    /// is kept), clusters are each particle's K nearest level particles, cluster volumes
+    /// partition the body (so hyperelastic coarse clusters have the fine level's energy
+    /// density: matched compliance). No skin.
+    pub model: Model,
+    /// Level-0 index of each of the level's particles.
+    pub source: Vec<u32>,
+    /// Level-0 indices of the finer level's particles that are not on this level; they
+    /// follow this level by prolongation.
+    pub fine: Vec<u32>,
+    /// CSR offsets into `parents`/`weights`, one run per `fine` entry.
+    pub parent_start: Vec<u32>,
+    /// Parents of each `fine` particle, as indices into this level's particles.
+    pub parents: Vec<u32>,
+    /// Interpolation weights (per `fine` particle they sum to 1).
+    pub weights: Vec<f32>,
+    /// Multiplier transfer to the finer level: the finer level's clusters that receive
+    /// (indices into level 0's particles for level 1, else into the finer level's model).
+    pub transfer_cluster: Vec<u32>,
+    /// One CSR run per `transfer_cluster` entry: offsets into
+    /// `transfer_parents`/`transfer_weights`.
+    pub transfer_start: Vec<u32>,
+    /// This level's clusters each finer cluster takes its multipliers from (itself when
+    /// its centre is on this level, else its centre's parents).
+    pub transfer_parents: Vec<u32>,
+    /// `w_ij V_i / V_j`: interpolation weight times the volume ratio (an XPBD multiplier
+    /// is stress × volume × h², so it scales with the cluster volume).
+    pub transfer_weights: Vec<f32>,
+}
+
+impl Level {
+    /// An empty level.
+    pub fn new() -> Self {
+        Self {
+            model: Model::new(),
+            parent_start: vec![0],
+            transfer_start: vec![0],
+            ..Default::default()
+        }
+    }
 }
 
 /// Index of a body in a [`Model`].
@@ -262,103 +324,16 @@ impl Model {
                 neighbours: k,
             });
         }
-        let first = self.rest.len() as u32;
         let volume = surface.volume as f32;
         let m = desc.density * volume / n as f32;
         let rest = samples.positions;
-        let knn = super::knn::knn_all(&rest, k, 0).ok_or(TissueError::TooFewParticles {
-            particles: n,
-            neighbours: k,
-        })?;
-        // Clusters (local indices).
-        let mut members = Vec::with_capacity(n * (k + 1));
-        for i in 0..n {
-            members.push(i as u32);
-            members.extend_from_slice(&knn[i * k..(i + 1) * k]);
-        }
-        // Multiplicity n_j and inverse lists.
-        let mut mult = vec![0u32; n];
-        for &j in &members {
-            mult[j as usize] += 1;
-        }
-        let masses = vec![m; n];
-        // Pins (local indices), needed by the clusters' inverse-mass metric.
         let pinned_local: Vec<u32> = (0..n as u32)
             .filter(|&i| desc.pins.iter().any(|r| r.contains(i, rest[i as usize])))
             .collect();
-        let mut inv_mass = vec![1.0 / m; n];
-        for &i in &pinned_local {
-            inv_mass[i as usize] = 0.0;
-        }
-        let mut cluster_rest = Vec::with_capacity(n);
-        let mut cluster_volume = Vec::with_capacity(n);
-        let mut cluster_weight = Vec::with_capacity(n);
-        for c in 0..n {
-            let mem = &members[c * (k + 1)..(c + 1) * (k + 1)];
-            cluster_rest.push(init_cluster(mem, &rest, &masses, &inv_mass, &mult));
-            let v: f32 = mem
-                .iter()
-                .map(|&j| m / desc.density / mult[j as usize] as f32)
-                .sum();
-            cluster_volume.push(v);
-            let s = mem.iter().map(|&j| mult[j as usize]).max().unwrap_or(1);
-            cluster_weight.push(1.0 / s as f32);
-        }
-        let mut inv: Vec<Vec<u32>> = vec![Vec::new(); n];
-        for c in 0..n {
-            for &j in &members[c * (k + 1)..(c + 1) * (k + 1)] {
-                inv[j as usize].push(first + c as u32);
-            }
-        }
-        let pinned: Vec<u32> = pinned_local.iter().map(|i| first + i).collect();
-        // Skin.
         let (lo, hi) = surface.bounds();
         let size = (hi - lo).length() as f32;
-        let bind = embed(&mesh.positions, &rest, first, samples.spacing);
-        let mut indices = mesh.indices.clone();
-        if surface.flipped {
-            for t in indices.chunks_exact_mut(3) {
-                t.swap(1, 2);
-            }
-        }
-        let skin = Skin {
-            rest_vertices: mesh.positions.clone(),
-            particles: bind.iter().map(|b| b.0).collect(),
-            weights: bind.iter().map(|b| b.1).collect(),
-            indices,
-            weld_map: surface.weld_map.clone(),
-            welded_count: surface.positions.len() as u32,
-            welded_triangles: surface.triangles.clone(),
-        };
-
-        // Commit (nothing above touched self).
-        let id = self.bodies.len();
-        if self.cluster_start.is_empty() {
-            self.cluster_start.push(0);
-        }
-        if self.inv_start.is_empty() {
-            self.inv_start.push(0);
-        }
-        for c in 0..n {
-            for &j in &members[c * (k + 1)..(c + 1) * (k + 1)] {
-                self.cluster_members.push(first + j);
-            }
-            self.cluster_start.push(self.cluster_members.len() as u32);
-        }
-        for list in inv {
-            self.inv_clusters.extend_from_slice(&list);
-            self.inv_start.push(self.inv_clusters.len() as u32);
-        }
-        self.rest.extend_from_slice(&rest);
-        self.mass.extend_from_slice(&masses);
-        self.particle_body.extend(std::iter::repeat_n(id as u32, n));
-        // Cluster rest centres are in the body frame like `rest`.
-        self.cluster_rest.extend(cluster_rest);
-        self.cluster_volume.extend(cluster_volume);
-        self.cluster_weight.extend(cluster_weight);
-        self.pinned.extend(pinned);
-        self.bodies.push(BodyInfo {
-            first,
+        let info = BodyInfo {
+            first: 0,
             count: n as u32,
             material: desc.material,
             neighbours: desc.neighbours,
@@ -369,9 +344,34 @@ impl Model {
             size,
             translation: desc.translation,
             rotation: desc.rotation,
-            skin,
+            skin: Skin::default(),
             flipped: surface.flipped,
-        });
+        };
+        let mut body = single_body(&rest, vec![m; n], &pinned_local, k, info)?;
+        // The hierarchy's coarse levels (built before anything is committed).
+        if let Some(hd) = &desc.hierarchy {
+            body.levels = build_levels(&body, samples.spacing, &pinned_local, desc, hd)?;
+        }
+        // Skin.
+        let bind = embed(&mesh.positions, &rest, 0, samples.spacing);
+        let mut indices = mesh.indices.clone();
+        if surface.flipped {
+            for t in indices.chunks_exact_mut(3) {
+                t.swap(1, 2);
+            }
+        }
+        body.bodies[0].skin = Skin {
+            rest_vertices: mesh.positions.clone(),
+            particles: bind.iter().map(|b| b.0).collect(),
+            weights: bind.iter().map(|b| b.1).collect(),
+            indices,
+            weld_map: surface.weld_map.clone(),
+            welded_count: surface.positions.len() as u32,
+            welded_triangles: surface.triangles.clone(),
+        };
+        // Commit (nothing above touched self).
+        let id = self.bodies.len();
+        self.append(&body);
         Ok(id)
     }
 
@@ -406,6 +406,35 @@ impl Model {
         self.cluster_volume.extend_from_slice(&other.cluster_volume);
         self.cluster_weight.extend_from_slice(&other.cluster_weight);
         self.pinned.extend(other.pinned.iter().map(|i| i + off));
+        // Particle offset of each of this model's levels before the append (level 0 first).
+        let mut finer_off = vec![off];
+        finer_off.extend(self.levels.iter().map(|l| l.model.particle_count() as u32));
+        for (l, lv) in other.levels.iter().enumerate() {
+            if self.levels.len() <= l {
+                self.levels.push(Level::new());
+            }
+            let foff = finer_off.get(l).copied().unwrap_or(0);
+            let dst = &mut self.levels[l];
+            let (poff, soff) = (
+                dst.model.particle_count() as u32,
+                *dst.parent_start.last().unwrap_or(&0),
+            );
+            dst.source.extend(lv.source.iter().map(|i| i + off));
+            dst.fine.extend(lv.fine.iter().map(|i| i + off));
+            dst.parent_start
+                .extend(lv.parent_start.iter().skip(1).map(|s| s + soff));
+            dst.parents.extend(lv.parents.iter().map(|j| j + poff));
+            dst.weights.extend_from_slice(&lv.weights);
+            let toff = *dst.transfer_start.last().unwrap_or(&0);
+            dst.transfer_cluster
+                .extend(lv.transfer_cluster.iter().map(|c| c + foff));
+            dst.transfer_start
+                .extend(lv.transfer_start.iter().skip(1).map(|s| s + toff));
+            dst.transfer_parents
+                .extend(lv.transfer_parents.iter().map(|j| j + poff));
+            dst.transfer_weights.extend_from_slice(&lv.transfer_weights);
+            dst.model.append(&lv.model);
+        }
         for b in &other.bodies {
             let mut b = b.clone();
             b.first += off;
@@ -441,4 +470,176 @@ impl Model {
             })
             .collect()
     }
+}
+
+/// One body's particles (rest positions `rest` in the body frame, m; masses, kg; pinned
+/// local indices) as a one-body model: clusters of each particle and its `k` nearest
+/// neighbours, their rest data, volumes (the body's volume partitioned by the members'
+/// multiplicities) and inverse lists. `info` supplies the body's fields (`first` and
+/// `count` are set here).
+fn single_body(
+    rest: &[Vec3],
+    masses: Vec<f32>,
+    pinned_local: &[u32],
+    k: usize,
+    mut info: BodyInfo,
+) -> Result<Model, TissueError> {
+    let n = rest.len();
+    let knn = super::knn::knn_all(rest, k, 0).ok_or(TissueError::TooFewParticles {
+        particles: n,
+        neighbours: k,
+    })?;
+    let mut model = Model::new();
+    for i in 0..n {
+        model.cluster_members.push(i as u32);
+        model
+            .cluster_members
+            .extend_from_slice(&knn[i * k..(i + 1) * k]);
+        model.cluster_start.push(model.cluster_members.len() as u32);
+    }
+    // Multiplicity n_j and inverse lists.
+    let mut mult = vec![0u32; n];
+    for &j in &model.cluster_members {
+        mult[j as usize] += 1;
+    }
+    let mut inv_mass: Vec<f32> = masses.iter().map(|m| 1.0 / m).collect();
+    for &i in pinned_local {
+        inv_mass[i as usize] = 0.0;
+    }
+    let mut inv: Vec<Vec<u32>> = vec![Vec::new(); n];
+    for c in 0..n {
+        let mem = &model.cluster_members
+            [model.cluster_start[c] as usize..model.cluster_start[c + 1] as usize];
+        model
+            .cluster_rest
+            .push(init_cluster(mem, rest, &masses, &inv_mass, &mult));
+        let v: f32 = mem
+            .iter()
+            .map(|&j| masses[j as usize] / info.density / mult[j as usize] as f32)
+            .sum();
+        model.cluster_volume.push(v);
+        let s = mem.iter().map(|&j| mult[j as usize]).max().unwrap_or(1);
+        model.cluster_weight.push(1.0 / s as f32);
+        for &j in mem {
+            inv[j as usize].push(c as u32);
+        }
+    }
+    for list in inv {
+        model.inv_clusters.extend_from_slice(&list);
+        model.inv_start.push(model.inv_clusters.len() as u32);
+    }
+    model.rest = rest.to_vec();
+    model.mass = masses;
+    model.particle_body = vec![0; n];
+    model.pinned = pinned_local.to_vec();
+    info.first = 0;
+    info.count = n as u32;
+    model.bodies.push(info);
+    Ok(model)
+}
+
+/// The coarse levels of one body (local indices): the [`Hierarchy`] of its particles,
+/// each level made a one-body model with masses restricted from the finer level.
+fn build_levels(
+    body: &Model,
+    spacing: f32,
+    pinned_local: &[u32],
+    desc: &BodyDesc,
+    hd: &HierarchyDesc,
+) -> Result<Vec<Level>, TissueError> {
+    let rest = &body.rest[..];
+    let size = body.bodies[0].size;
+    let h = Hierarchy::build(rest, spacing, hd)?;
+    let mut fine_mass = body.mass.clone();
+    let mut fine_volume = body.cluster_volume.clone();
+    let mut out = Vec::new();
+    for l in 1..h.levels.len() {
+        let (fine, coarse) = (&h.levels[l - 1], &h.levels[l]);
+        let nc = coarse.particles.len();
+        if nc < 2 {
+            break;
+        }
+        // Restriction of the masses: M_j = Σ_i w_ij m_i.
+        let mut cm = vec![0.0f32; nc];
+        for (p, &m) in fine_mass.iter().enumerate() {
+            let (a, b) = (
+                fine.parent_start[p] as usize,
+                fine.parent_start[p + 1] as usize,
+            );
+            for s in a..b {
+                cm[fine.parents[s] as usize] += fine.weights[s] * m;
+            }
+        }
+        let pts: Vec<Vec3> = coarse.particles.iter().map(|&i| rest[i as usize]).collect();
+        let pins: Vec<u32> = coarse
+            .particles
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| pinned_local.binary_search(i).is_ok())
+            .map(|(j, _)| j as u32)
+            .collect();
+        let info = BodyInfo {
+            first: 0,
+            count: 0,
+            material: desc.material,
+            neighbours: desc.neighbours.min(nc as u32 - 1),
+            density: desc.density,
+            spacing: coarse.spacing,
+            // Coarse particles are level-0 particles: they collide at the fine radius.
+            radius: 0.5 * spacing,
+            volume: body.bodies[0].volume,
+            size,
+            translation: desc.translation,
+            rotation: desc.rotation,
+            skin: Skin::default(),
+            flipped: false,
+        };
+        let k = desc.neighbours.min(nc as u32 - 1) as usize;
+        let model = single_body(&pts, cm.clone(), &pins, k, info)?;
+        let mut level = Level::new();
+        level.source = coarse.particles.clone();
+        for (p, &i) in fine.particles.iter().enumerate() {
+            if coarse.particles.binary_search(&i).is_ok() {
+                continue;
+            }
+            level.fine.push(i);
+            let (a, b) = (
+                fine.parent_start[p] as usize,
+                fine.parent_start[p + 1] as usize,
+            );
+            level.parents.extend_from_slice(&fine.parents[a..b]);
+            level.weights.extend_from_slice(&fine.weights[a..b]);
+            level.parent_start.push(level.parents.len() as u32);
+        }
+        // Multiplier transfer, per finer-level cluster (finer level order).
+        for (p, &i) in fine.particles.iter().enumerate() {
+            level.transfer_cluster.push(p as u32);
+            if let Ok(j) = coarse.particles.binary_search(&i) {
+                level.transfer_parents.push(j as u32);
+                level
+                    .transfer_weights
+                    .push(fine_volume[p] / model.cluster_volume[j]);
+            } else {
+                let (a, b) = (
+                    fine.parent_start[p] as usize,
+                    fine.parent_start[p + 1] as usize,
+                );
+                for s in a..b {
+                    let j = fine.parents[s] as usize;
+                    level.transfer_parents.push(j as u32);
+                    level
+                        .transfer_weights
+                        .push(fine.weights[s] * fine_volume[p] / model.cluster_volume[j]);
+                }
+            }
+            level
+                .transfer_start
+                .push(level.transfer_parents.len() as u32);
+        }
+        fine_volume = model.cluster_volume.clone();
+        level.model = model;
+        out.push(level);
+        fine_mass = cm;
+    }
+    Ok(out)
 }

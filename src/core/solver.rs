@@ -23,7 +23,7 @@ use super::constraints::{
     iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
 };
 use super::error::{DivergenceKind, TissueError, in_range, positive};
-use super::model::{Material, Model};
+use super::model::{Level, Material, Model};
 use super::par;
 use glam::{Mat3, Quat, Vec3};
 
@@ -71,6 +71,31 @@ pub struct SolverSettings {
     pub rotation_iterations: u32,
     /// A particle faster than this (m/s) marks the step as exploded.
     pub max_speed: f32,
+    /// Record the residual after every iteration in [`StepStats::residuals`] (costs a
+    /// residual evaluation per iteration; for convergence studies).
+    pub trace_residual: bool,
+    /// Iterations per coarse level of hierarchical PBD in each substep (Müller 2008's
+    /// schedule: the coarsest level first, each level's corrections prolongated to the
+    /// finer level, level 0 last with `iterations`). Only bodies built with a hierarchy
+    /// ([`super::model::BodyDesc::hierarchy`]) have coarse levels; 0 skips them.
+    pub coarse_iterations: u32,
+    /// The constraints of the coarse levels.
+    pub coarse_constraint: CoarseConstraint,
+}
+
+/// What the coarse levels of hierarchical PBD solve. Neither stiffens the material once
+/// level 0 has converged, because level 0 is solved last in every substep.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CoarseConstraint {
+    /// Coarse clusters of the body's own elastic model (each coarse particle and its K
+    /// nearest coarse particles) with compliance matched to level 0: the same material,
+    /// the cluster volumes partitioning the body, so the energy density is the same.
+    #[default]
+    Clusters,
+    /// Unilateral distance constraints (Müller 2008 §4.3) between each coarse particle
+    /// and its K nearest: they only resist stretching beyond the rest distance, so they
+    /// never push a compressed region apart. Averaged like Jacobi.
+    Distance,
 }
 
 impl Default for SolverSettings {
@@ -89,6 +114,9 @@ impl Default for SolverSettings {
             contact_neighbours: 16,
             rotation_iterations: 2,
             max_speed: 500.0,
+            trace_residual: false,
+            coarse_iterations: 10,
+            coarse_constraint: CoarseConstraint::Clusters,
         }
     }
 }
@@ -179,6 +207,25 @@ pub struct StepStats {
     pub active_contacts: usize,
     /// Wall-clock time per stage of this step.
     pub timings: StageTimes,
+    /// With [`SolverSettings::trace_residual`]: level 0's residual ([`Solver::residual`])
+    /// before the first iteration of each substep, after its coarse levels and after each
+    /// iteration, with the solve time spent up to that point (ms, not counting the
+    /// residual evaluations themselves).
+    pub residuals: Vec<ResidualSample>,
+}
+
+/// One point of a residual trace.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ResidualSample {
+    /// Substep index.
+    pub substep: u32,
+    /// Level-0 iterations done in this substep (0: before any; the coarse levels, when
+    /// present, have run).
+    pub iteration: u32,
+    /// Residual, relative to the body size (see [`Solver::residual`]).
+    pub residual: f32,
+    /// Solve time of the step so far, ms.
+    pub ms: f64,
 }
 
 /// Wall-clock time per stage of a step, ms (as rapier reports its pipeline stages).
@@ -196,12 +243,20 @@ pub struct StageTimes {
     pub boundary: f64,
     /// Velocity update, damping, divergence check.
     pub finish: f64,
+    /// Coarse levels of the hierarchy (their solves and the prolongation).
+    pub coarse: f64,
 }
 
 impl StageTimes {
     /// Sum of all stages, ms.
     pub fn total(&self) -> f64 {
-        self.knn + self.predict + self.clusters + self.gather + self.boundary + self.finish
+        self.knn
+            + self.predict
+            + self.clusters
+            + self.gather
+            + self.boundary
+            + self.finish
+            + self.coarse
     }
 }
 
@@ -235,6 +290,19 @@ pub struct Solver {
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     h: f32,
+    /// One solver and state per coarse level of the hierarchy (`Model::levels`).
+    levels: Vec<LevelSolver>,
+    /// Positions at the start of the coarse levels' pass (prolongation reference).
+    snap: Vec<Vec3>,
+}
+
+/// A coarse level's own solver and state, and which of level 0's pin slots each of its
+/// pins follows.
+#[derive(Debug, Clone)]
+struct LevelSolver {
+    solver: Solver,
+    state: State,
+    pin_map: Vec<u32>,
 }
 
 impl Solver {
@@ -245,6 +313,25 @@ impl Solver {
         let mut pin_slot = vec![u32::MAX; n];
         for (s, &i) in model.pinned.iter().enumerate() {
             pin_slot[i as usize] = s as u32;
+        }
+        let mut levels = Vec::with_capacity(model.levels.len());
+        for lv in &model.levels {
+            let coarse = SolverSettings {
+                iterations: settings.coarse_iterations.max(1),
+                particle_contacts: false,
+                ..settings.clone()
+            };
+            let pin_map = lv
+                .model
+                .pinned
+                .iter()
+                .map(|&i| pin_slot[lv.source[i as usize] as usize])
+                .collect();
+            levels.push(LevelSolver {
+                solver: Solver::new(&lv.model, coarse)?,
+                state: State::new(&lv.model),
+                pin_map,
+            });
         }
         Ok(Self {
             settings,
@@ -259,6 +346,8 @@ impl Solver {
             backup_x: Vec::new(),
             backup_v: Vec::new(),
             h: 0.0,
+            levels,
+            snap: Vec::new(),
         })
     }
 
@@ -314,7 +403,9 @@ impl Solver {
         let consts = self.body_consts(model);
         let h = s.dt / s.substeps as f32;
         self.h = h;
-        for _ in 0..s.substeps {
+        let t_step = std::time::Instant::now();
+        let mut traced = 0.0f64;
+        for substep in 0..s.substeps {
             // 1. predict
             let t = std::time::Instant::now();
             for i in 0..n {
@@ -330,12 +421,29 @@ impl Solver {
                 .iter_mut()
                 .for_each(|d| *d = (Vec3::ZERO, u32::MAX));
             self.timings.predict += ms(t);
-            // 2. constraints
-            for _ in 0..s.iterations {
-                match s.method {
-                    Method::GaussSeidel => self.iterate_gs(model, state, control, &consts),
-                    Method::Jacobi => self.iterate_jacobi(model, state, control, &consts),
+            // 2. constraints: the hierarchy's coarse levels, coarsest first, then level 0.
+            if s.coarse_iterations > 0 && !model.levels.is_empty() {
+                let t = std::time::Instant::now();
+                self.solve_levels(model, state, control);
+                self.timings.coarse += ms(t);
+            }
+            let mut trace = |me: &Self, iteration: u32, rot: &[Quat]| {
+                if s.trace_residual {
+                    let t = std::time::Instant::now();
+                    let residual = me.residual_at(model, &me.p, rot);
+                    stats.residuals.push(ResidualSample {
+                        substep,
+                        iteration,
+                        residual,
+                        ms: ms(t_step) - traced,
+                    });
+                    traced += ms(t);
                 }
+            };
+            trace(self, 0, &state.rot);
+            for it in 0..s.iterations {
+                self.iterate(model, state, control, &consts);
+                trace(self, it + 1, &state.rot);
             }
             // Collider forces: momentum the colliders removed over the substep.
             let t = std::time::Instant::now();
@@ -380,6 +488,146 @@ impl Solver {
         stats.timings = self.timings;
         state.step += 1;
         Ok(stats)
+    }
+
+    /// One iteration of the configured method over every cluster of `model`.
+    fn iterate(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        control: &Control,
+        consts: &[BodyConst],
+    ) {
+        match self.settings.method {
+            Method::GaussSeidel => self.iterate_gs(model, state, control, consts),
+            Method::Jacobi => self.iterate_jacobi(model, state, control, consts),
+        }
+    }
+
+    /// The coarse levels of hierarchical PBD for one substep (Müller 2008 §4): from the
+    /// coarsest level down, gather the level's particles from `self.p`, run
+    /// `coarse_iterations` of its constraints, write them back, and move the finer
+    /// level's other particles by their parents' total displacement since the pass
+    /// began, `Δx_i = Σ_j w_ij Δx_j` (prolongation). Pinned particles stay at their targets.
+    fn solve_levels(&mut self, model: &Model, state: &State, control: &Control) {
+        self.snap.clone_from(&self.p);
+        for ls in self.levels.iter_mut() {
+            ls.solver
+                .work
+                .iter_mut()
+                .for_each(|w| w.1 = Multipliers::ZERO);
+        }
+        let h = self.h;
+        let (iters, kind) = (
+            self.settings.coarse_iterations,
+            self.settings.coarse_constraint,
+        );
+        for li in (0..model.levels.len()).rev() {
+            let lv = &model.levels[li];
+            let ls = &mut self.levels[li];
+            let sv = &mut ls.solver;
+            for (i, &src) in lv.source.iter().enumerate() {
+                sv.p[i] = self.p[src as usize];
+                ls.state.x[i] = state.x[src as usize];
+            }
+            for (slot, &main) in ls.pin_map.iter().enumerate() {
+                if main != u32::MAX {
+                    ls.state.pin_targets[slot] = state.pin_targets[main as usize];
+                }
+            }
+            for &i in &lv.model.pinned {
+                sv.p[i as usize] = ls.state.pin_targets[sv.pin_slot[i as usize] as usize];
+            }
+            sv.h = h;
+            let consts = sv.body_consts(&lv.model);
+            for _ in 0..iters {
+                match kind {
+                    CoarseConstraint::Clusters => {
+                        sv.iterate(&lv.model, &mut ls.state, control, &consts)
+                    }
+                    CoarseConstraint::Distance => {
+                        sv.iterate_distance(&lv.model, &ls.state, control)
+                    }
+                }
+            }
+            for (i, &src) in lv.source.iter().enumerate() {
+                self.p[src as usize] = sv.p[i];
+            }
+            for (f, &i) in lv.fine.iter().enumerate() {
+                let i = i as usize;
+                if self.pin_slot[i] != u32::MAX {
+                    continue;
+                }
+                let mut d = Vec3::ZERO;
+                for s in lv.parent_start[f] as usize..lv.parent_start[f + 1] as usize {
+                    let j = lv.source[lv.parents[s] as usize] as usize;
+                    d += lv.weights[s] * (self.p[j] - self.snap[j]);
+                }
+                self.p[i] = self.snap[i] + d;
+            }
+            self.transfer_multipliers(lv, li);
+        }
+    }
+
+    /// Warm-starts the finer level's XPBD multipliers from level `li`'s (interpolated by
+    /// the prolongation weights and scaled by the cluster volumes, as a multiplier is
+    /// stress × volume × h²).
+    fn transfer_multipliers(&mut self, lv: &Level, li: usize) {
+        let (coarse, finer) = self.levels.split_at_mut(li);
+        let ls = &finer[0];
+        let dst: &mut [(ClusterCorrection, Multipliers)] = if li == 0 {
+            &mut self.work
+        } else {
+            &mut coarse[li - 1].solver.work
+        };
+        for (t, &c) in lv.transfer_cluster.iter().enumerate() {
+            let mut m = Multipliers::ZERO;
+            for s in lv.transfer_start[t] as usize..lv.transfer_start[t + 1] as usize {
+                let src = &ls.solver.work[lv.transfer_parents[s] as usize].1;
+                let wt = lv.transfer_weights[s];
+                m.h += wt * src.h;
+                for k in 0..6 {
+                    m.d[k] += wt * src.d[k];
+                }
+            }
+            dst[c as usize].1 = m;
+        }
+    }
+
+    /// One iteration of unilateral distance constraints (Müller 2008): for every cluster,
+    /// between its centre `i` and each member `j`, `C = |p_i − p_j| − |X_i − X_j| ≤ 0`,
+    /// projected with the inverse masses when violated; every particle moves by the mean
+    /// of its corrections (Jacobi averaging), then pins and colliders.
+    fn iterate_distance(&mut self, model: &Model, state: &State, control: &Control) {
+        let n = model.particle_count();
+        self.p2.clear();
+        self.p2.resize(n, Vec3::ZERO);
+        let mut count = vec![0u32; n];
+        for c in 0..n {
+            let wi = inv_mass(model, &self.pin_slot, c);
+            for &j in &model.members(c)[1..] {
+                let j = j as usize;
+                let wj = inv_mass(model, &self.pin_slot, j);
+                let d = self.p[c] - self.p[j];
+                let (len, rest) = (d.length(), (model.rest[c] - model.rest[j]).length());
+                if len <= rest || wi + wj == 0.0 || len == 0.0 {
+                    continue;
+                }
+                let g = d / len * ((len - rest) / (wi + wj));
+                self.p2[c] -= wi * g;
+                self.p2[j] += wj * g;
+                count[c] += 1;
+                count[j] += 1;
+            }
+        }
+        let omega = self.settings.relaxation;
+        for i in 0..n {
+            let mut q = self.p[i];
+            if count[i] > 0 {
+                q += self.p2[i] * (omega / count[i] as f32);
+            }
+            self.p[i] = self.boundary(model, state, control, i, q);
+        }
     }
 
     /// Recomputes the particle-contact candidates from positions `x` (KNN on the grid):
@@ -685,7 +933,11 @@ impl Solver {
     /// matching; the current multipliers and substep for XPBD), divided by the body
     /// size. Zero exactly when every cluster is satisfied.
     pub fn residual(&self, model: &Model, state: &State) -> f32 {
-        let x = &state.x;
+        self.residual_at(model, &state.x, &state.rot)
+    }
+
+    /// [`Solver::residual`] at positions `x` with warm-start rotations `rot`.
+    fn residual_at(&self, model: &Model, x: &[Vec3], rot: &[Quat]) -> f32 {
         let h2 = if self.h > 0.0 {
             self.h * self.h
         } else {
@@ -700,7 +952,7 @@ impl Solver {
         let mut sum = 0.0f64;
         let mut msum = 0.0f64;
         for c in 0..model.particle_count() {
-            let mut rot = state.rot[c];
+            let mut rot = rot[c];
             let mut lam = self.work[c].1;
             let corr = Self::solve_cluster(model, c, x, &consts, None, h2, &mut rot, &mut lam, 20);
             let size = model.bodies[model.particle_body[c] as usize].size as f64;

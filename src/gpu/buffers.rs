@@ -275,7 +275,40 @@ pub struct Packed {
     pub max_radius: f32,
     /// Largest lattice spacing, m.
     pub max_spacing: f32,
+    /// Particles of level 0 (the coarse levels' particles follow them in the particle
+    /// arrays).
+    pub n0: u32,
+    /// The hierarchy's coarse levels, level 1 first.
+    pub levels: Vec<PackedLevel>,
+    /// Hierarchy tables: the level-0 index of each coarse particle (coarse particle `g`
+    /// at `g − n0`), then the prolongation records from [`Packed::records_base`], 9 words
+    /// each: a fine particle's level-0 index, four parents' level-0 indices, four weights
+    /// (f32 bits; unused parents have weight 0).
+    pub hier: Vec<u32>,
+    /// Where the prolongation records start in `hier`.
+    pub records_base: u32,
 }
+
+/// Where one coarse level lives in the packed arrays.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct PackedLevel {
+    /// First particle (and cluster) of the level in the particle arrays.
+    pub first: u32,
+    /// Particles of the level.
+    pub count: u32,
+    /// First prolongation record of the level.
+    pub rec_first: u32,
+    /// Prolongation records of the level (the finer level's particles not on it).
+    pub rec_count: u32,
+    /// First multiplier-transfer record of the level (same 9-word layout: the finer
+    /// cluster, four of this level's clusters, four weights).
+    pub tr_first: u32,
+    /// Multiplier-transfer records (one per finer-level cluster).
+    pub tr_count: u32,
+}
+
+/// Words per prolongation record in [`Packed::hier`].
+pub const RECORD_WORDS: u32 = 9;
 
 impl Packed {
     /// Packs `model` for the GPU; `settings` fixes the per-iteration stiffness of shape
@@ -368,8 +401,10 @@ impl Packed {
             inv_offset: members,
             crest,
             bodies,
+            n0: n as u32,
             ..Default::default()
         };
+        p.pack_levels(model, settings);
         // Skin and normal adjacency.
         let mut starts = Vec::new();
         let mut corners = Vec::new();
@@ -416,6 +451,114 @@ impl Packed {
         p
     }
 
+    /// Appends the hierarchy's coarse levels after level 0 (Müller 2008; see
+    /// [`crate::core::model::Level`]): their particles, clusters and bodies as more of the
+    /// same arrays (so the cluster and gather kernels solve a level by running over its
+    /// range), and the tables that move positions between levels.
+    fn pack_levels(&mut self, model: &Model, settings: &SolverSettings) {
+        if model.levels.is_empty() {
+            return;
+        }
+        // Level 0's lists were members then inverse lists; rebuild them as all levels'
+        // members, then all levels' inverse lists, so every level's CSR runs on from the
+        // previous one and pinfo's sentinel rows line up.
+        let n0 = model.particle_count();
+        let mut pin_slot = vec![NONE; n0];
+        for (s, &i) in model.pinned.iter().enumerate() {
+            pin_slot[i as usize] = s as u32;
+        }
+        let mut members = model.cluster_members.clone();
+        let mut inv = model.inv_clusters.clone();
+        self.pinfo.pop(); // the sentinel, re-added at the end
+        let coarse_iters = SolverSettings {
+            iterations: settings.coarse_iterations.max(1),
+            ..settings.clone()
+        };
+        let mut sources = Vec::new();
+        let mut records = Vec::new();
+        let mut first = n0 as u32;
+        for lv in &model.levels {
+            let lm = &lv.model;
+            let nl = lm.particle_count() as u32;
+            let body0 = self.bodies.len() as u32;
+            let (m0, i0) = (members.len() as u32, inv.len() as u32);
+            for i in 0..nl as usize {
+                let r = lm.rest[i];
+                self.rest.push([r.x, r.y, r.z, lm.mass[i]]);
+                let src = lv.source[i];
+                let slot = if lm.pinned.binary_search(&(i as u32)).is_ok() {
+                    pin_slot[src as usize]
+                } else {
+                    NONE
+                };
+                self.pinfo.push([
+                    body0 + lm.particle_body[i],
+                    slot,
+                    i0 + lm.inv_start[i],
+                    m0 + lm.cluster_start[i],
+                ]);
+                sources.push(src);
+            }
+            members.extend(lm.cluster_members.iter().map(|j| j + first));
+            inv.extend(lm.inv_clusters.iter().map(|c| c + first));
+            let lp = Packed::new(lm, &coarse_iters);
+            self.crest.extend_from_slice(&lp.crest);
+            for mut b in lp.bodies {
+                b.first += first;
+                self.bodies.push(b);
+            }
+            let rec_first = (records.len() / RECORD_WORDS as usize) as u32;
+            for (f, &i) in lv.fine.iter().enumerate() {
+                let (a, b) = (lv.parent_start[f] as usize, lv.parent_start[f + 1] as usize);
+                let mut rec = [0u32; RECORD_WORDS as usize];
+                rec[0] = i;
+                for (k, s) in (a..b).take(4).enumerate() {
+                    rec[1 + k] = lv.source[lv.parents[s] as usize];
+                    rec[5 + k] = lv.weights[s].to_bits();
+                }
+                records.extend_from_slice(&rec);
+            }
+            // Multiplier transfer to the finer level (its clusters in its order).
+            let tr_first = (records.len() / RECORD_WORDS as usize) as u32;
+            let finer_first = self.levels.last().map_or(0, |l: &PackedLevel| l.first);
+            for (t, &c) in lv.transfer_cluster.iter().enumerate() {
+                let (a, b) = (
+                    lv.transfer_start[t] as usize,
+                    lv.transfer_start[t + 1] as usize,
+                );
+                let mut rec = [0u32; RECORD_WORDS as usize];
+                rec[0] = finer_first + c;
+                for (k, s) in (a..b).take(4).enumerate() {
+                    rec[1 + k] = first + lv.transfer_parents[s];
+                    rec[5 + k] = lv.transfer_weights[s].to_bits();
+                }
+                records.extend_from_slice(&rec);
+            }
+            self.levels.push(PackedLevel {
+                first,
+                count: nl,
+                rec_first,
+                rec_count: lv.fine.len() as u32,
+                tr_first,
+                tr_count: lv.transfer_cluster.len() as u32,
+            });
+            first += nl;
+        }
+        self.pinfo
+            .push([0, NONE, inv.len() as u32, members.len() as u32]);
+        self.inv_offset = members.len() as u32;
+        self.lists = members;
+        self.lists.extend_from_slice(&inv);
+        self.records_base = sources.len() as u32;
+        self.hier = sources;
+        self.hier.extend_from_slice(&records);
+    }
+
+    /// Particles of all levels (level 0 and the coarse levels).
+    pub fn total_particles(&self) -> u32 {
+        self.rest.len() as u32
+    }
+
     /// Render vertices of all bodies.
     pub fn vertex_count(&self) -> usize {
         self.vinf.len()
@@ -436,6 +579,26 @@ pub fn pack_state(state: &State) -> (Vec<[f32; 4]>, Vec<[f32; 4]>, Vec<GpuCluste
         })
         .collect();
     (x, v, c)
+}
+
+/// A per-dispatch range (group 1 of the cluster, gather and hierarchy kernels; one
+/// 256-byte uniform record per range, bound with a dynamic offset).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuRange {
+    /// First particle, cluster or record.
+    pub first: u32,
+    /// How many.
+    pub count: u32,
+    /// Prolongation and transfer: start of the records in the hierarchy table. Level in:
+    /// 1 zeroes the level's multipliers (the coarsest level; the others receive theirs
+    /// from the coarser level).
+    pub base: u32,
+    /// Gather: 1 leaves contacts and the boundary to the contact pass (level 0 with
+    /// particle contacts on).
+    pub flag: u32,
+    /// Padding to the uniform offset alignment.
+    pub pad: [u32; 60],
 }
 
 /// Grid parameters for `n` particles whose largest lattice spacing is `spacing` (m):

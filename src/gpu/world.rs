@@ -138,10 +138,11 @@ struct Buffers {
     knn_out: Buffer,
     status: Buffer,
     bounds: Buffer,
+    hier: Buffer,
 }
 
 impl Buffers {
-    fn in_order(&self) -> [&Buffer; 30] {
+    fn in_order(&self) -> [&Buffer; 31] {
         [
             &self.params,
             &self.colliders,
@@ -173,6 +174,7 @@ impl Buffers {
             &self.knn_out,
             &self.status,
             &self.bounds,
+            &self.hier,
         ]
     }
 }
@@ -206,6 +208,12 @@ pub struct GpuWorld {
     range_buf: Buffer,
     world_group: BindGroup,
     scan_group: BindGroup,
+    /// Group 1 of the cluster, gather and hierarchy kernels: record 0 is level 0's
+    /// particle range; then per coarse level its particle range, its prolongation
+    /// records and its multiplier-transfer records (256 bytes each).
+    level_group: BindGroup,
+    /// The hierarchy's coarse levels in the particle arrays.
+    coarse: Vec<PackedLevel>,
     n: u32,
     n_vertices: u32,
     n_colliders: u32,
@@ -262,7 +270,12 @@ impl GpuWorld {
         model: &Model,
         settings: &SolverSettings,
     ) -> Result<(), TissueError> {
-        let n = model.particle_count() as u64;
+        let n = (model.particle_count()
+            + model
+                .levels
+                .iter()
+                .map(|l| l.model.particle_count())
+                .sum::<usize>()) as u64;
         let nv: u64 = model
             .bodies
             .iter()
@@ -326,6 +339,8 @@ impl GpuWorld {
         }
         let packed = Packed::new(model, &settings);
         let nv = packed.vertex_count() as u32;
+        // Particles of all levels (the coarse levels' follow level 0's).
+        let total = packed.total_particles() as u64;
         let contact_k = settings
             .contact_neighbours
             .min(n.saturating_sub(1))
@@ -340,7 +355,18 @@ impl GpuWorld {
             off += c;
         }
         let scan_len = off + 1;
-        let (x, v, cstate) = pack_state(state);
+        let (mut x, v, mut cstate) = pack_state(state);
+        for &src in &packed.hier[..packed.records_base as usize] {
+            x.push(x[src as usize]);
+        }
+        for lv in &model.levels {
+            for &b in &lv.model.particle_body {
+                cstate.push(GpuClusterState {
+                    rot: lv.model.bodies[b as usize].rotation.to_array(),
+                    ..Default::default()
+                });
+            }
+        }
         let pins: Vec<[f32; 4]> = state
             .pin_targets
             .iter()
@@ -388,9 +414,9 @@ impl GpuWorld {
             crest: init("tissue crest", bytemuck::cast_slice(&packed.crest), st),
             bodies: init("tissue bodies", bytemuck::cast_slice(&packed.bodies), st),
             cstate: init("tissue cstate", bytemuck::cast_slice(&cstate), st),
-            corr: zeroed("tissue corr", n64 * 64, st),
+            corr: zeroed("tissue corr", total * 64, st),
             pins: init("tissue pins", bytemuck::cast_slice(&pins), st),
-            coldp: zeroed("tissue coldp", n64 * 16, st),
+            coldp: zeroed("tissue coldp", total * 16, st),
             contacts: init(
                 "tissue contacts",
                 bytemuck::cast_slice(&vec![NONE; (n * contact_k.max(1)) as usize]),
@@ -418,6 +444,7 @@ impl GpuWorld {
             knn_out: zeroed("tissue knn", n64 * knn_k.max(1) as u64 * 4, st),
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
             bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 32, st),
+            hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
         };
         let entries: Vec<BindGroupEntry> = b
             .in_order()
@@ -464,6 +491,40 @@ impl GpuWorld {
                 binding: 0,
                 resource: BindingResource::Buffer(BufferBinding {
                     buffer: &level_buf,
+                    offset: 0,
+                    size: std::num::NonZeroU64::new(16),
+                }),
+            }],
+        );
+        // Level ranges: level 0, then per coarse level its particles and its records.
+        let range = |first, count, base, flag| GpuRange {
+            first,
+            count,
+            base,
+            flag,
+            pad: [0; 60],
+        };
+        let mut lrecs = vec![range(0, n, 0, contacts_on as u32)];
+        let coarsest = packed.levels.len().saturating_sub(1);
+        for (l, lv) in packed.levels.iter().enumerate() {
+            // Level in reads `base` as "zero the multipliers" (the coarsest level only);
+            // the gather reads `flag` = 0: no contact pass, boundary at once.
+            lrecs.push(range(lv.first, lv.count, (l == coarsest) as u32, 0));
+            lrecs.push(range(lv.rec_first, lv.rec_count, packed.records_base, 0));
+            lrecs.push(range(lv.tr_first, lv.tr_count, packed.records_base, 0));
+        }
+        let lrec_buf = init(
+            "tissue level ranges",
+            bytemuck::cast_slice(&lrecs),
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        );
+        let level_group = device.create_bind_group(
+            "tissue level range",
+            &kernels.scan_layout,
+            &[BindGroupEntry {
+                binding: 0,
+                resource: BindingResource::Buffer(BufferBinding {
+                    buffer: &lrec_buf,
                     offset: 0,
                     size: std::num::NonZeroU64::new(16),
                 }),
@@ -525,6 +586,8 @@ impl GpuWorld {
             range_buf,
             world_group,
             scan_group,
+            level_group,
+            coarse: packed.levels.clone(),
             n,
             n_vertices: nv,
             n_colliders: 0,
@@ -745,11 +808,15 @@ impl GpuWorld {
             if nc > 0 {
                 r.dispatch(w, "tissue/forces", &k.force_clear, None, (1, 1));
             }
+            let lv0 = Some((&self.level_group, 0u32));
             for _ in 0..s.substeps {
                 r.dispatch(w, "tissue/predict", &k.predict, None, (g, 1));
+                if s.coarse_iterations > 0 && !self.coarse.is_empty() {
+                    self.record_levels(&mut r, k);
+                }
                 for _ in 0..s.iterations {
-                    r.dispatch(w, "tissue/clusters", &k.clusters, None, lg);
-                    r.dispatch(w, "tissue/gather", &k.gather, None, lg);
+                    r.dispatch(w, "tissue/clusters", &k.clusters, lv0, lg);
+                    r.dispatch(w, "tissue/gather", &k.gather, lv0, lg);
                     if self.contacts_on {
                         r.dispatch(w, "tissue/contacts", &k.contact, None, (g, 1));
                     }
@@ -762,6 +829,39 @@ impl GpuWorld {
                 r.dispatch(w, "tissue/finish", &k.finish, None, (g, 1));
             }
             self.step += 1;
+        }
+    }
+
+    /// The hierarchy's coarse levels for one substep, coarsest first (the twin of
+    /// `core::solver::Solver::solve_levels`): snapshot, then per level: its particles
+    /// in, `coarse_iterations` Jacobi iterations over its range, out, prolongation, and
+    /// its multipliers handed to the finer level.
+    fn record_levels(&self, r: &mut Recording<'_, '_>, k: &Kernels) {
+        let w = &self.world_group;
+        const REC: u32 = size_of::<GpuRange>() as u32;
+        r.dispatch(
+            w,
+            "tissue/levels",
+            &k.level_snapshot,
+            None,
+            (groups(self.n, WORKGROUP), 1),
+        );
+        for (l, lv) in self.coarse.iter().enumerate().rev() {
+            let parts = Some((&self.level_group, (1 + 3 * l as u32) * REC));
+            let recs = Some((&self.level_group, (2 + 3 * l as u32) * REC));
+            let trs = Some((&self.level_group, (3 + 3 * l as u32) * REC));
+            let g = (groups(lv.count, WORKGROUP), 1);
+            let lg = lane_groups(lv.count);
+            r.dispatch(w, "tissue/levels", &k.level_in, parts, g);
+            for _ in 0..self.settings.coarse_iterations {
+                r.dispatch(w, "tissue/levels", &k.clusters, parts, lg);
+                r.dispatch(w, "tissue/levels", &k.gather, parts, lg);
+            }
+            r.dispatch(w, "tissue/levels", &k.level_out, parts, g);
+            let gr = (groups(lv.rec_count, WORKGROUP), 1);
+            r.dispatch(w, "tissue/levels", &k.prolong, recs, gr);
+            let gt = (groups(lv.tr_count, WORKGROUP), 1);
+            r.dispatch(w, "tissue/levels", &k.transfer, trs, gt);
         }
     }
 

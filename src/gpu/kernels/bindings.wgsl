@@ -34,6 +34,7 @@ const MAX_COLLIDERS: u32 = 128u;
 @group(0) @binding(27) var<storage, read_write> knn_out: array<u32>;
 @group(0) @binding(28) var<storage, read_write> status: array<atomic<u32>>;
 @group(0) @binding(29) var<storage, read_write> bounds: array<vec4<f32>>;
+@group(0) @binding(30) var<storage, read> hier: array<u32>;
 
 fn inv_mass(i: u32) -> f32 {
     if (pinfo[i].y != NONE) {

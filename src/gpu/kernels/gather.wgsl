@@ -3,6 +3,17 @@
 // CPU twins: core::solver (Jacobi passes B and C), core::constraints::solve_contact,
 // core::colliders::project_collider.
 
+// The particles to gather (level 0's or a coarse level's range; group 1, dynamic offset).
+// `flag` = 1: leave contacts and the boundary to the contact pass.
+struct Range {
+    first: u32,
+    count: u32,
+    base: u32,
+    flag: u32,
+};
+
+@group(1) @binding(0) var<uniform> range: Range;
+
 fn sdf_sphere(l: vec3<f32>, r: f32) -> vec4<f32> {
     let len = length(l);
     var n = vec3<f32>(0.0, 1.0, 0.0);
@@ -111,9 +122,10 @@ fn gather(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let j = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
+    let local = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
+    let j = range.first + local;
     let lane = lid % LANES;
-    let valid = j < params.n;
+    let valid = local < range.count;
     var c0 = vec4<f32>(0.0);
     var c1 = vec4<f32>(0.0);
     var c2 = vec4<f32>(0.0);
@@ -146,7 +158,7 @@ fn gather(
     let pj = p[j].xyz;
     let m = mat3x3<f32>(c0.xyz, c1.xyz, c2.xyz);
     let out = pj + ((m * xr) + vec3<f32>(c0.w, c1.w, c2.w) - a * pj);
-    if (params.contacts == 0u) {
+    if (range.flag == 0u) {
         p[j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
         p2[j] = vec4<f32>(out, 0.0);

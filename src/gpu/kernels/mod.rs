@@ -3,14 +3,16 @@
 //!
 //! Every kernel binds the same "world" bind group (group 0, declared once in
 //! `bindings.wgsl`): all bodies' buffers, so one dispatch serves every body. The prefix
-//! sum and the skinning add a small group 1 (a per-dispatch uniform with a dynamic
-//! offset; the skinning also the mesh allocator's vertex slab). Shaders are embedded in
+//! sum, the cluster, gather and hierarchy kernels (their particle range: level 0 or a
+//! coarse level) and the skinning add a small group 1 (a per-dispatch uniform with a
+//! dynamic offset; the skinning also the mesh allocator's vertex slab). Shaders are embedded in
 //! the binary (`include_str!`), so a user of the crate copies no files.
 
 pub mod cluster;
 pub mod forces;
 pub mod gather;
 pub mod grid;
+pub mod hierarchy;
 pub mod integrate;
 pub mod knn;
 pub mod skin;
@@ -25,9 +27,9 @@ use bevy::render::renderer::RenderDevice;
 use std::borrow::Cow;
 
 /// Bindings of the world group that the kernels only read.
-const READ_ONLY: &[u32] = &[6, 7, 8, 9, 10, 13, 22, 23, 24, 25, 26];
+const READ_ONLY: &[u32] = &[6, 7, 8, 9, 10, 13, 22, 23, 24, 25, 26, 30];
 /// Bindings of the world group (0 and 1 are uniforms, the rest storage buffers).
-pub const WORLD_BINDINGS: u32 = 30;
+pub const WORLD_BINDINGS: u32 = 31;
 /// Storage buffers a kernel binds at most (world group plus the vertex slab).
 pub const STORAGE_BUFFERS_NEEDED: u32 = WORLD_BINDINGS - 2 + 1;
 
@@ -61,7 +63,8 @@ fn storage(binding: u32, read_only: bool) -> BindGroupLayoutEntry {
 pub struct Kernels {
     /// Group 0 of every kernel.
     pub world_layout: BindGroupLayout,
-    /// Group 1 of the prefix sum: the level uniform (dynamic offset).
+    /// Group 1 of the prefix sum (the scan level) and of the cluster, gather and
+    /// hierarchy kernels (the range): one uniform with a dynamic offset.
     pub scan_layout: BindGroupLayout,
     /// Group 1 of the draw path: the vertex slab and the range uniform (dynamic offset).
     pub skin_layout: BindGroupLayout,
@@ -93,6 +96,16 @@ pub struct Kernels {
     pub gather: ComputePipeline,
     /// `gather.wgsl`: Jacobi pass C.
     pub contact: ComputePipeline,
+    /// `hierarchy.wgsl`: positions at the start of the coarse pass.
+    pub level_snapshot: ComputePipeline,
+    /// `hierarchy.wgsl`: level-0 positions into a coarse level.
+    pub level_in: ComputePipeline,
+    /// `hierarchy.wgsl`: a coarse level's positions back to level 0.
+    pub level_out: ComputePipeline,
+    /// `hierarchy.wgsl`: prolongation to the finer level.
+    pub prolong: ComputePipeline,
+    /// `hierarchy.wgsl`: multipliers handed to the finer level.
+    pub transfer: ComputePipeline,
     /// `forces.wgsl`: partial sums.
     pub force_partial: ComputePipeline,
     /// `forces.wgsl`: totals.
@@ -150,6 +163,7 @@ impl Kernels {
         let knn_m = module("tissue knn", knn::SOURCE);
         let cluster_m = module("tissue cluster", cluster::SOURCE);
         let gather_m = module("tissue gather", gather::SOURCE);
+        let hier_m = module("tissue hierarchy", hierarchy::SOURCE);
         let forces_m = module("tissue forces", forces::SOURCE);
         let skin_m = module("tissue skin", skin::SOURCE);
         let pipe = |m: &bevy::render::render_resource::ShaderModule,
@@ -178,9 +192,14 @@ impl Kernels {
             grid_scatter: pipe(&grid_m, &with_scan, "grid_scatter"),
             knn_all: pipe(&knn_m, &world_only, "knn_all"),
             knn_contacts: pipe(&knn_m, &world_only, "knn_contacts"),
-            clusters: pipe(&cluster_m, &world_only, "solve_clusters"),
-            gather: pipe(&gather_m, &world_only, "gather"),
+            clusters: pipe(&cluster_m, &with_scan, "solve_clusters"),
+            gather: pipe(&gather_m, &with_scan, "gather"),
             contact: pipe(&gather_m, &world_only, "contact"),
+            level_snapshot: pipe(&hier_m, &world_only, "level_snapshot"),
+            level_in: pipe(&hier_m, &with_scan, "level_in"),
+            level_out: pipe(&hier_m, &with_scan, "level_out"),
+            prolong: pipe(&hier_m, &with_scan, "prolong"),
+            transfer: pipe(&hier_m, &with_scan, "transfer"),
             force_partial: pipe(&forces_m, &world_only, "force_partial"),
             force_total: pipe(&forces_m, &world_only, "force_total"),
             deform: pipe(&skin_m, &with_skin, "deform"),
