@@ -938,6 +938,20 @@ impl Solver {
 
     /// [`Solver::residual`] at positions `x` with warm-start rotations `rot`.
     fn residual_at(&self, model: &Model, x: &[Vec3], rot: &[Quat]) -> f32 {
+        let lam: Vec<Multipliers> = self.work.iter().map(|w| w.1).collect();
+        self.residual_with(model, x, rot, &lam)
+    }
+
+    /// [`Solver::residual`] of a state from elsewhere (the GPU world, say): positions `x`
+    /// (m), each cluster's rotation warm start `rot` and XPBD multipliers `lam`, at this
+    /// solver's substep length.
+    pub fn residual_with(
+        &self,
+        model: &Model,
+        x: &[Vec3],
+        rot: &[Quat],
+        lam: &[Multipliers],
+    ) -> f32 {
         let h2 = if self.h > 0.0 {
             self.h * self.h
         } else {
@@ -953,7 +967,7 @@ impl Solver {
         let mut msum = 0.0f64;
         for c in 0..model.particle_count() {
             let mut rot = rot[c];
-            let mut lam = self.work[c].1;
+            let mut lam = lam[c];
             let corr = Self::solve_cluster(model, c, x, &consts, None, h2, &mut rot, &mut lam, 20);
             let size = model.bodies[model.particle_body[c] as usize].size as f64;
             for &j in model.members(c) {

@@ -624,6 +624,12 @@ impl GpuWorld {
         &self.surface
     }
 
+    /// Cluster states ([`GpuClusterState`]: warm-start rotation and XPBD multipliers),
+    /// level 0's clusters first (then the hierarchy's coarse levels).
+    pub fn cluster_states(&self) -> &Buffer {
+        &self.b.cstate
+    }
+
     /// Positions buffer (vec4 per particle, m).
     pub fn positions(&self) -> &Buffer {
         &self.b.x
