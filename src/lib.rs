@@ -17,7 +17,7 @@ pub mod prelude {
     pub use crate::plugin::components::{
         ColliderForce, ColliderKind, ParticlePositions, PinShape, Pinned, ReadbackParticles,
         SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock, TissueCollider,
-        TissueMaterial, TissueResolution, TissueSettings,
+        TissueHierarchy, TissueMaterial, TissueResolution, TissueSettings,
     };
     pub use crate::plugin::{TissuePlugin, TissueSet};
 }

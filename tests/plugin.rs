@@ -151,6 +151,17 @@ fn cpu_reference(
     settings: &TissueSettings,
 ) -> (Model, Vec<Vec3>) {
     let (body, pinned) = body_of(material);
+    cpu_reference_of(body, pinned, at, steps, settings)
+}
+
+/// [`cpu_reference`] of any body.
+fn cpu_reference_of(
+    body: SoftBody,
+    pinned: Pinned,
+    at: Vec3,
+    steps: u64,
+    settings: &TissueSettings,
+) -> (Model, Vec<Vec3>) {
     let to_world = GlobalTransform::from(Transform::from_translation(at));
     let tri = tri_mesh(&box_mesh(), &to_world).unwrap();
     let desc = body_desc(&body, Some(&pinned), &to_world);
@@ -635,5 +646,81 @@ fn more_colliders_than_the_gpu_takes_are_capped_not_fatal() {
     assert!(
         (-0.01..0.05).contains(&lowest),
         "lowest particle at y = {lowest} m"
+    );
+}
+
+#[test]
+fn a_body_with_a_hierarchy_matches_the_cpu_hierarchy() {
+    // The plugin path of hierarchical PBD: SoftBody::hierarchy → coarse levels in the
+    // batched GPU world → the same positions as the CPU hierarchy.
+    assert_eq!(TissueHierarchy::Auto.to_core(1999), None);
+    assert!(TissueHierarchy::Auto.to_core(2000).is_some());
+    assert_eq!(TissueHierarchy::Off.to_core(100_000), None);
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    let at = Vec3::new(0.0, 0.5, 0.0);
+    let (mut body, pinned) = body_of(HYPER);
+    body.hierarchy = TissueHierarchy::Levels {
+        levels: 2,
+        parents: 3,
+    };
+    let e = spawn_body(&mut app, at, body.clone(), Some(pinned.clone()));
+    assert!(
+        until(&mut app, 600, |app| matches!(
+            app.world().get::<SoftBodyStatus>(e),
+            Some(SoftBodyStatus::Ready { .. })
+        )),
+        "the body never became ready"
+    );
+    for _ in 0..3 {
+        app.update();
+    }
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(20);
+    }
+    for _ in 0..5 {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    for _ in 0..3 {
+        app.update();
+    }
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles::default());
+    assert!(
+        until(&mut app, 30, |app| app
+            .world()
+            .get::<ParticlePositions>(e)
+            .is_some()),
+        "no readback arrived"
+    );
+    let got = app.world().get::<ParticlePositions>(e).unwrap().clone();
+    assert_eq!(got.step, 100);
+    let settings = app.world().resource::<TissueSettings>().clone();
+    let (model, cpu) = cpu_reference_of(body, pinned, at, got.step, &settings);
+    assert_eq!(model.levels.len(), 1, "the body must have one coarse level");
+    let size = model.bodies[0].size;
+    let d = got
+        .positions
+        .iter()
+        .zip(&cpu)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    let moved = cpu
+        .iter()
+        .zip(&model.placed_rest())
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    eprintln!("hierarchical body: GPU–CPU {d:.2e} m after 100 steps, moved {moved:.2e} m");
+    assert!(moved > 0.01 * size, "the body must deform ({moved} m)");
+    assert!(
+        d < 1e-4 * size,
+        "GPU and CPU differ by {d} m (size {size} m)"
     );
 }

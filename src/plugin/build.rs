@@ -95,8 +95,17 @@ fn draw_mesh(source: &Mesh) -> Mesh {
 }
 
 /// The core's description of a body placed by `to_world` (pins in world space).
+///
+/// The hierarchy ([`SoftBody::hierarchy`]) is decided on the requested particle count;
+/// under `Auto` a body given by spacing gets coarse levels when they keep at least 128
+/// particles.
 pub fn body_desc(body: &SoftBody, pinned: Option<&Pinned>, to_world: &GlobalTransform) -> BodyDesc {
+    let particles = match body.resolution {
+        TissueResolution::Particles(n) => n,
+        TissueResolution::Spacing(_) => u32::MAX,
+    };
     BodyDesc {
+        hierarchy: body.hierarchy.to_core(particles),
         resolution: body.resolution.to_core(),
         density: body.density,
         neighbours: body.neighbours,

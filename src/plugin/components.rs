@@ -2,6 +2,7 @@
 //! [`TissueSettings`], the [`TissueClock`], and the messages the plugin sends.
 
 use crate::core::colliders::{Collider, ColliderShape};
+use crate::core::hierarchy::HierarchyDesc;
 use crate::core::model::{Material, PinRegion};
 use crate::core::sampling::Resolution;
 use crate::core::solver::{Method, SolverSettings};
@@ -78,6 +79,51 @@ impl TissueResolution {
     }
 }
 
+/// Hierarchical PBD for a body (Müller 2008; see `core::model::Level`): coarse levels
+/// solved first in every substep speed up how fast stiffness travels through a large
+/// body.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
+pub enum TissueHierarchy {
+    /// On for bodies of at least [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles, with
+    /// as many levels as keep 128 particles on the coarsest. Measured
+    /// (BENCHMARKS.md, "Hierarchy"): on 3,000-particle stiff bodies it reaches a common
+    /// residual 2.3–3.2x sooner, CPU and GPU; below that, a coarse level would have too
+    /// few particles to help.
+    #[default]
+    Auto,
+    /// Flat: level 0 only.
+    Off,
+    /// This many levels (2–8, counting level 0), each particle linked to `parents`
+    /// (2–4) particles of the next level.
+    Levels {
+        /// Levels including level 0.
+        levels: u32,
+        /// Parents per particle.
+        parents: u32,
+    },
+}
+
+impl TissueHierarchy {
+    /// Smallest body that [`TissueHierarchy::Auto`] gives a hierarchy.
+    pub const AUTO_MIN_PARTICLES: u32 = 2000;
+
+    /// The core's hierarchy description for a body of `particles` particles (`None`:
+    /// flat).
+    pub fn to_core(self, particles: u32) -> Option<HierarchyDesc> {
+        match self {
+            TissueHierarchy::Auto => {
+                (particles >= Self::AUTO_MIN_PARTICLES).then(HierarchyDesc::default)
+            }
+            TissueHierarchy::Off => None,
+            TissueHierarchy::Levels { levels, parents } => Some(HierarchyDesc {
+                levels: Some(levels),
+                parents,
+                ..Default::default()
+            }),
+        }
+    }
+}
+
 /// A soft body: put it on an entity with a `Mesh3d` (any closed triangle mesh) and a
 /// material. The plugin samples particles inside the mesh, builds clusters (off the main
 /// thread), simulates the body on the GPU and draws the entity's mesh from the
@@ -109,6 +155,8 @@ pub struct SoftBody {
     pub neighbours: u32,
     /// Particle sampling.
     pub resolution: TissueResolution,
+    /// Hierarchical PBD levels.
+    pub hierarchy: TissueHierarchy,
 }
 
 impl Default for SoftBody {
@@ -118,6 +166,7 @@ impl Default for SoftBody {
             density: 1060.0,
             neighbours: 32,
             resolution: TissueResolution::default(),
+            hierarchy: TissueHierarchy::default(),
         }
     }
 }
@@ -353,6 +402,9 @@ pub struct TissueSettings {
     pub substeps: u32,
     /// Constraint iterations per substep.
     pub iterations: u32,
+    /// Iterations per coarse level of the bodies that have a hierarchy
+    /// ([`SoftBody::hierarchy`]).
+    pub coarse_iterations: u32,
     /// Gravity, m/s².
     pub gravity: Vec3,
     /// Velocity damping rate, 1/s.
@@ -379,6 +431,7 @@ impl Default for TissueSettings {
             dt: c.dt,
             substeps: c.substeps,
             iterations: c.iterations,
+            coarse_iterations: c.coarse_iterations,
             gravity: c.gravity,
             damping: c.damping,
             relaxation: c.relaxation,
@@ -397,6 +450,7 @@ impl TissueSettings {
             dt: self.dt,
             substeps: self.substeps,
             iterations: self.iterations,
+            coarse_iterations: self.coarse_iterations,
             gravity: self.gravity,
             damping: self.damping,
             relaxation: self.relaxation,
