@@ -653,9 +653,16 @@ fn more_colliders_than_the_gpu_takes_are_capped_not_fatal() {
 fn a_body_with_a_hierarchy_matches_the_cpu_hierarchy() {
     // The plugin path of hierarchical PBD: SoftBody::hierarchy → coarse levels in the
     // batched GPU world → the same positions as the CPU hierarchy.
-    assert_eq!(TissueHierarchy::Auto.to_core(1999), None);
-    assert!(TissueHierarchy::Auto.to_core(2000).is_some());
-    assert_eq!(TissueHierarchy::Off.to_core(100_000), None);
+    let stiff = TissueMaterial::Hyperelastic {
+        youngs_modulus: 1.0e6,
+        poisson_ratio: 0.3,
+    };
+    let auto = TissueHierarchy::Auto;
+    assert_eq!(auto.to_core(19_999, &stiff), None);
+    assert!(auto.to_core(20_000, &stiff).is_some());
+    assert_eq!(auto.to_core(50_000, &HYPER), None, "soft bodies stay flat");
+    assert_eq!(auto.to_core(50_000, &SHAPE), None);
+    assert_eq!(TissueHierarchy::Off.to_core(100_000, &stiff), None);
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
     if !gpu_available() {
         return;

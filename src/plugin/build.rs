@@ -105,7 +105,7 @@ pub fn body_desc(body: &SoftBody, pinned: Option<&Pinned>, to_world: &GlobalTran
         TissueResolution::Spacing(_) => u32::MAX,
     };
     BodyDesc {
-        hierarchy: body.hierarchy.to_core(particles),
+        hierarchy: body.hierarchy.to_core(particles, &body.material),
         resolution: body.resolution.to_core(),
         density: body.density,
         neighbours: body.neighbours,

@@ -80,15 +80,24 @@ impl TissueResolution {
 }
 
 /// Hierarchical PBD for a body (Müller 2008; see `core::model::Level`): coarse levels
-/// solved first in every substep speed up how fast stiffness travels through a large
-/// body.
+/// solved first in every substep carry stiffness through a large body in a few
+/// iterations instead of hundreds.
+///
+/// It costs a coarse pass per substep: on the CPU about 3 level-0 iterations' work at
+/// the default 20 coarse iterations; on the GPU far more in time, because the coarse
+/// levels' ~90 small dispatches per substep run at the dispatch-latency floor (about
+/// 4 ms on an H100 for a 50,000-particle body, ~40 level-0 iterations). So it pays where
+/// a flat solver would need many iterations: stiff, large bodies held to a tight residual
+/// (BENCHMARKS.md, "Hierarchy").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum TissueHierarchy {
-    /// On for bodies of at least [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles, with
-    /// as many levels as keep 128 particles on the coarsest. Measured
-    /// (BENCHMARKS.md, "Hierarchy"): on 3,000-particle stiff bodies it reaches a common
-    /// residual 2.3–3.2x sooner, CPU and GPU; below that, a coarse level would have too
-    /// few particles to help.
+    /// On where the measurements say it pays: hyperelastic bodies with E ≥
+    /// [`TissueHierarchy::AUTO_MIN_YOUNGS`] of at least
+    /// [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles (a stiff 50,000-particle bar
+    /// reached a common residual 3.7–19x sooner on the CPU and 2.1–3.4x on the GPU; a
+    /// 38k liver at 1 MPa 1.9–2.6x on the CPU, and on the GPU flat Jacobi diverged where
+    /// the hierarchy held). Off otherwise: at real-time iteration counts the coarse pass
+    /// costs more than it gains on soft or small bodies.
     #[default]
     Auto,
     /// Flat: level 0 only.
@@ -105,14 +114,18 @@ pub enum TissueHierarchy {
 
 impl TissueHierarchy {
     /// Smallest body that [`TissueHierarchy::Auto`] gives a hierarchy.
-    pub const AUTO_MIN_PARTICLES: u32 = 2000;
+    pub const AUTO_MIN_PARTICLES: u32 = 20_000;
+    /// Smallest Young's modulus (Pa) that [`TissueHierarchy::Auto`] gives a hierarchy.
+    pub const AUTO_MIN_YOUNGS: f32 = 500_000.0;
 
-    /// The core's hierarchy description for a body of `particles` particles (`None`:
-    /// flat).
-    pub fn to_core(self, particles: u32) -> Option<HierarchyDesc> {
+    /// The core's hierarchy description for a body of `particles` particles of
+    /// `material` (`None`: flat).
+    pub fn to_core(self, particles: u32, material: &TissueMaterial) -> Option<HierarchyDesc> {
         match self {
             TissueHierarchy::Auto => {
-                (particles >= Self::AUTO_MIN_PARTICLES).then(HierarchyDesc::default)
+                let stiff = matches!(material, TissueMaterial::Hyperelastic { youngs_modulus, .. }
+                    if *youngs_modulus >= Self::AUTO_MIN_YOUNGS);
+                (stiff && particles >= Self::AUTO_MIN_PARTICLES).then(HierarchyDesc::default)
             }
             TissueHierarchy::Off => None,
             TissueHierarchy::Levels { levels, parents } => Some(HierarchyDesc {
