@@ -83,20 +83,19 @@ impl TissueResolution {
 /// solved first in every substep carry stiffness through a large body in a few
 /// iterations instead of hundreds.
 ///
-/// It costs a coarse pass per substep: on the CPU about 3 level-0 iterations' work at
-/// the default 20 coarse iterations; on the GPU far more in time, because the coarse
-/// levels' ~90 small dispatches per substep run at the dispatch-latency floor (about
-/// 4 ms on an H100 for a 50,000-particle body, ~40 level-0 iterations). So it pays where
-/// a flat solver would need many iterations: stiff, large bodies held to a tight residual
-/// (BENCHMARKS.md, "Hierarchy").
+/// It costs a coarse pass per substep: on the CPU about 6 level-0 iterations' time at
+/// the default 20 coarse iterations; on the GPU about 7.5, because the coarse levels'
+/// ~90 small dispatches per substep run at the dispatch-latency floor (0.7 ms on an H100
+/// for a 50,000-particle body). So it pays where a flat solver would need many
+/// iterations: stiff, large bodies held to a tight residual (BENCHMARKS.md, "Hierarchy").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum TissueHierarchy {
     /// On where the measurements say it pays: hyperelastic bodies with E ≥
     /// [`TissueHierarchy::AUTO_MIN_YOUNGS`] of at least
     /// [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles (a stiff 50,000-particle bar
-    /// reached a common residual 3.7–19x sooner on the CPU and 2.1–3.4x on the GPU; a
-    /// 38k liver at 1 MPa 1.9–2.6x on the CPU, and on the GPU flat Jacobi diverged where
-    /// the hierarchy held). Off otherwise: at real-time iteration counts the coarse pass
+    /// reached the same residual 3.7–19x sooner on the CPU and 2.7–16x on the GPU; a 38k
+    /// liver at 1 MPa 1.9–2.6x on the CPU, and on the GPU flat Jacobi diverged where the
+    /// hierarchy held). Off otherwise: at real-time iteration counts the coarse pass
     /// costs more than it gains on soft or small bodies.
     #[default]
     Auto,

@@ -1,0 +1,74 @@
+//! The benchmark examples' `--quick` modes run (as CI does) and fill every cell with a
+//! finite number. `cargo test` builds the examples; the binaries are found next to this
+//! test's own executable (`target/<profile>/examples/`).
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn example(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable");
+    let dir = exe
+        .parent()
+        .and_then(|d| d.parent())
+        .expect("target/<profile>/deps");
+    dir.join("examples").join(name)
+}
+
+fn gpu_required() -> bool {
+    std::env::var("CI").is_ok_and(|v| v == "true")
+}
+
+#[test]
+fn hierarchy_quick_writes_complete_curves() {
+    let bin = example("hierarchy");
+    assert!(bin.exists(), "{} not built", bin.display());
+    let out = std::env::temp_dir().join(format!("bevy_tissue_hierarchy_{}", std::process::id()));
+    let run = Command::new(&bin)
+        .args(["--quick", "--out"])
+        .arg(&out)
+        .output()
+        .expect("run the example");
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "hierarchy --quick failed:\n{stderr}");
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let csv = std::fs::read_to_string(out.join("hierarchy.csv")).expect("CSV written");
+    assert!(out.join("hierarchy.png").exists(), "PNG written");
+    let mut curves = std::collections::BTreeMap::<String, Vec<(u32, f64, f64)>>::new();
+    for line in csv.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        assert_eq!(f.len(), 8, "row {line}");
+        let key = format!("{} {} {}", f[0], f[2], f[3]);
+        let it: u32 = f[5].parse().unwrap();
+        let ms: f64 = f[6].parse().unwrap();
+        let r: f64 = f[7].parse().unwrap();
+        assert!(ms.is_finite() && ms >= 0.0, "{line}");
+        assert!(r.is_finite() && r >= 0.0, "{line}");
+        curves.entry(key).or_default().push((it, ms, r));
+    }
+    let gpu = !stderr.contains("GPU curves skipped");
+    if gpu_required() {
+        assert!(gpu, "CI=true but the GPU curves were skipped:\n{stderr}");
+    }
+    let backends: &[&str] = if gpu { &["CPU", "GPU"] } else { &["CPU"] };
+    for scene in ["bar", "liver"] {
+        for backend in backends {
+            for solver in ["flat", "hierarchical"] {
+                let key = format!("{scene} {backend} {solver}");
+                let c = curves.get(&key).unwrap_or_else(|| panic!("no curve {key}"));
+                assert!(c.len() >= 5, "{key}: {} points", c.len());
+            }
+            // The hierarchy is ahead at every sampled iteration count of the bar.
+            if scene == "bar" {
+                let f = &curves[&format!("bar {backend} flat")];
+                let h = &curves[&format!("bar {backend} hierarchical")];
+                for &(it, _, rh) in h {
+                    if let Some(&(_, _, rf)) = f.iter().find(|p| p.0 == it) {
+                        assert!(rh < rf, "{backend} bar, {it} iterations: {rh} vs flat {rf}");
+                    }
+                }
+            }
+        }
+    }
+    assert!(stdout.contains("| bar |"), "summary table:\n{stdout}");
+    let _ = std::fs::remove_dir_all(&out);
+}
