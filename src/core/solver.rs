@@ -623,10 +623,10 @@ impl Solver {
             }
         }
         let omega = self.settings.relaxation;
-        for i in 0..n {
+        for (i, &k) in count.iter().enumerate() {
             let mut q = self.p[i];
-            if count[i] > 0 {
-                q += self.p2[i] * (omega / count[i] as f32);
+            if k > 0 {
+                q += self.p2[i] * (omega / k as f32);
             }
             self.p[i] = self.boundary(model, state, control, i, q);
         }
