@@ -177,6 +177,36 @@ fn cpu_reference_of(
     (model, state.x)
 }
 
+/// Takes `frames` × 20 steps with the clock, pauses, and reads the body's particles back.
+fn step_and_read(app: &mut App, e: Entity, frames: u32) -> ParticlePositions {
+    for _ in 0..3 {
+        app.update();
+    }
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(20);
+    }
+    for _ in 0..frames {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    for _ in 0..3 {
+        app.update();
+    }
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles::default());
+    assert!(
+        until(app, 30, |app| app
+            .world()
+            .get::<ParticlePositions>(e)
+            .is_some()),
+        "no readback arrived"
+    );
+    app.world().get::<ParticlePositions>(e).unwrap().clone()
+}
+
 #[test]
 fn a_body_in_a_headless_app_matches_the_cpu_and_is_drawn_from_the_gpu() {
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
@@ -203,32 +233,7 @@ fn a_body_in_a_headless_app_matches_the_cpu_and_is_drawn_from_the_gpu() {
         app.world().get::<SoftBodyStatus>(e)
     );
     // Let the render world upload it, then take exactly 200 steps, 20 per frame.
-    for _ in 0..3 {
-        app.update();
-    }
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(20);
-    }
-    for _ in 0..10 {
-        app.update();
-    }
-    app.world_mut().resource_mut::<TissueClock>().paused = true;
-    for _ in 0..3 {
-        app.update();
-    }
-    app.world_mut()
-        .entity_mut(e)
-        .insert(ReadbackParticles::default());
-    assert!(
-        until(&mut app, 30, |app| app
-            .world()
-            .get::<ParticlePositions>(e)
-            .is_some()),
-        "no readback arrived"
-    );
-    let got = app.world().get::<ParticlePositions>(e).unwrap().clone();
+    let got = step_and_read(&mut app, e, 10);
     assert!(
         app.world().get::<ReadbackParticles>(e).is_none(),
         "a one-shot request is removed once served"
@@ -682,32 +687,7 @@ fn a_body_with_a_hierarchy_matches_the_cpu_hierarchy() {
         )),
         "the body never became ready"
     );
-    for _ in 0..3 {
-        app.update();
-    }
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(20);
-    }
-    for _ in 0..5 {
-        app.update();
-    }
-    app.world_mut().resource_mut::<TissueClock>().paused = true;
-    for _ in 0..3 {
-        app.update();
-    }
-    app.world_mut()
-        .entity_mut(e)
-        .insert(ReadbackParticles::default());
-    assert!(
-        until(&mut app, 30, |app| app
-            .world()
-            .get::<ParticlePositions>(e)
-            .is_some()),
-        "no readback arrived"
-    );
-    let got = app.world().get::<ParticlePositions>(e).unwrap().clone();
+    let got = step_and_read(&mut app, e, 5);
     assert_eq!(got.step, 100);
     let settings = app.world().resource::<TissueSettings>().clone();
     let (model, cpu) = cpu_reference_of(body, pinned, at, got.step, &settings);

@@ -1,11 +1,12 @@
 //! Jacobi pass A: every cluster's shape-matching or hyperelastic correction as an affine map.
 //!
-//! Source: `cluster.wgsl` (with `common.wgsl`, `bindings.wgsl`, `moments.wgsl` prepended).
+//! Source: `cluster.wgsl` (with `common.wgsl`, `bindings.wgsl`, `range.wgsl`, `moments.wgsl` prepended).
 
 /// WGSL source of this kernel's module.
 pub const SOURCE: &str = concat!(
     include_str!("common.wgsl"),
     include_str!("bindings.wgsl"),
+    include_str!("range.wgsl"),
     include_str!("moments.wgsl"),
     include_str!("cluster.wgsl")
 );

@@ -3,16 +3,6 @@
 // CPU twin: core::solver (Jacobi pass A) with core::constraints::{solve_shape_matching,
 // solve_hyperelastic}.
 
-// The clusters to solve (level 0's or a coarse level's range; group 1, dynamic offset).
-struct Range {
-    first: u32,
-    count: u32,
-    base: u32,
-    flag: u32,
-};
-
-@group(1) @binding(0) var<uniform> range: Range;
-
 fn sym_from(l0: vec4<f32>, l1: vec4<f32>) -> mat3x3<f32> {
     return mat3x3<f32>(
         vec3<f32>(l0.y, l1.x, l1.y),

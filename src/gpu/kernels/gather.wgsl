@@ -3,17 +3,6 @@
 // CPU twins: core::solver (Jacobi passes B and C), core::constraints::solve_contact,
 // core::colliders::project_collider.
 
-// The particles to gather (level 0's or a coarse level's range; group 1, dynamic offset).
-// `flag` = 1: leave contacts and the boundary to the contact pass.
-struct Range {
-    first: u32,
-    count: u32,
-    base: u32,
-    flag: u32,
-};
-
-@group(1) @binding(0) var<uniform> range: Range;
-
 fn sdf_sphere(l: vec3<f32>, r: f32) -> vec4<f32> {
     let len = length(l);
     var n = vec3<f32>(0.0, 1.0, 0.0);

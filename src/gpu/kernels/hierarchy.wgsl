@@ -3,16 +3,6 @@
 // solved by the cluster and gather kernels run over its range.
 // CPU twin: core::solver::Solver::solve_levels.
 
-struct Range {
-    first: u32,     // first particle / record
-    count: u32,
-    base: u32,      // prolong, transfer: start of the records in `hier`;
-                    // level_in: 1 zeroes the level's multipliers (the coarsest level)
-    flag: u32,
-};
-
-@group(1) @binding(0) var<uniform> range: Range;
-
 // The positions at the start of the coarse pass (prolongation reference), kept in the
 // level-0 part of p2 (free until level 0's first gather).
 @compute @workgroup_size(128)
