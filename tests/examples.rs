@@ -72,3 +72,52 @@ fn hierarchy_quick_writes_complete_curves() {
     assert!(stdout.contains("| bar |"), "summary table:\n{stdout}");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn table1_quick_fills_every_cell() {
+    let bin = example("table1");
+    assert!(bin.exists(), "{} not built", bin.display());
+    let out = std::env::temp_dir().join(format!("bevy_tissue_table1_{}", std::process::id()));
+    let run = Command::new(&bin)
+        .args(["--quick", "--out"])
+        .arg(&out)
+        .output()
+        .expect("run the example");
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "table1 --quick failed:\n{stderr}");
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let json = std::fs::read_to_string(out.join("table1.json")).expect("JSON written");
+    assert!(out.join("table1.png").exists(), "PNG written");
+    let gpu = !stderr.contains("GPU rows skipped");
+    if gpu_required() {
+        assert!(gpu, "CI=true but the GPU rows were skipped:\n{stderr}");
+    }
+    // Cells: 2 sizes × 2 K × (2 CPU backends + the GPU).
+    let cells: Vec<&str> = json.lines().filter(|l| l.contains("\"target\"")).collect();
+    assert_eq!(cells.len(), 4 * if gpu { 3 } else { 2 }, "{json}");
+    let number = |line: &str, key: &str| -> f64 {
+        let i = line
+            .find(&format!("\"{key}\": "))
+            .unwrap_or_else(|| panic!("{key} in {line}"));
+        let rest = &line[i + key.len() + 4..];
+        let end = rest.find([',', '}']).unwrap();
+        rest[..end].trim().parse().unwrap()
+    };
+    for c in &cells {
+        for key in ["ms_per_step", "ms_per_knn"] {
+            let v = number(c, key);
+            assert!(v.is_finite() && v > 0.0, "{key} = {v} in {c}");
+        }
+        assert!(c.contains("\"finite\": true"), "a run diverged: {c}");
+    }
+    // The Markdown table has a row per cell, each with the paper's number where it
+    // has one.
+    assert_eq!(
+        stdout
+            .lines()
+            .filter(|l| l.starts_with("| 32 ") || l.starts_with("| 64 "))
+            .count(),
+        cells.len()
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}

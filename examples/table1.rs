@@ -1,0 +1,400 @@
+//! The paper's Table 1 again (Li & Kang 2014; SPEC §6): the liver shape sampled at 512,
+//! 4096, 13824 and 37982 particles, K = 32 and 64, shape matching (the paper's model),
+//! 10 iterations, dt = 1/60 s, the K nearest neighbours of every particle refreshed every
+//! 10th step, on three backends: the CPU's one-thread Gauss–Seidel (the paper's CPU
+//! baseline), CPU Jacobi on all cores, and the GPU world.
+//!
+//! Each cell: ms per step, the median of `--repeats` runs of `--steps` steps after 10
+//! warm-up steps (the GPU synchronised: one submission per run, timed from submit to
+//! completion), and ms per KNN refresh (median of the same number of refreshes). The
+//! speed-up is over this machine's one-thread CPU and over the paper's own number for
+//! the same K and kind of backend (kept below as data).
+//!
+//! Markdown on stdout, `table1.json` and `table1.png` (log–log ms per step against
+//! particles, the paper's points included) in the output folder.
+//!
+//! ```text
+//! cargo run --release --example table1                 # the full table (long on 2 cores)
+//! cargo run --release --example table1 -- --quick      # 512 and 4096 particles, seconds
+//! cargo run --release --example table1 -- --no-cpu     # the GPU rows only
+//! ```
+//! Options: `--steps N` (default 300), `--repeats N` (default 5), `--no-cpu`,
+//! `--no-gpu`, `--out DIR` (default `table1_out`).
+
+#[path = "support/chart.rs"]
+mod chart;
+
+use bevy_tissue::core::knn::knn_all;
+use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
+use bevy_tissue::core::procedural;
+use bevy_tissue::core::sampling::Resolution;
+use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
+use bevy_tissue::gpu::world::read_vec3;
+use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// The paper's Table 1, ms per time step: (K, backend, [512, 4096, 13824, 37982]).
+/// Intel Xeon X3320 (one thread) and an NVIDIA GeForce GTX 560 Ti.
+const PAPER: &[(u32, &str, [f64; 4])] = &[
+    (32, "CPU", [25.0, 36.0, 1374.0, 4910.0]),
+    (32, "GPU", [22.0, 27.0, 87.0, 263.0]),
+    (64, "GPU", [34.0, 61.0, 209.0, 541.0]),
+];
+const SIZES: [u32; 4] = [512, 4096, 13824, 37982];
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Backend {
+    CpuOneThread,
+    CpuAllCores,
+    Gpu,
+}
+
+impl Backend {
+    fn name(self) -> &'static str {
+        match self {
+            Backend::CpuOneThread => "CPU Gauss–Seidel, 1 thread",
+            Backend::CpuAllCores => "CPU Jacobi, all cores",
+            Backend::Gpu => "GPU",
+        }
+    }
+    fn paper_kind(self) -> &'static str {
+        match self {
+            Backend::Gpu => "GPU",
+            _ => "CPU",
+        }
+    }
+}
+
+struct Cell {
+    backend: Backend,
+    k: u32,
+    target: u32,
+    particles: usize,
+    ms_step: f64,
+    ms_knn: f64,
+    finite: bool,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn liver(particles: u32, k: u32) -> Model {
+    let (lo, hi) = procedural::liver_ligament();
+    let desc = BodyDesc {
+        resolution: Resolution::Particles(particles),
+        neighbours: k,
+        material: Material::ShapeMatching { stiffness: 1.0 },
+        pins: vec![PinRegion::Box { min: lo, max: hi }],
+        ..Default::default()
+    };
+    let mut model = Model::new();
+    model
+        .add_body(&procedural::liver(4), &desc)
+        .expect("liver model");
+    model
+}
+
+fn settings(method: Method, threads: usize) -> SolverSettings {
+    SolverSettings {
+        method,
+        threads,
+        iterations: 10,
+        knn_every: 10,
+        // One body: no particle contacts; the refresh timed is the K-nearest search of
+        // every particle, as on the GPU.
+        particle_contacts: false,
+        ..Default::default()
+    }
+}
+
+fn cpu_cell(
+    model: &Model,
+    k: u32,
+    backend: Backend,
+    steps: usize,
+    repeats: usize,
+) -> (f64, f64, bool) {
+    let (method, threads) = match backend {
+        Backend::CpuOneThread => (Method::GaussSeidel, 1),
+        _ => (Method::Jacobi, 0),
+    };
+    let mut solver = Solver::new(model, settings(method, threads)).expect("solver");
+    let mut state = State::new(model);
+    let control = Control::default();
+    let mut step = |state: &mut State| -> bool {
+        if state.step.is_multiple_of(10) {
+            let _ = knn_all(&state.x, k as usize, threads);
+        }
+        solver.step(model, state, &control).is_ok()
+    };
+    let mut ok = true;
+    for _ in 0..10 {
+        ok &= step(&mut state);
+    }
+    let mut runs = Vec::new();
+    for _ in 0..repeats {
+        let t = Instant::now();
+        for _ in 0..steps {
+            ok &= step(&mut state);
+        }
+        runs.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
+    }
+    let mut knn = Vec::new();
+    for _ in 0..repeats {
+        let t = Instant::now();
+        let _ = knn_all(&state.x, k as usize, threads);
+        knn.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let finite = ok && state.x.iter().all(|p| p.is_finite());
+    (median(runs), median(knn), finite)
+}
+
+fn sync(g: &Headless, world: &GpuWorld) {
+    let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
+}
+
+fn gpu_cell(g: &Headless, model: &Model, k: u32, steps: u32, repeats: usize) -> (f64, f64, bool) {
+    let state = State::new(model);
+    let mut world = GpuWorld::new(
+        &g.device,
+        &g.kernels,
+        model,
+        &state,
+        settings(Method::Jacobi, 0),
+        k,
+    )
+    .expect("GPU world");
+    world.write_params(&g.queue);
+    let record = |world: &mut GpuWorld, steps: u32| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        for _ in 0..steps {
+            if world.step.is_multiple_of(10) {
+                world.record_knn_all(&mut enc, &g.kernels, &mut NoTiming);
+            }
+            world.record_steps(&mut enc, &g.kernels, 1, &mut NoTiming);
+        }
+        enc.finish()
+    };
+    // Warm-up (and the GPU's clocks up: 10 steps, then at least 0.5 s of steps).
+    let warm = Instant::now();
+    let cmd = record(&mut world, 10);
+    g.queue.submit([cmd]);
+    sync(g, &world);
+    while warm.elapsed().as_secs_f64() < 0.5 {
+        let cmd = record(&mut world, 10);
+        g.queue.submit([cmd]);
+        sync(g, &world);
+    }
+    let mut runs = Vec::new();
+    for _ in 0..repeats {
+        let cmd = record(&mut world, steps);
+        let t = Instant::now();
+        g.queue.submit([cmd]);
+        sync(g, &world);
+        runs.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
+    }
+    let mut knn = Vec::new();
+    for _ in 0..repeats {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        for _ in 0..10 {
+            world.record_knn_all(&mut enc, &g.kernels, &mut NoTiming);
+        }
+        let t = Instant::now();
+        g.queue.submit([enc.finish()]);
+        sync(g, &world);
+        knn.push(t.elapsed().as_secs_f64() * 1e3 / 10.0);
+    }
+    let n = world.particle_count();
+    let finite = read_vec3(&g.device, &g.queue, world.positions(), n)
+        .iter()
+        .all(|p| p.is_finite());
+    (median(runs), median(knn), finite)
+}
+
+/// A speed-up as text: one decimal below 10x.
+fn ratio(r: f64) -> String {
+    if r < 10.0 {
+        format!("{r:.1}x")
+    } else {
+        format!("{r:.0}x")
+    }
+}
+
+fn paper(k: u32, kind: &str, target: u32) -> Option<f64> {
+    let i = SIZES.iter().position(|&s| s == target)?;
+    PAPER
+        .iter()
+        .find(|(pk, pb, _)| *pk == k && *pb == kind)
+        .map(|(_, _, v)| v[i])
+}
+
+fn main() {
+    let a: Vec<String> = std::env::args().skip(1).collect();
+    let quick = a.iter().any(|s| s == "--quick");
+    let num = |name: &str, default: usize| {
+        a.iter()
+            .position(|s| s == name)
+            .and_then(|i| a.get(i + 1))
+            .map(|v| {
+                v.parse()
+                    .unwrap_or_else(|_| panic!("{name} needs a number, got {v}"))
+            })
+            .unwrap_or(default)
+    };
+    let steps = num("--steps", if quick { 20 } else { 300 });
+    let repeats = num("--repeats", if quick { 3 } else { 5 });
+    let out = a
+        .iter()
+        .position(|s| s == "--out")
+        .and_then(|i| a.get(i + 1))
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("table1_out"));
+    std::fs::create_dir_all(&out).expect("output folder");
+    let sizes: &[u32] = if quick { &SIZES[..2] } else { &SIZES };
+    let mut backends = Vec::new();
+    if !a.iter().any(|s| s == "--no-cpu") {
+        backends.extend([Backend::CpuOneThread, Backend::CpuAllCores]);
+    }
+    let gpu = if a.iter().any(|s| s == "--no-gpu") {
+        None
+    } else {
+        match headless() {
+            Ok(g) => {
+                backends.push(Backend::Gpu);
+                Some(g)
+            }
+            Err(e) => {
+                eprintln!("no GPU adapter ({e}): GPU rows skipped");
+                None
+            }
+        }
+    };
+    let t0 = Instant::now();
+    let mut cells = Vec::new();
+    for &k in &[32u32, 64] {
+        for &target in sizes {
+            let model = liver(target, k);
+            for &b in &backends {
+                let (ms_step, ms_knn, finite) = match (b, &gpu) {
+                    (Backend::Gpu, Some(g)) => gpu_cell(g, &model, k, steps as u32, repeats),
+                    (Backend::Gpu, None) => continue,
+                    _ => cpu_cell(&model, k, b, steps, repeats),
+                };
+                eprintln!(
+                    "[{:6.1} s] K = {k}, {} particles, {}: {ms_step:.3} ms/step, KNN {ms_knn:.3} ms{}",
+                    t0.elapsed().as_secs_f64(),
+                    model.particle_count(),
+                    b.name(),
+                    if finite { "" } else { " (DIVERGED)" }
+                );
+                cells.push(Cell {
+                    backend: b,
+                    k,
+                    target,
+                    particles: model.particle_count(),
+                    ms_step,
+                    ms_knn,
+                    finite,
+                });
+            }
+        }
+    }
+    // Markdown.
+    println!(
+        "| K | particles | backend | ms per step | ms per KNN refresh | speed-up over 1-thread CPU | paper (ms per step) | speed-up over the paper |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for c in &cells {
+        let base = cells
+            .iter()
+            .find(|o| o.k == c.k && o.target == c.target && o.backend == Backend::CpuOneThread)
+            .map(|o| o.ms_step);
+        let p = paper(c.k, c.backend.paper_kind(), c.target);
+        println!(
+            "| {} | {} | {} | {:.3}{} | {:.3} | {} | {} | {} |",
+            c.k,
+            c.particles,
+            c.backend.name(),
+            c.ms_step,
+            if c.finite { "" } else { " (diverged)" },
+            c.ms_knn,
+            base.map_or("–".into(), |b| ratio(b / c.ms_step)),
+            p.map_or("–".into(), |v| format!("{v}")),
+            p.map_or("–".into(), |v| ratio(v / c.ms_step)),
+        );
+    }
+    // JSON (hand-written: flat records of numbers and strings).
+    let mut json = String::from("{\n  \"paper\": [\n");
+    for (i, (k, b, v)) in PAPER.iter().enumerate() {
+        let _ = writeln!(
+            json,
+            "    {{\"k\": {k}, \"backend\": \"{b}\", \"particles\": {SIZES:?}, \"ms_per_step\": {v:?}}}{}",
+            if i + 1 < PAPER.len() { "," } else { "" }
+        );
+    }
+    json.push_str("  ],\n  \"cells\": [\n");
+    for (i, c) in cells.iter().enumerate() {
+        let _ = writeln!(
+            json,
+            "    {{\"k\": {}, \"target\": {}, \"particles\": {}, \"backend\": \"{}\", \"ms_per_step\": {:.6}, \"ms_per_knn\": {:.6}, \"finite\": {}, \"steps\": {steps}, \"repeats\": {repeats}}}{}",
+            c.k,
+            c.target,
+            c.particles,
+            c.backend.name(),
+            c.ms_step,
+            c.ms_knn,
+            c.finite,
+            if i + 1 < cells.len() { "," } else { "" }
+        );
+    }
+    json.push_str("  ]\n}\n");
+    std::fs::write(out.join("table1.json"), json).expect("write JSON");
+    // Chart.
+    let mut series = Vec::new();
+    let mut color = 0;
+    for &k in &[32u32, 64] {
+        for &b in &backends {
+            let pts: Vec<(f64, f64)> = cells
+                .iter()
+                .filter(|c| c.k == k && c.backend == b)
+                .map(|c| (c.particles as f64, c.ms_step))
+                .collect();
+            series.push(chart::Series {
+                label: format!("{}, K = {k}", b.name()),
+                points: pts,
+                color,
+                markers: true,
+                line: true,
+            });
+            color += 1;
+        }
+    }
+    for (k, b, v) in PAPER {
+        series.push(chart::Series {
+            label: format!("paper {b}, K = {k}"),
+            points: SIZES.iter().zip(v).map(|(&s, &m)| (s as f64, m)).collect(),
+            color,
+            markers: true,
+            line: false,
+        });
+        color += 1;
+    }
+    let panel = chart::Panel {
+        title: "Table 1: ms per step against particles (liver, 10 iterations)".into(),
+        x_label: "particles".into(),
+        y_label: "ms per step".into(),
+        x_log: true,
+        y_log: true,
+        series,
+    };
+    chart::draw(&out.join("table1.png"), &[panel], 1, (1000, 640)).expect("chart");
+    eprintln!(
+        "wrote {} and {}",
+        out.join("table1.json").display(),
+        out.join("table1.png").display()
+    );
+}
