@@ -11,6 +11,9 @@
 //! cargo run --release --example gpu_bench            # the full set (a real GPU)
 //! cargo run --release --example gpu_bench -- --quick # small sizes (lavapipe: seconds)
 //! ```
+#[path = "support/bench.rs"]
+mod bench;
+
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
@@ -20,11 +23,6 @@ use bevy_tissue::gpu::world::read_vec3;
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, PassRecorder, headless};
 use glam::Vec3;
 use std::time::Instant;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 fn liver(resolution: Resolution, k: u32, material: Material) -> Model {
     let (lo, hi) = procedural::liver_ligament();
@@ -89,11 +87,6 @@ fn record(
     enc
 }
 
-fn sync(g: &Headless, world: &GpuWorld) {
-    // A one-particle read waits for all submitted work.
-    let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
-}
-
 fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -> Row {
     let n = model.particle_count() as u32;
     let t0 = Instant::now();
@@ -112,13 +105,13 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
     // Warm-up.
     let enc = record(g, &mut world, 20, 10, &mut NoTiming);
     g.queue.submit([enc.finish()]);
-    sync(g, &world);
+    bench::sync(g, &world);
     let mut per_step = Vec::new();
     for r in 0..repeats {
         let enc = record(g, &mut world, steps, 10, &mut NoTiming);
         let t = Instant::now();
         g.queue.submit([enc.finish()]);
-        sync(g, &world);
+        bench::sync(g, &world);
         let ms = t.elapsed().as_secs_f64() * 1e3 / steps as f64;
         eprintln!("  repeat {r}: {ms:.4} ms/step");
         per_step.push(ms);
@@ -133,7 +126,7 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
         }
         let t = Instant::now();
         g.queue.submit([enc.finish()]);
-        sync(g, &world);
+        bench::sync(g, &world);
         knn.push(t.elapsed().as_secs_f64() * 1e3 / 10.0);
     }
     // GPU timeline: timestamps before and after `steps` steps in one submission
@@ -175,9 +168,9 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
             format!("{scene} (DIVERGED: non-finite state)")
         },
         particles: n,
-        ms_step: median(per_step),
+        ms_step: bench::median(per_step),
         gpu_ms,
-        ms_knn: median(knn),
+        ms_knn: bench::median(knn),
         passes,
     };
     println!(

@@ -24,6 +24,8 @@
 //! level-0 iterations), `--coarse N` (iterations per coarse level, default 10),
 //! `--no-cpu`, `--no-gpu`, `--out DIR` (default `hierarchy_out`).
 
+#[path = "support/bench.rs"]
+mod bench;
 #[path = "support/chart.rs"]
 mod chart;
 
@@ -71,31 +73,16 @@ struct Args {
 }
 
 fn args() -> Args {
-    let a: Vec<String> = std::env::args().skip(1).collect();
-    let quick = a.iter().any(|s| s == "--quick");
-    let num = |name: &str, default: u32| {
-        a.iter()
-            .position(|s| s == name)
-            .and_then(|i| a.get(i + 1))
-            .map(|v| {
-                v.parse()
-                    .unwrap_or_else(|_| panic!("{name} needs a number, got {v}"))
-            })
-            .unwrap_or(default)
-    };
+    let a = bench::Args::new();
+    let quick = a.flag("--quick");
     Args {
-        bar: num("--bar", if quick { 3000 } else { 20_000 }),
-        liver: num("--liver", if quick { 3000 } else { 37_982 }),
-        iters: num("--iters", if quick { 40 } else { 200 }),
-        coarse: num("--coarse", SolverSettings::default().coarse_iterations),
-        cpu: !a.iter().any(|s| s == "--no-cpu"),
-        gpu: !a.iter().any(|s| s == "--no-gpu"),
-        out: a
-            .iter()
-            .position(|s| s == "--out")
-            .and_then(|i| a.get(i + 1))
-            .map(PathBuf::from)
-            .unwrap_or_else(|| PathBuf::from("hierarchy_out")),
+        bar: a.num("--bar", if quick { 3000 } else { 20_000 }),
+        liver: a.num("--liver", if quick { 3000 } else { 37_982 }),
+        iters: a.num("--iters", if quick { 40 } else { 200 }),
+        coarse: a.num("--coarse", SolverSettings::default().coarse_iterations),
+        cpu: !a.flag("--no-cpu"),
+        gpu: !a.flag("--no-gpu"),
+        out: a.path("--out", "hierarchy_out"),
     }
 }
 
@@ -211,10 +198,6 @@ fn cpu_curve(name: &'static str, n: u32, hier: bool, iters: u32, coarse: u32) ->
     }
 }
 
-fn sync(g: &Headless, world: &GpuWorld) {
-    let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
-}
-
 fn gpu_curve(
     g: &Headless,
     name: &'static str,
@@ -262,8 +245,8 @@ fn gpu_curve(
         let cpu = Solver::new(&model, s).expect("solver");
         let residual = cpu.residual_with(&model, &x, &rot, &lam);
         // Time of this one step: restart from the initial state (a GPU-to-GPU copy from
-        // an untouched twin world) and time one step, median of 5 (so that the timing
-        // never runs a diverging state).
+        // an untouched twin world) and time one step, the least of 5 (so that the
+        // timing never runs a diverging state).
         let base = GpuWorld::new(
             &g.device,
             &g.kernels,
@@ -281,7 +264,7 @@ fn gpu_curve(
             let mut enc = g.device.create_command_encoder(&Default::default());
             world.record_steps(&mut enc, &g.kernels, 2, &mut NoTiming);
             g.queue.submit([enc.finish()]);
-            sync(g, &world);
+            bench::sync(g, &world);
         }
         let mut times = Vec::new();
         for _ in 0..5 {
@@ -296,10 +279,10 @@ fn gpu_curve(
                 p.resolve(&mut enc);
             }
             let cmd = enc.finish();
-            sync(g, &world);
+            bench::sync(g, &world);
             let t = Instant::now();
             g.queue.submit([cmd]);
-            sync(g, &world);
+            bench::sync(g, &world);
             let wall = t.elapsed().as_secs_f64() * 1e3;
             times.push(match prof.as_mut() {
                 Some(p) => {

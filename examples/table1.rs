@@ -21,6 +21,8 @@
 //! Options: `--steps N` (default 300), `--repeats N` (default 5), `--no-cpu`,
 //! `--no-gpu`, `--out DIR` (default `table1_out`).
 
+#[path = "support/bench.rs"]
+mod bench;
 #[path = "support/chart.rs"]
 mod chart;
 
@@ -32,7 +34,6 @@ use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use bevy_tissue::gpu::world::read_vec3;
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
 use std::fmt::Write as _;
-use std::path::PathBuf;
 use std::time::Instant;
 
 /// The paper's Table 1, ms per time step: (K, backend, [512, 4096, 13824, 37982]).
@@ -75,11 +76,6 @@ struct Cell {
     ms_step: f64,
     ms_knn: f64,
     finite: bool,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 fn liver(particles: u32, k: u32) -> Model {
@@ -150,11 +146,7 @@ fn cpu_cell(
         knn.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let finite = ok && state.x.iter().all(|p| p.is_finite());
-    (median(runs), median(knn), finite)
-}
-
-fn sync(g: &Headless, world: &GpuWorld) {
-    let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
+    (bench::median(runs), bench::median(knn), finite)
 }
 
 fn gpu_cell(g: &Headless, model: &Model, k: u32, steps: u32, repeats: usize) -> (f64, f64, bool) {
@@ -183,18 +175,18 @@ fn gpu_cell(g: &Headless, model: &Model, k: u32, steps: u32, repeats: usize) -> 
     let warm = Instant::now();
     let cmd = record(&mut world, 10);
     g.queue.submit([cmd]);
-    sync(g, &world);
+    bench::sync(g, &world);
     while warm.elapsed().as_secs_f64() < 0.5 {
         let cmd = record(&mut world, 10);
         g.queue.submit([cmd]);
-        sync(g, &world);
+        bench::sync(g, &world);
     }
     let mut runs = Vec::new();
     for _ in 0..repeats {
         let cmd = record(&mut world, steps);
         let t = Instant::now();
         g.queue.submit([cmd]);
-        sync(g, &world);
+        bench::sync(g, &world);
         runs.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
     }
     let mut knn = Vec::new();
@@ -205,14 +197,14 @@ fn gpu_cell(g: &Headless, model: &Model, k: u32, steps: u32, repeats: usize) -> 
         }
         let t = Instant::now();
         g.queue.submit([enc.finish()]);
-        sync(g, &world);
+        bench::sync(g, &world);
         knn.push(t.elapsed().as_secs_f64() * 1e3 / 10.0);
     }
     let n = world.particle_count();
     let finite = read_vec3(&g.device, &g.queue, world.positions(), n)
         .iter()
         .all(|p| p.is_finite());
-    (median(runs), median(knn), finite)
+    (bench::median(runs), bench::median(knn), finite)
 }
 
 /// A speed-up as text: one decimal below 10x.
@@ -233,33 +225,18 @@ fn paper(k: u32, kind: &str, target: u32) -> Option<f64> {
 }
 
 fn main() {
-    let a: Vec<String> = std::env::args().skip(1).collect();
-    let quick = a.iter().any(|s| s == "--quick");
-    let num = |name: &str, default: usize| {
-        a.iter()
-            .position(|s| s == name)
-            .and_then(|i| a.get(i + 1))
-            .map(|v| {
-                v.parse()
-                    .unwrap_or_else(|_| panic!("{name} needs a number, got {v}"))
-            })
-            .unwrap_or(default)
-    };
-    let steps = num("--steps", if quick { 20 } else { 300 });
-    let repeats = num("--repeats", if quick { 3 } else { 5 });
-    let out = a
-        .iter()
-        .position(|s| s == "--out")
-        .and_then(|i| a.get(i + 1))
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from("table1_out"));
+    let a = bench::Args::new();
+    let quick = a.flag("--quick");
+    let steps: usize = a.num("--steps", if quick { 20 } else { 300 });
+    let repeats: usize = a.num("--repeats", if quick { 3 } else { 5 });
+    let out = a.path("--out", "table1_out");
     std::fs::create_dir_all(&out).expect("output folder");
     let sizes: &[u32] = if quick { &SIZES[..2] } else { &SIZES };
     let mut backends = Vec::new();
-    if !a.iter().any(|s| s == "--no-cpu") {
+    if !a.flag("--no-cpu") {
         backends.extend([Backend::CpuOneThread, Backend::CpuAllCores]);
     }
-    let gpu = if a.iter().any(|s| s == "--no-gpu") {
+    let gpu = if a.flag("--no-gpu") {
         None
     } else {
         match headless() {

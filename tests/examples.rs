@@ -14,23 +14,33 @@ fn example(name: &str) -> PathBuf {
     dir.join("examples").join(name)
 }
 
+/// Runs `name --quick --out <temp dir>`, asserts it succeeded, and returns the output
+/// folder, stdout and stderr.
+fn run_quick(name: &str) -> (PathBuf, String, String) {
+    let bin = example(name);
+    assert!(bin.exists(), "{} not built", bin.display());
+    let out = std::env::temp_dir().join(format!("bevy_tissue_{name}_{}", std::process::id()));
+    let run = Command::new(&bin)
+        .args(["--quick", "--out"])
+        .arg(&out)
+        .output()
+        .expect("run the example");
+    let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
+    assert!(run.status.success(), "{name} --quick failed:\n{stderr}");
+    (
+        out,
+        String::from_utf8_lossy(&run.stdout).into_owned(),
+        stderr,
+    )
+}
+
 fn gpu_required() -> bool {
     std::env::var("CI").is_ok_and(|v| v == "true")
 }
 
 #[test]
 fn hierarchy_quick_writes_complete_curves() {
-    let bin = example("hierarchy");
-    assert!(bin.exists(), "{} not built", bin.display());
-    let out = std::env::temp_dir().join(format!("bevy_tissue_hierarchy_{}", std::process::id()));
-    let run = Command::new(&bin)
-        .args(["--quick", "--out"])
-        .arg(&out)
-        .output()
-        .expect("run the example");
-    let stderr = String::from_utf8_lossy(&run.stderr);
-    assert!(run.status.success(), "hierarchy --quick failed:\n{stderr}");
-    let stdout = String::from_utf8_lossy(&run.stdout);
+    let (out, stdout, stderr) = run_quick("hierarchy");
     let csv = std::fs::read_to_string(out.join("hierarchy.csv")).expect("CSV written");
     assert!(out.join("hierarchy.png").exists(), "PNG written");
     let mut curves = std::collections::BTreeMap::<String, Vec<(u32, f64, f64)>>::new();
@@ -75,17 +85,7 @@ fn hierarchy_quick_writes_complete_curves() {
 
 #[test]
 fn table1_quick_fills_every_cell() {
-    let bin = example("table1");
-    assert!(bin.exists(), "{} not built", bin.display());
-    let out = std::env::temp_dir().join(format!("bevy_tissue_table1_{}", std::process::id()));
-    let run = Command::new(&bin)
-        .args(["--quick", "--out"])
-        .arg(&out)
-        .output()
-        .expect("run the example");
-    let stderr = String::from_utf8_lossy(&run.stderr);
-    assert!(run.status.success(), "table1 --quick failed:\n{stderr}");
-    let stdout = String::from_utf8_lossy(&run.stdout);
+    let (out, stdout, stderr) = run_quick("table1");
     let json = std::fs::read_to_string(out.join("table1.json")).expect("JSON written");
     assert!(out.join("table1.png").exists(), "PNG written");
     let gpu = !stderr.contains("GPU rows skipped");

@@ -296,6 +296,8 @@ pub struct Solver {
     levels: Vec<LevelSolver>,
     /// Positions at the start of the coarse levels' pass (prolongation reference).
     snap: Vec<Vec3>,
+    /// Per-particle constraint counts of the distance iteration (kept to reuse).
+    counts: Vec<u32>,
 }
 
 /// A coarse level's own solver and state, and which of level 0's pin slots each of its
@@ -350,6 +352,7 @@ impl Solver {
             h: 0.0,
             levels,
             snap: Vec::new(),
+            counts: Vec::new(),
         })
     }
 
@@ -604,7 +607,9 @@ impl Solver {
         let n = model.particle_count();
         self.p2.clear();
         self.p2.resize(n, Vec3::ZERO);
-        let mut count = vec![0u32; n];
+        let mut count = std::mem::take(&mut self.counts);
+        count.clear();
+        count.resize(n, 0);
         for c in 0..n {
             let wi = inv_mass(model, &self.pin_slot, c);
             for &j in &model.members(c)[1..] {
@@ -630,6 +635,7 @@ impl Solver {
             }
             self.p[i] = self.boundary(model, state, control, i, q);
         }
+        self.counts = count;
     }
 
     /// Recomputes the particle-contact candidates from positions `x` (KNN on the grid):

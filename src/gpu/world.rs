@@ -281,7 +281,10 @@ impl GpuWorld {
             .iter()
             .map(|b| b.skin.rest_vertices.len() as u64)
             .sum();
-        let lists = (model.cluster_members.len() + model.inv_clusters.len()) as u64;
+        let lists = std::iter::once(model)
+            .chain(model.levels.iter().map(|l| &l.model))
+            .map(|m| (m.cluster_members.len() + m.inv_clusters.len()) as u64)
+            .sum::<u64>();
         let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
         let max_bind = limits.max_storage_buffer_binding_size;
         let checks: [(&'static str, u64); 5] = [

@@ -1,0 +1,57 @@
+//! Shared by the benchmark examples: command-line options, the median, and waiting for
+//! the GPU. Included with `#[path = "support/bench.rs"] mod bench;`.
+#![allow(dead_code)]
+
+use bevy_tissue::gpu::world::read_vec3;
+use bevy_tissue::gpu::{GpuWorld, Headless};
+use std::path::PathBuf;
+use std::str::FromStr;
+
+/// The command line (after the program name).
+pub struct Args(Vec<String>);
+
+impl Args {
+    /// The process's arguments.
+    pub fn new() -> Self {
+        Self(std::env::args().skip(1).collect())
+    }
+
+    /// Whether `--name` was given.
+    pub fn flag(&self, name: &str) -> bool {
+        self.0.iter().any(|s| s == name)
+    }
+
+    fn value(&self, name: &str) -> Option<&String> {
+        self.0
+            .iter()
+            .position(|s| s == name)
+            .and_then(|i| self.0.get(i + 1))
+    }
+
+    /// The number after `name`, or `default`; exits with a message on a bad number.
+    pub fn num<T: FromStr>(&self, name: &str, default: T) -> T {
+        match self.value(name) {
+            Some(v) => v.parse().unwrap_or_else(|_| {
+                eprintln!("{name} needs a number, got {v}");
+                std::process::exit(2)
+            }),
+            None => default,
+        }
+    }
+
+    /// The path after `name`, or `default`.
+    pub fn path(&self, name: &str, default: &str) -> PathBuf {
+        PathBuf::from(self.value(name).map_or(default, |v| v.as_str()))
+    }
+}
+
+/// Median of a non-empty list.
+pub fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Waits for all submitted GPU work (a one-particle read cannot finish before it).
+pub fn sync(g: &Headless, world: &GpuWorld) {
+    let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
+}
