@@ -5,19 +5,25 @@
 //! * [`core`] — the simulation core (no Bevy beyond glam): model building, constraint
 //!   math, the CPU reference solver;
 //! * [`gpu`] — buffers, kernels and the batched GPU world;
-//! * [`plugin`] — the Bevy plugin: components, build systems, render-graph systems.
+//! * [`plugin`] — the Bevy plugin: components, build systems, render-graph systems;
+//! * [`interact`] — grab and pull bodies with the mouse;
+//! * `ui` (feature `egui`) — the live settings and timing panel.
 #![warn(missing_docs)]
 
 pub mod core;
 pub mod gpu;
+pub mod interact;
 pub mod plugin;
+#[cfg(feature = "egui")]
+pub mod ui;
 
 /// Everything a scene needs: `use bevy_tissue::prelude::*;`.
 pub mod prelude {
     pub use crate::plugin::components::{
         ColliderForce, ColliderKind, ParticlePositions, PinShape, Pinned, ReadbackParticles,
         SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock, TissueCollider,
-        TissueHierarchy, TissueMaterial, TissueResolution, TissueSettings,
+        ResetSoftBody, TissueHierarchy, TissueMaterial, TissueResolution, TissueSettings,
     };
+    pub use crate::interact::{DragGrasper, TissueDragPlugin, TissuePointer};
     pub use crate::plugin::{TissuePlugin, TissueSet};
 }

@@ -1,5 +1,5 @@
-//! Shared by the benchmark examples: command-line options, the median, and waiting for
-//! the GPU. Included with `#[path = "support/bench.rs"] mod bench;`.
+//! Shared by the examples: command-line options, the median, and waiting for the GPU.
+//! Included with `#[path = "support/bench.rs"] mod bench;`.
 #![allow(dead_code)]
 
 use bevy_tissue::gpu::world::read_vec3;
@@ -26,6 +26,20 @@ impl Args {
             .iter()
             .position(|s| s == name)
             .and_then(|i| self.0.get(i + 1))
+    }
+
+    /// The text after the first `name`, if given.
+    pub fn text(&self, name: &str) -> Option<&String> {
+        self.value(name)
+    }
+
+    /// The texts after every `name` (a repeatable option).
+    pub fn all(&self, name: &str) -> Vec<String> {
+        self.0
+            .windows(2)
+            .filter(|w| w[0] == name)
+            .map(|w| w[1].clone())
+            .collect()
     }
 
     /// The number after `name`, or `default`; exits with a message on a bad number.

@@ -1,5 +1,6 @@
 //! Kinematic colliders (ground plane, sphere, capsule, box) as signed distance functions,
-//! and the contact projection with Coulomb friction used by every solver.
+//! the contact projection with Coulomb friction used by every solver, and graspers that
+//! hold particles rigidly in their frame (tools, mouse drags).
 
 use glam::{Quat, Vec3};
 
@@ -25,6 +26,82 @@ pub enum ColliderShape {
         /// Half extents along local X, Y, Z, m.
         half_extents: Vec3,
     },
+    /// A grasper: pushes nothing; holds particles ([`Grab`]) rigidly in its frame.
+    Grasper {
+        /// Reach of a capture: particles within this distance of the origin, m.
+        radius: f32,
+        /// What it does this step.
+        mode: GraspMode,
+    },
+}
+
+/// What a [`ColliderShape::Grasper`] does in a step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GraspMode {
+    /// Holds nothing: every particle it held is let go.
+    #[default]
+    Open,
+    /// Takes every free particle within its radius (at the start of each substep) and
+    /// holds it, as well as those it already holds.
+    Capture,
+    /// Holds what it holds, takes nothing new.
+    Hold,
+}
+
+/// Which grasper holds a particle, and where in the grasper's frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Grab {
+    /// Index of the grasper in `Control::colliders`, or `u32::MAX` when free.
+    pub collider: u32,
+    /// The particle's position in the grasper's frame when it was taken, m.
+    pub offset: Vec3,
+}
+
+impl Grab {
+    /// A free particle.
+    pub const FREE: Grab = Grab {
+        collider: u32::MAX,
+        offset: Vec3::ZERO,
+    };
+}
+
+/// Updates a particle's grab at the start of a substep (particle at `x`, m): a grab whose
+/// collider is gone, not a grasper or open is let go; a free particle within reach of a
+/// capturing grasper is taken (the first in collider order). GPU twin: `update_grab` in
+/// `integrate.wgsl`.
+pub fn update_grab(colliders: &[Collider], x: Vec3, grab: &mut Grab) {
+    if grab.collider != u32::MAX {
+        let keep = colliders.get(grab.collider as usize).is_some_and(|c| {
+            matches!(c.shape, ColliderShape::Grasper { mode, .. } if mode != GraspMode::Open)
+        });
+        if !keep {
+            *grab = Grab::FREE;
+        }
+    }
+    if grab.collider != u32::MAX {
+        return;
+    }
+    for (k, c) in colliders.iter().enumerate() {
+        if let ColliderShape::Grasper {
+            radius,
+            mode: GraspMode::Capture,
+        } = c.shape
+            && (x - c.position).length() <= radius
+        {
+            *grab = Grab {
+                collider: k as u32,
+                offset: c.rotation.inverse() * (x - c.position),
+            };
+            return;
+        }
+    }
+}
+
+/// Where a held particle must be (m, world), or `None` when it is free.
+#[inline]
+pub fn grab_target(colliders: &[Collider], grab: &Grab) -> Option<Vec3> {
+    let c = colliders.get(grab.collider as usize)?;
+    Some(c.position + c.rotation * grab.offset)
 }
 
 /// A kinematic collider: moves as the scene says, is pushed by nothing.
@@ -73,6 +150,7 @@ impl Collider {
                 sphere_sdf(local - Vec3::new(0.0, y, 0.0), radius)
             }
             ColliderShape::Cuboid { half_extents } => box_sdf(local, half_extents),
+            ColliderShape::Grasper { .. } => (f32::INFINITY, Vec3::Y),
         };
         (d, self.rotation * n)
     }

@@ -17,7 +17,7 @@
 //! Each step checks for non-finite or exploding state; a bad step is undone and reported
 //! as [`TissueError::Diverged`] instead of spreading NaN.
 
-use super::colliders::{Collider, project_collider};
+use super::colliders::{Collider, Grab, grab_target, project_collider, update_grab};
 use super::constraints::{
     ClusterCorrection, ClusterRest, Hyperelastic, Multipliers, cluster_moments,
     iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
@@ -166,6 +166,8 @@ pub struct State {
     pub rot: Vec<Quat>,
     /// Target of each pinned particle (same order as `Model::pinned`), m.
     pub pin_targets: Vec<Vec3>,
+    /// Per particle: the grasper holding it, if any ([`ColliderShape::Grasper`](super::colliders::ColliderShape::Grasper)).
+    pub grab: Vec<Grab>,
     /// Steps taken.
     pub step: u64,
 }
@@ -182,6 +184,7 @@ impl State {
         let pin_targets = model.pinned.iter().map(|&i| x[i as usize]).collect();
         Self {
             v: vec![Vec3::ZERO; x.len()],
+            grab: vec![Grab::FREE; x.len()],
             x,
             rot,
             pin_targets,
@@ -385,7 +388,11 @@ impl Solver {
         let s = self.settings.clone();
         s.validate()?;
         let n = model.particle_count();
-        if state.x.len() != n || state.v.len() != n || state.rot.len() != n {
+        if state.x.len() != n
+            || state.v.len() != n
+            || state.rot.len() != n
+            || state.grab.len() != n
+        {
             return Err(TissueError::InvalidParameter {
                 name: "state",
                 value: format!("{} particles", state.x.len()),
@@ -419,6 +426,18 @@ impl Solver {
             }
             for (slot, &i) in model.pinned.iter().enumerate() {
                 self.p[i as usize] = state.pin_targets[slot];
+            }
+            // Graspers let go and take particles; held particles start at their target.
+            if !control.colliders.is_empty() {
+                for i in 0..n {
+                    if self.pin_slot[i] != u32::MAX {
+                        continue;
+                    }
+                    update_grab(&control.colliders, state.x[i], &mut state.grab[i]);
+                    if let Some(t) = grab_target(&control.colliders, &state.grab[i]) {
+                        self.p[i] = t;
+                    }
+                }
             }
             // XPBD multipliers start from zero every substep (Macklin et al. 2016).
             self.work.iter_mut().for_each(|w| w.1 = Multipliers::ZERO);
@@ -819,6 +838,7 @@ impl Solver {
             &self.pin_slot,
             &state.pin_targets,
             &state.x,
+            &state.grab,
             control,
             self.h,
             i,
@@ -885,6 +905,7 @@ impl Solver {
             let pin_slot = &self.pin_slot;
             let pin_targets = &state.pin_targets;
             let x = &state.x;
+            let grab = &state.grab;
             par::for_chunks_mut2(&mut self.p, &mut self.col, threads, |start, dst, col| {
                 for (k, (o, cid)) in dst.iter_mut().zip(col.iter_mut()).enumerate() {
                     let j = start + k;
@@ -911,7 +932,7 @@ impl Solver {
                         }
                     }
                     let (q, id, dp) =
-                        boundary_at(model, pin_slot, pin_targets, x, control, h, j, q);
+                        boundary_at(model, pin_slot, pin_targets, x, grab, control, h, j, q);
                     if id != u32::MAX {
                         cid.0 += dp;
                         cid.1 = id;
@@ -1012,8 +1033,10 @@ fn inv_mass(model: &Model, pin_slot: &[u32], i: usize) -> f32 {
     }
 }
 
-/// Pin or collider projection of particle `i` at `p`; returns the new position, the last
-/// collider touched (or `u32::MAX`) and that collider's correction.
+/// Pin, grasper or collider projection of particle `i` at `p`; returns the new position,
+/// the last collider touched (or `u32::MAX`) and that collider's correction. A particle a
+/// grasper holds goes to its target and records the correction against the grasper (so
+/// the grasper's force is the tissue's pull on it).
 #[allow(clippy::too_many_arguments)]
 #[inline]
 fn boundary_at(
@@ -1021,6 +1044,7 @@ fn boundary_at(
     pin_slot: &[u32],
     pin_targets: &[Vec3],
     x: &[Vec3],
+    grab: &[Grab],
     control: &Control,
     h: f32,
     i: usize,
@@ -1028,6 +1052,9 @@ fn boundary_at(
 ) -> (Vec3, u32, Vec3) {
     if pin_slot[i] != u32::MAX {
         return (pin_targets[pin_slot[i] as usize], u32::MAX, Vec3::ZERO);
+    }
+    if let Some(t) = grab_target(&control.colliders, &grab[i]) {
+        return (t, grab[i].collider, t - p);
     }
     let r = model.bodies[model.particle_body[i] as usize].radius;
     let mut id = u32::MAX;

@@ -6,7 +6,7 @@
 //! for all bodies). Particles keep the core's order: Morton (Z-curve) order inside each
 //! body, which is the spatial reordering the kernels' gathers rely on for coherent reads.
 
-use crate::core::colliders::{Collider, ColliderShape};
+use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::constraints::iteration_stiffness;
 use crate::core::model::{Material, Model};
 use crate::core::skin::SKIN_INFLUENCES;
@@ -135,7 +135,8 @@ pub struct GpuClusterState {
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, Default)]
 pub struct GpuCollider {
-    /// Kind (0 plane, 1 sphere, 2 capsule, 3 box) and friction.
+    /// Kind (0 plane, 1 sphere, 2 capsule, 3 box, 4 grasper), friction, grasper mode (0
+    /// open, 1 capture, 2 hold).
     pub kind_fr: [f32; 4],
     /// Position, m.
     pub pos: [f32; 4],
@@ -158,9 +159,19 @@ impl GpuCollider {
                 radius,
             } => (2.0, [half_length, radius, 0.0, 0.0]),
             ColliderShape::Cuboid { half_extents } => (3.0, half_extents.extend(0.0).to_array()),
+            ColliderShape::Grasper { radius, .. } => (4.0, [radius, 0.0, 0.0, 0.0]),
+        };
+        // Grasper mode: 0 open, 1 capture, 2 hold.
+        let mode = match c.shape {
+            ColliderShape::Grasper { mode, .. } => match mode {
+                GraspMode::Open => 0.0,
+                GraspMode::Capture => 1.0,
+                GraspMode::Hold => 2.0,
+            },
+            _ => 0.0,
         };
         Self {
-            kind_fr: [kind, c.friction, 0.0, 0.0],
+            kind_fr: [kind, c.friction, mode, 0.0],
             pos: c.position.extend(0.0).to_array(),
             rot: c.rotation.to_array(),
             shape,

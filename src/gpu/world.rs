@@ -139,10 +139,11 @@ struct Buffers {
     status: Buffer,
     bounds: Buffer,
     hier: Buffer,
+    grab: Buffer,
 }
 
 impl Buffers {
-    fn in_order(&self) -> [&Buffer; 31] {
+    fn in_order(&self) -> [&Buffer; 32] {
         [
             &self.params,
             &self.colliders,
@@ -175,6 +176,7 @@ impl Buffers {
             &self.status,
             &self.bounds,
             &self.hier,
+            &self.grab,
         ]
     }
 }
@@ -370,6 +372,16 @@ impl GpuWorld {
                 });
             }
         }
+        // Grabs: offset in the grasper's frame (m) and the grasper + 1 (0: free), all levels.
+        let mut grab: Vec<[f32; 4]> = state
+            .grab
+            .iter()
+            .map(|g| {
+                let id = if g.collider == u32::MAX { 0.0 } else { g.collider as f32 + 1.0 };
+                g.offset.extend(id).to_array()
+            })
+            .collect();
+        grab.resize(total as usize, [0.0; 4]);
         let pins: Vec<[f32; 4]> = state
             .pin_targets
             .iter()
@@ -448,6 +460,7 @@ impl GpuWorld {
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
             bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 32, st),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
+            grab: init("tissue grab", bytemuck::cast_slice(&grab), st),
         };
         let entries: Vec<BindGroupEntry> = b
             .in_order()
@@ -625,6 +638,20 @@ impl GpuWorld {
     /// (position, normal, uv), used when no mesh allocator slab is given.
     pub fn surface(&self) -> &Buffer {
         &self.surface
+    }
+
+    /// Per particle (all levels): the grasper holding it, `[offset (m, grasper frame),
+    /// grasper index + 1, or 0 when free]` (16 bytes each;
+    /// [`crate::core::colliders::Grab`]'s twin).
+    pub fn grabs(&self) -> &Buffer {
+        &self.b.grab
+    }
+
+    /// Lets every held particle go (the plugin does this when the collider list changes
+    /// order, since grabs name graspers by index).
+    pub fn release_grabs(&self, queue: &RenderQueue) {
+        let zeros = vec![0u8; self.b.grab.size() as usize];
+        queue.write_buffer(&self.b.grab, 0, &zeros);
     }
 
     /// Cluster states ([`GpuClusterState`]: warm-start rotation and XPBD multipliers),
@@ -946,7 +973,7 @@ impl GpuWorld {
         }
     }
 
-    /// Copies `count` particles' positions, velocities and cluster states starting at
+    /// Copies `count` particles' positions, velocities, cluster states and grabs starting at
     /// `from` in `other` to `to` in this world (GPU to GPU: a rebuilt world keeps the
     /// pose of the bodies it had).
     pub fn copy_state_from(
@@ -961,6 +988,7 @@ impl GpuWorld {
         encoder.copy_buffer_to_buffer(&other.b.x, f * 16, &self.b.x, t * 16, c * 16);
         encoder.copy_buffer_to_buffer(&other.b.v, f * 16, &self.b.v, t * 16, c * 16);
         encoder.copy_buffer_to_buffer(&other.b.cstate, f * 48, &self.b.cstate, t * 48, c * 48);
+        encoder.copy_buffer_to_buffer(&other.b.grab, f * 16, &self.b.grab, t * 16, c * 16);
     }
 }
 

@@ -29,6 +29,20 @@ pub struct BuiltBody {
     pub generation: u64,
     /// The draw mesh the GPU writes (the entity's `Mesh3d`).
     pub draw_mesh: Handle<Mesh>,
+    /// This generation starts from the rest pose ([`ResetSoftBody`]) instead of keeping
+    /// the simulated pose.
+    pub reset: bool,
+}
+
+/// Puts bodies named by [`ResetSoftBody`] messages back at rest: a new generation of the
+/// same model that the GPU world uploads from the rest state.
+pub fn reset_bodies(mut messages: MessageReader<ResetSoftBody>, mut bodies: Query<&mut BuiltBody>) {
+    for m in messages.read() {
+        if let Ok(mut b) = bodies.get_mut(m.entity) {
+            b.generation += 1;
+            b.reset = true;
+        }
+    }
 }
 
 /// Converts a Bevy mesh to the core's triangle mesh, transformed by `to_world`.
@@ -213,6 +227,7 @@ pub fn finish_builds(
                         model: Arc::new(model),
                         generation: built.map_or(0, |b| b.generation + 1),
                         draw_mesh: draw,
+                        reset: false,
                     },
                 ));
             }

@@ -1,7 +1,7 @@
 //! What a scene writes: the [`SoftBody`] component and its companions, the global
 //! [`TissueSettings`], the [`TissueClock`], and the messages the plugin sends.
 
-use crate::core::colliders::{Collider, ColliderShape};
+use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::hierarchy::HierarchyDesc;
 use crate::core::model::{Material, PinRegion};
 use crate::core::sampling::Resolution;
@@ -285,6 +285,15 @@ pub enum ColliderKind {
         /// Half extents, m.
         half_extents: Vec3,
     },
+    /// A grasper (forceps, a mouse drag): pushes nothing; while `closed`, the particles
+    /// within `radius` of its origin at the moment it closed move rigidly with it, and
+    /// [`ColliderForce`] reads the force they pull on it with. Opening lets them go.
+    Grasper {
+        /// Reach when closing, m.
+        radius: f32,
+        /// Holding (`true`) or open.
+        closed: bool,
+    },
 }
 
 /// A kinematic collider that pushes tissue: it follows its entity's `Transform` (its
@@ -326,6 +335,15 @@ impl TissueCollider {
             ColliderKind::Cuboid { half_extents } => ColliderShape::Cuboid {
                 half_extents: half_extents * scale,
             },
+            // Closed: capture; the plugin turns it into hold once the capture ran.
+            ColliderKind::Grasper { radius, closed } => ColliderShape::Grasper {
+                radius: radius * s,
+                mode: if closed {
+                    GraspMode::Capture
+                } else {
+                    GraspMode::Open
+                },
+            },
         };
         Collider {
             shape,
@@ -335,6 +353,14 @@ impl TissueCollider {
             friction: self.friction.max(0.0),
         }
     }
+}
+
+/// Puts a body back at its rest pose (the pose it was built in), velocities zero
+/// (message; the body keeps its settings).
+#[derive(Message, Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ResetSoftBody {
+    /// The body.
+    pub entity: Entity,
 }
 
 /// The force (N, world frame) the tissue exerted on a [`TissueCollider`] over the last

@@ -61,6 +61,7 @@ impl Plugin for TissuePlugin {
             .insert_resource(render::ReadbackReceiver(Mutex::new(rx)))
             .add_message::<SoftBodyError>()
             .add_message::<SoftBodyReady>()
+            .add_message::<ResetSoftBody>()
             .register_type::<SoftBody>()
             .register_type::<Pinned>()
             .register_type::<TissueCollider>()
@@ -77,7 +78,7 @@ impl Plugin for TissuePlugin {
             .add_systems(
                 Update,
                 (
-                    (build::start_builds, build::finish_builds)
+                    (build::reset_bodies, build::start_builds, build::finish_builds)
                         .chain()
                         .in_set(TissueSet::Build),
                     render::advance_clock.in_set(TissueSet::Clock),
@@ -85,6 +86,7 @@ impl Plugin for TissuePlugin {
                 ),
             )
             .add_systems(Last, render::remember_collider_poses)
+            .add_systems(First, render::latch_graspers)
             .add_observer(add_last_pose)
             .add_observer(remove_soft_body);
         let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
@@ -139,5 +141,5 @@ fn remove_soft_body(remove: On<Remove, SoftBody>, mut commands: Commands) {
 fn add_last_pose(add: On<Add, TissueCollider>, mut commands: Commands) {
     commands
         .entity(add.entity)
-        .insert(render::LastPose::default());
+        .insert((render::LastPose::default(), render::GraspLatch::default()));
 }

@@ -4,7 +4,7 @@
 
 use super::build::BuiltBody;
 use super::components::*;
-use crate::core::colliders::Collider;
+use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::model::Model;
 use crate::gpu::buffers::GpuDrawBody;
 use crate::gpu::{GpuWorld, Kernels, PassRecorder};
@@ -34,6 +34,8 @@ pub struct ExtractedBody {
     pub to_world: GlobalTransform,
     /// Positions requested this frame.
     pub readback: bool,
+    /// This generation starts from rest ([`ResetSoftBody`]).
+    pub reset: bool,
 }
 
 /// What the main world hands the render world each frame.
@@ -104,6 +106,8 @@ pub struct TissueGpu {
     settings: Option<TissueSettings>,
     steps: u32,
     colliders: Vec<(Entity, Collider, bool)>,
+    /// The collider entities of the last frame, in order (grabs name graspers by index).
+    collider_entities: Vec<Entity>,
     pending: Vec<Pending>,
     /// Vertex-slab bind groups of the current world, by slab buffer (slabs can move:
     /// a new buffer gets a new group, groups of slabs no longer used are dropped).
@@ -175,6 +179,7 @@ pub fn extract_tissue(
             &GlobalTransform,
             Option<&LastPose>,
             Option<&ColliderForce>,
+            Option<&GraspLatch>,
         )>,
     >,
     settings: Extract<Res<TissueSettings>>,
@@ -190,18 +195,27 @@ pub fn extract_tissue(
             mesh: b.draw_mesh.id(),
             to_world: *t,
             readback: r.is_some(),
+            reset: b.reset,
         })
         .collect();
     list.sort_by_key(|b| b.entity.index_u32());
     let dt = time.delta_secs().max(1e-6);
     let mut cols: Vec<(Entity, Collider, bool)> = colliders
         .iter()
-        .map(|(e, c, t, last, force)| {
+        .map(|(e, c, t, last, force, latch)| {
             let pos = t.translation();
             let vel = last
                 .and_then(|l| l.0)
                 .map_or(Vec3::ZERO, |p| (pos - p) / dt);
-            (e, c.to_core(t, vel), force.is_some())
+            let mut core = c.to_core(t, vel);
+            // A grasper takes particles in the steps right after it closed, then holds.
+            if let ColliderShape::Grasper { mode, .. } = &mut core.shape
+                && *mode == GraspMode::Capture
+                && latch.is_some_and(|l| l.0)
+            {
+                *mode = GraspMode::Hold;
+            }
+            (e, core, force.is_some())
         })
         .collect();
     // Spawn order (entity index), stable: colliders act in sequence within a projection
@@ -213,6 +227,22 @@ pub fn extract_tissue(
         settings: settings.clone(),
         steps: clock.steps_this_frame,
     });
+}
+
+/// Whether a closed grasper has had its capture steps (it then only holds).
+#[derive(Component, Default)]
+pub struct GraspLatch(pub bool);
+
+/// At the start of a frame: a closed grasper whose capture went out with last frame's
+/// steps now only holds; an open one is ready to capture again.
+pub fn latch_graspers(clock: Res<TissueClock>, mut q: Query<(&TissueCollider, &mut GraspLatch)>) {
+    for (c, mut latch) in &mut q {
+        let closed = matches!(c.kind, ColliderKind::Grasper { closed: true, .. });
+        let captured = closed && (latch.0 || clock.steps_this_frame > 0);
+        if latch.0 != captured {
+            latch.0 = captured;
+        }
+    }
 }
 
 /// Records collider positions for the next frame's velocity.
@@ -264,6 +294,17 @@ pub fn prepare_tissue(
     }
     gpu.colliders = ex.colliders.iter().take(max).cloned().collect();
     let cols: Vec<Collider> = gpu.colliders.iter().map(|c| c.1).collect();
+    // Grabs name their grasper by index: if a collider before another moved, let go.
+    let entities: Vec<Entity> = gpu.colliders.iter().map(|c| c.0).collect();
+    let same = gpu
+        .collider_entities
+        .iter()
+        .zip(&entities)
+        .all(|(a, b)| a == b);
+    if !same && let Some(world) = gpu.world.as_ref() {
+        world.release_grabs(&queue);
+    }
+    gpu.collider_entities = entities;
     if let Some(world) = gpu.world.as_mut() {
         if let Err(e) = world.set_colliders(&queue, &cols) {
             warn!("bevy_tissue: {e}");
@@ -327,6 +368,9 @@ fn rebuild(
                     let Some(j) = old_keys.iter().position(|k| k.0 == key.0) else {
                         continue;
                     };
+                    if fits[i].reset && old_keys[j].1 != key.1 {
+                        continue; // reset to rest
+                    }
                     let (from, to) = (old.ranges[j], world.ranges[i]);
                     if from.count == to.count {
                         world.copy_state_from(&mut enc, old, from.first, to.first, to.count);

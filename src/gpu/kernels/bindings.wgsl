@@ -35,6 +35,22 @@ const MAX_COLLIDERS: u32 = 128u;
 @group(0) @binding(28) var<storage, read_write> status: array<atomic<u32>>;
 @group(0) @binding(29) var<storage, read_write> bounds: array<vec4<f32>>;
 @group(0) @binding(30) var<storage, read> hier: array<u32>;
+@group(0) @binding(31) var<storage, read_write> grab: array<vec4<f32>>;
+
+const GRASPER: u32 = 4u;
+
+// Where grasper-held particle i must be (xyz) and the grasper (w; −1: free). `grab[i]` is
+// the offset in the grasper's frame (xyz, m) and the grasper's index + 1 (w; 0: free).
+// CPU twin: core::colliders::grab_target.
+fn grab_target(i: u32) -> vec4<f32> {
+    let g = grab[i];
+    if (g.w < 0.5) {
+        return vec4<f32>(0.0, 0.0, 0.0, -1.0);
+    }
+    let k = u32(g.w) - 1u;
+    let c = colliders[k];
+    return vec4<f32>(c.pos.xyz + quat_rotate(c.rot, g.xyz), f32(k));
+}
 
 fn inv_mass(i: u32) -> f32 {
     if (pinfo[i].y != NONE) {

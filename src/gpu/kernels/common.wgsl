@@ -79,10 +79,11 @@ struct Corr {
 };
 
 struct Collider {
-    kind_fr: vec4<f32>,      // x: kind (0 plane, 1 sphere, 2 capsule, 3 box), y: friction
+    kind_fr: vec4<f32>,      // x: kind (0 plane, 1 sphere, 2 capsule, 3 box, 4 grasper),
+                             // y: friction, z: grasper mode (0 open, 1 capture, 2 hold)
     pos: vec4<f32>,          // m
     rot: vec4<f32>,          // quaternion
-    shape: vec4<f32>,        // sphere: r; capsule: half length, r; box: half extents
+    shape: vec4<f32>,        // sphere, grasper: r; capsule: half length, r; box: half extents
     vel: vec4<f32>,          // m/s
 };
 

@@ -43,8 +43,10 @@ fn collider_distance(k: u32, pw: vec3<f32>) -> vec4<f32> {
     } else if (kind == 2u) {
         let y = clamp(l.y, -c.shape.x, c.shape.x);
         r = sdf_sphere(l - vec3<f32>(0.0, y, 0.0), c.shape.y);
-    } else {
+    } else if (kind == 3u) {
         r = sdf_box(l, c.shape.xyz);
+    } else {
+        r = vec4<f32>(0.0, 1.0, 0.0, 3.4e38); // grasper: touches nothing
     }
     return vec4<f32>(quat_rotate(c.rot, r.xyz), r.w);
 }
@@ -74,11 +76,17 @@ fn project_collider(k: u32, pp: vec3<f32>, xx: vec3<f32>, radius: f32) -> vec3<f
     return dp;
 }
 
-// Pins and colliders for particle j at q; records the collider correction.
+// Pins, graspers and colliders for particle j at q; records the collider correction.
 fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     let info = pinfo[j];
     if (info.y != NONE) {
         return pins[info.y].xyz;
+    }
+    let held = grab_target(j);
+    if (held.w >= 0.0) {
+        let old = coldp[j];
+        coldp[j] = vec4<f32>(old.xyz + held.xyz - q0, held.w);
+        return held.xyz;
     }
     var q = q0;
     let r = bodies[info.x].radius;

@@ -1,7 +1,33 @@
-// Predict (`v += h g`, `p = x + h v`, pinned particles at their targets; multipliers and
-// collider records reset) and finish (`v = (p − x)/h` with damping, `x = p`).
+// Predict (`v += h g`, `p = x + h v`, pinned particles at their targets, graspers take
+// and let go, held particles at their targets; multipliers and collider records reset) and finish (`v = (p − x)/h` with damping, `x = p`).
 // CPU twin: core::solver::Solver::step, stages 1 and 3 (where the CPU restores the whole
 // state of a diverged step, the GPU holds each diverged particle and flags its body).
+
+// Graspers let go of and take particle i (at x, start of the substep).
+// CPU twin: core::colliders::update_grab.
+fn update_grab(i: u32) {
+    var g = grab[i];
+    if (g.w >= 0.5) {
+        let k = u32(g.w) - 1u;
+        let keep = k < params.n_colliders && u32(colliders[k].kind_fr.x) == GRASPER
+            && colliders[k].kind_fr.z != 0.0;
+        if (!keep) {
+            g = vec4<f32>(0.0);
+        }
+    }
+    if (g.w < 0.5) {
+        let xi = x[i].xyz;
+        for (var k = 0u; k < params.n_colliders; k = k + 1u) {
+            let c = colliders[k];
+            if (u32(c.kind_fr.x) == GRASPER && c.kind_fr.z == 1.0
+                && length(xi - c.pos.xyz) <= c.shape.x) {
+                g = vec4<f32>(quat_inv_rotate(c.rot, xi - c.pos.xyz), f32(k + 1u));
+                break;
+            }
+        }
+    }
+    grab[i] = g;
+}
 
 @compute @workgroup_size(128)
 fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -15,6 +41,12 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     let slot = pinfo[i].y;
     if (slot != NONE) {
         pp = pins[slot].xyz;
+    } else if (params.n_colliders > 0u) {
+        update_grab(i);
+        let t = grab_target(i);
+        if (t.w >= 0.0) {
+            pp = t.xyz;
+        }
     }
     p[i] = vec4<f32>(pp, 0.0);
     let st = cstate[i];

@@ -1,0 +1,224 @@
+//! A game-like scene: dozens of jelly bodies of several shapes (Bevy primitives) rain
+//! onto ramps and a floor, bounce, pile up and push each other around. Grab any of them
+//! with the mouse.
+//!
+//! ```text
+//! cargo run --release --example jelly
+//! cargo run --release --example jelly -- --bodies 64 --particles 400
+//! ```
+//!
+//! Controls: left mouse drags a body; R drops everything again; Space pauses. With
+//! `--script` a mouse drag happens by itself (tests, screenshots); `--headless`,
+//! `--size`, `--frames`, `--shot FRAME:PATH` as in `support/scene.rs`.
+
+#[path = "support/bench.rs"]
+mod bench;
+#[path = "support/scene.rs"]
+mod scene;
+
+use bevy::input::mouse::MouseButtonInput;
+use bevy::prelude::*;
+use bevy::window::PrimaryWindow;
+use bevy_tissue::prelude::*;
+use scene::{SceneArgs, SceneCamera};
+
+#[derive(Resource)]
+struct Jelly {
+    bodies: u32,
+    particles: u32,
+}
+
+/// A jelly body (R drops them all again from where they started).
+#[derive(Component)]
+struct JellyBody;
+
+fn main() {
+    let args = bench::Args::new();
+    let scene = SceneArgs::parse(&args);
+    let jelly = Jelly {
+        bodies: args.num("--bodies", 36u32).max(1),
+        particles: args.num("--particles", 500u32),
+    };
+    let mut app = scene::app(&scene, "bevy_tissue: jelly", TissueSettings::default());
+    app.add_plugins(TissueDragPlugin::default())
+        .insert_resource(jelly)
+        .insert_resource(ClearColor(Color::srgb(0.55, 0.75, 0.95)))
+        .add_systems(Startup, setup)
+        .add_systems(Update, report);
+    if scene.script {
+        app.add_systems(Update, (script.before(TissueSet::Build), drag_report));
+    } else {
+        app.add_systems(Update, keys);
+    }
+    app.run();
+}
+
+fn setup(
+    mut commands: Commands,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+    jelly: Res<Jelly>,
+) {
+    commands.spawn((
+        SceneCamera,
+        Camera3d::default(),
+        Transform::from_xyz(0.0, 1.7, 2.6).looking_at(Vec3::new(0.0, 0.45, 0.0), Vec3::Y),
+    ));
+    commands.spawn((
+        DirectionalLight {
+            shadow_maps_enabled: true,
+            illuminance: 10_000.0,
+            ..default()
+        },
+        Transform::from_xyz(2.0, 5.0, 2.0).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
+    let stone = materials.add(Color::srgb(0.45, 0.47, 0.5));
+    // Static colliders, each drawn by the matching Bevy primitive.
+    commands.spawn((
+        Mesh3d(meshes.add(Plane3d::default().mesh().size(6.0, 6.0))),
+        MeshMaterial3d(materials.add(Color::srgb(0.35, 0.55, 0.35))),
+        TissueCollider::new(ColliderKind::Plane),
+    ));
+    for (x, tilt) in [(-0.7f32, -0.35f32), (0.7, 0.35)] {
+        let half = Vec3::new(0.6, 0.05, 0.5);
+        commands.spawn((
+            Mesh3d(meshes.add(Cuboid::from_size(half * 2.0))),
+            MeshMaterial3d(stone.clone()),
+            Transform::from_xyz(x, 0.55, 0.0).with_rotation(Quat::from_rotation_z(tilt)),
+            TissueCollider::new(ColliderKind::Cuboid { half_extents: half }),
+        ));
+    }
+    commands.spawn((
+        Mesh3d(meshes.add(Capsule3d::new(0.08, 1.2))),
+        MeshMaterial3d(stone.clone()),
+        Transform::from_xyz(0.0, 0.12, 0.6).with_rotation(Quat::from_rotation_z(1.5708)),
+        TissueCollider::new(ColliderKind::Capsule {
+            half_length: 0.6,
+            radius: 0.08,
+        }),
+    ));
+    // The jelly: shapes and colours in turn, on a grid in the air.
+    let shapes: [Mesh; 6] = [
+        Sphere::new(0.13).mesh().ico(3).unwrap(),
+        Cuboid::new(0.22, 0.18, 0.22).mesh().build(),
+        Capsule3d::new(0.08, 0.16).mesh().rings(4).latitudes(12).build(),
+        Torus::new(0.05, 0.14).mesh().build(),
+        Cylinder::new(0.11, 0.2).mesh().build(),
+        Cone::new(0.13, 0.25).mesh().build(),
+    ];
+    let shapes: Vec<Handle<Mesh>> = shapes.into_iter().map(|m| meshes.add(m)).collect();
+    let side = (jelly.bodies as f32).sqrt().ceil() as u32;
+    for i in 0..jelly.bodies {
+        let (gx, gz) = (i % side, i / side);
+        let layer = i / (side * side).max(1);
+        let x = (gx as f32 - (side - 1) as f32 / 2.0) * 0.36;
+        let z = (gz % side) as f32 * 0.3 - 0.4;
+        let at = Transform::from_xyz(x, 1.4 + 0.4 * layer as f32 + 0.05 * (i % 3) as f32, z)
+            .with_rotation(Quat::from_euler(EulerRot::XYZ, 0.3 * i as f32, 0.7 * i as f32, 0.0));
+        let hue = (i as f32 * 47.0) % 360.0;
+        commands.spawn((
+            Name::new(format!("jelly {i}")),
+            Mesh3d(shapes[i as usize % shapes.len()].clone()),
+            MeshMaterial3d(materials.add(StandardMaterial {
+                base_color: Color::hsl(hue, 0.75, 0.55),
+                perceptual_roughness: 0.2,
+                ..default()
+            })),
+            at,
+            JellyBody,
+            SoftBody {
+                material: TissueMaterial::ShapeMatching { stiffness: 0.6 },
+                resolution: TissueResolution::Particles(jelly.particles),
+                neighbours: 24,
+                ..default()
+            },
+        ));
+    }
+}
+
+/// R drops everything again; Space pauses.
+fn keys(
+    keys: Res<ButtonInput<KeyCode>>,
+    mut clock: ResMut<TissueClock>,
+    bodies: Query<Entity, With<JellyBody>>,
+    mut reset: MessageWriter<ResetSoftBody>,
+) {
+    if keys.just_pressed(KeyCode::KeyR) {
+        for entity in &bodies {
+            reset.write(ResetSoftBody { entity });
+        }
+    }
+    if keys.just_pressed(KeyCode::Space) {
+        clock.toggle_pause();
+    }
+}
+
+/// `--script`: at frame 150 the mouse takes the highest body and lifts it 0.3 m for 60
+/// frames.
+#[allow(clippy::too_many_arguments)]
+fn script(
+    frames: Res<scene::Frames>,
+    camera: Query<(&Camera, &GlobalTransform), With<SceneCamera>>,
+    bodies: Query<(&bevy::camera::primitives::Aabb, &GlobalTransform), With<SoftBody>>,
+    mut target: Local<Option<Vec3>>,
+    mut window: Query<(Entity, &mut Window), With<PrimaryWindow>>,
+    buttons: Res<ButtonInput<MouseButton>>,
+    mut mouse: MessageWriter<MouseButtonInput>,
+    mut pointer: ResMut<TissuePointer>,
+) {
+    let f = frames.count;
+    let Ok((cam, at)) = camera.single() else {
+        return;
+    };
+    if f == 145 {
+        // The centre of the highest body's box (the top of the pile).
+        *target = bodies
+            .iter()
+            .map(|(b, t)| t.transform_point(Vec3::from(b.center)))
+            .max_by(|a, b| a.y.total_cmp(&b.y));
+    }
+    let Some(start) = *target else { return };
+    let lift = ((f as f32 - 160.0) / 40.0).clamp(0.0, 1.0) * 0.3;
+    let pressed = (150..210).contains(&f);
+    scene::drive_pointer(
+        Some(start + Vec3::Y * lift),
+        pressed,
+        (cam, at),
+        &mut window,
+        &buttons,
+        &mut mouse,
+        &mut pointer,
+    );
+}
+
+/// `--script`: the largest pull the mouse drag felt so far, every 50 frames.
+fn drag_report(
+    frames: Res<scene::Frames>,
+    drag: Query<&ColliderForce, With<DragGrasper>>,
+    ready: Query<&SoftBodyStatus>,
+    mut max: Local<f32>,
+) {
+    for f in &drag {
+        *max = max.max(f.0.length());
+    }
+    if frames.count.is_multiple_of(50) {
+        let n = ready
+            .iter()
+            .filter(|s| matches!(s, SoftBodyStatus::Ready { .. }))
+            .count();
+        println!(
+            "frame {}: {n} bodies ready; max force on the mouse drag {:.4} N",
+            frames.count, *max
+        );
+    }
+}
+
+fn report(mut ready: MessageReader<SoftBodyReady>, mut errors: MessageReader<SoftBodyError>) {
+    let n = ready.read().count();
+    if n > 0 {
+        info!("{n} jelly bodies ready");
+    }
+    for e in errors.read() {
+        error!("soft body {}: {}", e.entity, e.error);
+    }
+}

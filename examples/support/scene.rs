@@ -1,0 +1,298 @@
+//! Shared by the scene examples (liver, jelly): a window or a headless render target of a
+//! given size, PNG frames at given frames, a frame limit, a frame-rate report, and a
+//! scripted pointer (the mouse drag driven by the script instead of the hand).
+//! Included with `#[path = "support/scene.rs"] mod scene;` (needs `mod bench;` too).
+//!
+//! Options every scene example takes:
+//!
+//! ```text
+//! --frames N          exit after N frames
+//! --headless          no window: draw into an image of --size (default 1920x1080)
+//! --size WxH          window or image size, px
+//! --shot F:PATH       write frame F as a PNG (repeatable)
+//! --script            scripted input (tool moves, a drag) and one step per frame
+//! --warmup N          frames before the frame-rate report starts (default 120)
+//! --lite              no shadow maps, no MSAA (software rasterisers, CI)
+//! ```
+#![allow(dead_code)]
+
+use crate::bench::Args;
+use bevy::camera::RenderTarget;
+use bevy::input::ButtonState;
+use bevy::input::mouse::MouseButtonInput;
+use bevy::prelude::*;
+use bevy::render::render_resource::TextureFormat;
+use bevy::render::view::screenshot::{Screenshot, save_to_disk};
+use bevy::window::{ExitCondition, PrimaryWindow, WindowResolution};
+use bevy_tissue::prelude::*;
+use std::time::{Duration, Instant};
+
+/// The scene options.
+#[derive(Resource, Clone, Debug)]
+pub struct SceneArgs {
+    /// Exit after this many frames.
+    pub frames: Option<u32>,
+    /// Draw into an image instead of a window.
+    pub headless: bool,
+    /// Window or image size, px.
+    pub size: UVec2,
+    /// PNG frames to write: (frame, path).
+    pub shots: Vec<(u32, String)>,
+    /// Scripted input, one step per frame.
+    pub script: bool,
+    /// Frames before the frame-rate report starts.
+    pub warmup: u32,
+    /// No shadow maps and no MSAA (for software rasterisers such as lavapipe).
+    pub lite: bool,
+}
+
+impl SceneArgs {
+    /// From the command line; exits with a message on a bad option.
+    pub fn parse(args: &Args) -> Self {
+        let size = args.text("--size").map_or(UVec2::new(1920, 1080), |s| {
+            let parsed = s
+                .split_once('x')
+                .and_then(|(w, h)| Some(UVec2::new(w.parse().ok()?, h.parse().ok()?)));
+            parsed.filter(|v| v.min_element() > 0).unwrap_or_else(|| {
+                eprintln!("--size needs WxH, got {s}");
+                std::process::exit(2)
+            })
+        });
+        let shots = args
+            .all("--shot")
+            .iter()
+            .map(|s| {
+                s.split_once(':')
+                    .and_then(|(f, p)| Some((f.parse().ok()?, p.to_string())))
+                    .unwrap_or_else(|| {
+                        eprintln!("--shot needs FRAME:PATH, got {s}");
+                        std::process::exit(2)
+                    })
+            })
+            .collect();
+        let frames = args.text("--frames").map(|_| args.num("--frames", 0u32));
+        Self {
+            frames,
+            headless: args.flag("--headless"),
+            size,
+            shots,
+            script: args.flag("--script"),
+            warmup: args.num("--warmup", 120),
+            lite: args.flag("--lite"),
+        }
+    }
+}
+
+/// The camera the scene is seen through (a headless run points it at an image).
+#[derive(Component)]
+pub struct SceneCamera;
+
+/// The headless target image.
+#[derive(Resource)]
+struct TargetImage(Handle<Image>);
+
+/// Frame counter and frame-time samples.
+#[derive(Resource, Default)]
+pub struct Frames {
+    /// Frames run (the first is 1).
+    pub count: u32,
+    last: Option<Instant>,
+    times: Vec<f64>,
+}
+
+/// The app: Bevy's default plugins for a window or a headless image target, the tissue
+/// plugin with `settings`, and this module's frame handling.
+pub fn app(args: &SceneArgs, title: &str, mut settings: TissueSettings) -> App {
+    let mut app = App::new();
+    let window = Window {
+        title: title.into(),
+        resolution: WindowResolution::new(args.size.x, args.size.y),
+        ..default()
+    };
+    if args.headless {
+        app.add_plugins(
+            DefaultPlugins
+                .set(WindowPlugin {
+                    primary_window: None,
+                    exit_condition: ExitCondition::DontExit,
+                    ..default()
+                })
+                .disable::<bevy::winit::WinitPlugin>(),
+        )
+        .add_plugins(bevy::app::ScheduleRunnerPlugin::run_loop(Duration::ZERO));
+    } else {
+        app.add_plugins(DefaultPlugins.set(WindowPlugin {
+            primary_window: Some(window),
+            ..default()
+        }));
+    }
+    if args.script {
+        // One step per frame: the script's timeline is in frames, whatever the frame rate.
+        settings.max_steps_per_frame = 1;
+    }
+    app.add_plugins(TissuePlugin { settings })
+        .insert_resource(args.clone())
+        .init_resource::<Frames>()
+        .add_systems(PreStartup, make_target)
+        .add_systems(Update, (aim_camera, count_frames, lite_lights))
+        .add_systems(Last, finish);
+    if args.script {
+        app.add_systems(Startup, |mut clock: ResMut<TissueClock>| {
+            clock.fixed_steps_per_frame = Some(1);
+        });
+    }
+    app
+}
+
+fn make_target(args: Res<SceneArgs>, mut images: ResMut<Assets<Image>>, mut commands: Commands) {
+    if args.headless {
+        let image = Image::new_target_texture(
+            args.size.x,
+            args.size.y,
+            TextureFormat::Rgba8UnormSrgb,
+            None,
+        );
+        commands.insert_resource(TargetImage(images.add(image)));
+    }
+}
+
+/// Points a headless scene's camera at the target image.
+fn aim_camera(
+    target: Option<Res<TargetImage>>,
+    cameras: Query<Entity, Added<SceneCamera>>,
+    mut commands: Commands,
+) {
+    let Some(target) = target else { return };
+    for e in &cameras {
+        commands
+            .entity(e)
+            .insert(RenderTarget::Image(target.0.clone().into()));
+    }
+}
+
+/// `--lite`: directional lights cast no shadows and the camera takes one sample a pixel.
+fn lite_lights(
+    args: Res<SceneArgs>,
+    mut lights: Query<&mut DirectionalLight, Added<DirectionalLight>>,
+    cameras: Query<Entity, Added<SceneCamera>>,
+    mut commands: Commands,
+) {
+    if args.lite {
+        for mut l in &mut lights {
+            l.shadow_maps_enabled = false;
+        }
+        for e in &cameras {
+            commands.entity(e).insert(Msaa::Off);
+        }
+    }
+}
+
+fn count_frames(mut frames: ResMut<Frames>) {
+    frames.count += 1;
+    let now = Instant::now();
+    if let Some(last) = frames.last {
+        let dt = (now - last).as_secs_f64() * 1e3;
+        frames.times.push(dt);
+    }
+    frames.last = Some(now);
+}
+
+/// PNG frames, the frame limit and the frame-rate report.
+fn finish(
+    args: Res<SceneArgs>,
+    frames: Res<Frames>,
+    target: Option<Res<TargetImage>>,
+    clock: Res<TissueClock>,
+    store: Option<Res<bevy::diagnostic::DiagnosticsStore>>,
+    mut commands: Commands,
+    mut exit: MessageWriter<AppExit>,
+) {
+    let n = frames.count;
+    for (f, path) in &args.shots {
+        if *f == n {
+            let shot = match &target {
+                Some(t) => Screenshot::image(t.0.clone()),
+                None => Screenshot::primary_window(),
+            };
+            commands.spawn(shot).observe(save_to_disk(path.clone()));
+        }
+    }
+    let Some(limit) = args.frames else { return };
+    // A few frames more than the last shot, so that the PNGs are written.
+    let last_shot = args.shots.iter().map(|s| s.0).max().unwrap_or(0);
+    if n < limit.max(last_shot + 5) {
+        return;
+    }
+    let times = &frames.times[(args.warmup as usize).min(frames.times.len())..];
+    if !times.is_empty() {
+        let mut sorted = times.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        let mean = times.iter().sum::<f64>() / times.len() as f64;
+        let median = sorted[sorted.len() / 2];
+        println!(
+            "frames {n} (after {} warm-up): mean {mean:.3} ms/frame = {:.1} fps, median {median:.3} ms = {:.1} fps, slowest {:.3} ms; {} steps",
+            args.warmup,
+            1e3 / mean,
+            1e3 / median,
+            sorted[sorted.len() - 1],
+            clock.steps
+        );
+    }
+    // GPU time per render pass (with RenderDiagnosticsPlugin, which the panel adds).
+    if let Some(store) = store {
+        let mut passes: Vec<(String, f64)> = store
+            .iter()
+            .filter(|d| {
+                let p = d.path().as_str();
+                p.starts_with("render/") && p.ends_with("/elapsed_gpu")
+            })
+            .filter_map(|d| Some((d.path().to_string(), d.smoothed()?)))
+            .collect();
+        passes.sort_by(|a, b| b.1.total_cmp(&a.1));
+        if !passes.is_empty() {
+            let list: Vec<String> = passes
+                .iter()
+                .take(16)
+                .map(|(p, ms)| format!("{} {ms:.3}", &p[7..p.len() - 12]))
+                .collect();
+            println!("GPU ms per pass (smoothed, first dispatch of each tissue kernel): {}", list.join(", "));
+        }
+    }
+    exit.write(AppExit::Success);
+}
+
+/// Drives the pointer as the script says: with a window, through the window's cursor and
+/// mouse-button messages (the path a real mouse takes); headless, through
+/// [`TissuePointer`] directly. `at` is a world point the cursor is put over.
+pub fn drive_pointer(
+    at: Option<Vec3>,
+    pressed: bool,
+    camera: (&Camera, &GlobalTransform),
+    window: &mut Query<(Entity, &mut Window), With<PrimaryWindow>>,
+    buttons: &ButtonInput<MouseButton>,
+    mouse: &mut MessageWriter<MouseButtonInput>,
+    pointer: &mut TissuePointer,
+) {
+    let screen = at.and_then(|p| camera.0.world_to_viewport(camera.1, p).ok());
+    if let Ok((entity, mut w)) = window.single_mut() {
+        if screen.is_some() {
+            w.set_cursor_position(screen);
+        }
+        if pressed != buttons.pressed(MouseButton::Left) {
+            mouse.write(MouseButtonInput {
+                button: MouseButton::Left,
+                state: if pressed {
+                    ButtonState::Pressed
+                } else {
+                    ButtonState::Released
+                },
+                window: entity,
+            });
+        }
+    } else {
+        if screen.is_some() {
+            pointer.position = screen;
+        }
+        pointer.pressed = pressed;
+    }
+}
