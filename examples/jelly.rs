@@ -91,7 +91,8 @@ fn setup(
     commands.spawn((
         Mesh3d(meshes.add(Capsule3d::new(0.08, 1.2))),
         MeshMaterial3d(stone.clone()),
-        Transform::from_xyz(0.0, 0.12, 0.6).with_rotation(Quat::from_rotation_z(1.5708)),
+        Transform::from_xyz(0.0, 0.12, 0.6)
+            .with_rotation(Quat::from_rotation_z(std::f32::consts::FRAC_PI_2)),
         TissueCollider::new(ColliderKind::Capsule {
             half_length: 0.6,
             radius: 0.08,
@@ -101,7 +102,11 @@ fn setup(
     let shapes: [Mesh; 6] = [
         Sphere::new(0.13).mesh().ico(3).unwrap(),
         Cuboid::new(0.22, 0.18, 0.22).mesh().build(),
-        Capsule3d::new(0.08, 0.16).mesh().rings(4).latitudes(12).build(),
+        Capsule3d::new(0.08, 0.16)
+            .mesh()
+            .rings(4)
+            .latitudes(12)
+            .build(),
         Torus::new(0.05, 0.14).mesh().build(),
         Cylinder::new(0.11, 0.2).mesh().build(),
         Cone::new(0.13, 0.25).mesh().build(),
@@ -114,7 +119,12 @@ fn setup(
         let x = (gx as f32 - (side - 1) as f32 / 2.0) * 0.36;
         let z = (gz % side) as f32 * 0.3 - 0.4;
         let at = Transform::from_xyz(x, 1.4 + 0.4 * layer as f32 + 0.05 * (i % 3) as f32, z)
-            .with_rotation(Quat::from_euler(EulerRot::XYZ, 0.3 * i as f32, 0.7 * i as f32, 0.0));
+            .with_rotation(Quat::from_euler(
+                EulerRot::XYZ,
+                0.3 * i as f32,
+                0.7 * i as f32,
+                0.0,
+            ));
         let hue = (i as f32 * 47.0) % 360.0;
         commands.spawn((
             Name::new(format!("jelly {i}")),
@@ -127,7 +137,7 @@ fn setup(
             at,
             JellyBody,
             SoftBody {
-                material: TissueMaterial::ShapeMatching { stiffness: 0.6 },
+                material: TissueMaterial::ShapeMatching { stiffness: 0.85 },
                 resolution: TissueResolution::Particles(jelly.particles),
                 neighbours: 24,
                 ..default()

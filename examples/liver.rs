@@ -68,8 +68,7 @@ fn main() {
     if !args.flag("--no-ui") {
         app.add_plugins(TissueUiPlugin::default());
     }
-    app
-        .insert_resource(Particles(particles))
+    app.insert_resource(Particles(particles))
         .insert_resource(ClearColor(Color::srgb(0.06, 0.07, 0.09)))
         .add_systems(Startup, setup)
         .add_systems(Update, (report, jaws));
@@ -216,7 +215,8 @@ fn keys(
     mut reset: MessageWriter<ResetSoftBody>,
 ) {
     let axis = |k: [KeyCode; 6]| {
-        let v = |a: KeyCode, b: KeyCode| keys.pressed(b) as i32 as f32 - keys.pressed(a) as i32 as f32;
+        let v =
+            |a: KeyCode, b: KeyCode| keys.pressed(b) as i32 as f32 - keys.pressed(a) as i32 as f32;
         Vec3::new(v(k[0], k[1]), v(k[2], k[3]), v(k[4], k[5]))
     };
     let step = TOOL_SPEED * time.delta_secs();
@@ -262,7 +262,7 @@ fn script(
     if frames.count == 320
         && let Ok(mut body) = liver.single_mut()
     {
-        body.neighbours = 16;
+        body.neighbours = 40;
     }
     let ramp = |a: f32, b: f32| ((f - a) / (b - a)).clamp(0.0, 1.0);
     // Probe: down onto the right lobe (its top settles at y ≈ 0.086 m) and 2 cm into it
@@ -285,11 +285,12 @@ fn script(
             c.kind = kind;
         }
     }
-    // Mouse: press over the right lobe's front at 240, pull up and right, release at 310.
+    // Mouse: press over the right lobe at 240 (the cursor over a point inside it, so the
+    // ray meets its top), pull up and right, release at 310.
     let Ok((cam, at)) = camera.single() else {
         return;
     };
-    let from = LIVER_AT + Vec3::new(0.06, 0.0, 0.066);
+    let from = LIVER_AT + Vec3::new(0.05, 0.01, 0.03);
     let to = from + Vec3::new(0.04, 0.05, 0.0);
     let p = from.lerp(to, ramp(250.0, 300.0));
     let pressed = (240.0..310.0).contains(&f);
@@ -312,6 +313,7 @@ fn script_report(
     frames: Res<scene::Frames>,
     tools: Query<(&Name, &ColliderForce)>,
     liver: Query<(&SoftBody, &SoftBodyStatus), With<Liver>>,
+    time: Res<Time<Real>>,
     mut max: Local<Vec<(String, f32)>>,
 ) {
     for (name, f) in &tools {
@@ -327,7 +329,12 @@ fn script_report(
             .single()
             .map(|(b, s)| format!("K = {}, {s:?}", b.neighbours))
             .unwrap_or_default();
-        println!("frame {}: max forces: {}; liver {status}", frames.count, list.join(", "));
+        println!(
+            "frame {} ({:.2} s): max forces: {}; liver {status}",
+            frames.count,
+            time.elapsed_secs(),
+            list.join(", ")
+        );
     }
 }
 

@@ -19,11 +19,11 @@ pub mod ui;
 
 /// Everything a scene needs: `use bevy_tissue::prelude::*;`.
 pub mod prelude {
+    pub use crate::interact::{DragGrasper, TissueDragPlugin, TissuePointer};
     pub use crate::plugin::components::{
         ColliderForce, ColliderKind, ParticlePositions, PinShape, Pinned, ReadbackParticles,
-        SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock, TissueCollider,
-        ResetSoftBody, TissueHierarchy, TissueMaterial, TissueResolution, TissueSettings,
+        ResetSoftBody, SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock,
+        TissueCollider, TissueHierarchy, TissueMaterial, TissueResolution, TissueSettings,
     };
-    pub use crate::interact::{DragGrasper, TissueDragPlugin, TissuePointer};
     pub use crate::plugin::{TissuePlugin, TissueSet};
 }

@@ -159,7 +159,7 @@ fn residual_falls_with_more_iterations() {
 /// is gone or not a grasper frees its particles; targets follow the grasper's pose.
 #[test]
 fn grasper_takes_holds_and_lets_go() {
-    use bevy_tissue::core::colliders::{GraspMode, Grab, grab_target, update_grab};
+    use bevy_tissue::core::colliders::{Grab, GraspMode, grab_target, update_grab};
     let grasper = |mode, at: Vec3, rot: Quat| {
         Collider::new(ColliderShape::Grasper { radius: 0.1, mode }, at, rot)
     };
@@ -171,23 +171,40 @@ fn grasper_takes_holds_and_lets_go() {
     ];
     let mut grabs = [Grab::FREE; 4];
     // A sphere first (not a grasper), then the grasper at index 1.
-    let sphere = Collider::new(ColliderShape::Sphere { radius: 5.0 }, Vec3::ZERO, Quat::IDENTITY);
-    let take = [sphere, grasper(GraspMode::Capture, Vec3::ZERO, Quat::IDENTITY)];
+    let sphere = Collider::new(
+        ColliderShape::Sphere { radius: 5.0 },
+        Vec3::ZERO,
+        Quat::IDENTITY,
+    );
+    let take = [
+        sphere,
+        grasper(GraspMode::Capture, Vec3::ZERO, Quat::IDENTITY),
+    ];
     for (p, g) in points.iter().zip(&mut grabs) {
         update_grab(&take, *p, g);
     }
     let held: Vec<u32> = grabs.iter().map(|g| g.collider).collect();
-    assert_eq!(held, [1, 1, u32::MAX, u32::MAX], "only the particles within reach");
+    assert_eq!(
+        held,
+        [1, 1, u32::MAX, u32::MAX],
+        "only the particles within reach"
+    );
     // Hold: moved and turned by a quarter turn about Y, nothing new is taken.
     let turn = Quat::from_rotation_y(std::f32::consts::FRAC_PI_2);
-    let hold = [sphere, grasper(GraspMode::Hold, Vec3::new(0.0, 1.0, 0.0), turn)];
+    let hold = [
+        sphere,
+        grasper(GraspMode::Hold, Vec3::new(0.0, 1.0, 0.0), turn),
+    ];
     let mut far = Grab::FREE;
     update_grab(&hold, Vec3::new(0.0, 1.0, 0.0), &mut far);
     assert_eq!(far, Grab::FREE, "holding takes nothing new");
     for (p, g) in points.iter().zip(&mut grabs).take(2) {
         update_grab(&hold, *p, g);
         let t = grab_target(&hold, g).unwrap();
-        assert!(t.distance(Vec3::new(0.0, 1.0, 0.0) + turn * *p) < 1e-6, "{t}");
+        assert!(
+            t.distance(Vec3::new(0.0, 1.0, 0.0) + turn * *p) < 1e-6,
+            "{t}"
+        );
     }
     assert!(grab_target(&hold, &grabs[2]).is_none());
     // The grasper's distance function touches nothing.
@@ -195,7 +212,11 @@ fn grasper_takes_holds_and_lets_go() {
     assert!(d.is_infinite());
     // Open lets go; so does a collider list without the grasper.
     let mut g0 = grabs[0];
-    update_grab(&[sphere, grasper(GraspMode::Open, Vec3::ZERO, Quat::IDENTITY)], points[0], &mut g0);
+    update_grab(
+        &[sphere, grasper(GraspMode::Open, Vec3::ZERO, Quat::IDENTITY)],
+        points[0],
+        &mut g0,
+    );
     assert_eq!(g0, Grab::FREE);
     let mut g1 = grabs[1];
     update_grab(&[sphere], points[1], &mut g1);

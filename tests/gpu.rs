@@ -571,16 +571,33 @@ fn grasper_take_hold_and_release_match_the_cpu() {
             let control = Control {
                 colliders: colliders.clone(),
             };
-            force = solver.step(&model, &mut cpu, &control).unwrap().collider_forces[1];
+            force = solver
+                .step(&model, &mut cpu, &control)
+                .unwrap()
+                .collider_forces[1];
             let xg = run_gpu(g, &mut world, &colliders, 1);
             t += dt;
             if std::env::var("GRASP_TRACE").is_ok() {
                 let vmax = cpu.v.iter().map(|v| v.length()).fold(0.0, f32::max);
-                eprintln!("{mode:?} t {t:.3}: GPU–CPU {:.3e} m, max speed {vmax:.3} m/s", max_dist(&xg, &cpu.x));
+                eprintln!(
+                    "{mode:?} t {t:.3}: GPU–CPU {:.3e} m, max speed {vmax:.3} m/s",
+                    max_dist(&xg, &cpu.x)
+                );
             }
         }
-        let x = read_vec3(&g.device, &g.queue, world.positions(), world.particle_count());
-        let grabs = read_buffer(&g.device, &g.queue, world.grabs(), 0, cpu.x.len() as u64 * 16);
+        let x = read_vec3(
+            &g.device,
+            &g.queue,
+            world.positions(),
+            world.particle_count(),
+        );
+        let grabs = read_buffer(
+            &g.device,
+            &g.queue,
+            world.grabs(),
+            0,
+            cpu.x.len() as u64 * 16,
+        );
         let grabs: &[[f32; 4]] = bytemuck::cast_slice(&grabs);
         let held_cpu: Vec<usize> = (0..cpu.x.len())
             .filter(|&i| cpu.grab[i].collider == 1)

@@ -255,7 +255,11 @@ fn finish(
                 .take(16)
                 .map(|(p, ms)| format!("{} {ms:.3}", &p[7..p.len() - 12]))
                 .collect();
-            println!("GPU ms per pass (smoothed, first dispatch of each tissue kernel): {}", list.join(", "));
+            println!(
+                "GPU ms per pass (smoothed; `tissue` is all of the frame's tissue work, \
+                 `tissue/<kernel>` its first dispatch): {}",
+                list.join(", ")
+            );
         }
     }
     exit.write(AppExit::Success);

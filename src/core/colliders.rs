@@ -71,9 +71,9 @@ impl Grab {
 /// `integrate.wgsl`.
 pub fn update_grab(colliders: &[Collider], x: Vec3, grab: &mut Grab) {
     if grab.collider != u32::MAX {
-        let keep = colliders.get(grab.collider as usize).is_some_and(|c| {
-            matches!(c.shape, ColliderShape::Grasper { mode, .. } if mode != GraspMode::Open)
-        });
+        let keep = colliders.get(grab.collider as usize).is_some_and(
+            |c| matches!(c.shape, ColliderShape::Grasper { mode, .. } if mode != GraspMode::Open),
+        );
         if !keep {
             *grab = Grab::FREE;
         }

@@ -388,10 +388,7 @@ impl Solver {
         let s = self.settings.clone();
         s.validate()?;
         let n = model.particle_count();
-        if state.x.len() != n
-            || state.v.len() != n
-            || state.rot.len() != n
-            || state.grab.len() != n
+        if state.x.len() != n || state.v.len() != n || state.rot.len() != n || state.grab.len() != n
         {
             return Err(TissueError::InvalidParameter {
                 name: "state",

@@ -377,7 +377,11 @@ impl GpuWorld {
             .grab
             .iter()
             .map(|g| {
-                let id = if g.collider == u32::MAX { 0.0 } else { g.collider as f32 + 1.0 };
+                let id = if g.collider == u32::MAX {
+                    0.0
+                } else {
+                    g.collider as f32 + 1.0
+                };
                 g.offset.extend(id).to_array()
             })
             .collect();

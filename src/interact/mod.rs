@@ -166,7 +166,7 @@ pub fn pick_particle(ray: Ray3d, positions: &[Vec3], max_dist: f32) -> Option<(u
     for (i, p) in positions.iter().enumerate() {
         let rel = *p - ray.origin;
         let t = rel.dot(d);
-        if !(t > 0.0) {
+        if t.is_nan() || t <= 0.0 {
             continue;
         }
         let off = (rel - d * t).length_squared();
@@ -310,6 +310,9 @@ mod tests {
         let ray = Ray3d::new(Vec3::ONE, Dir3::new(Vec3::new(1.0, 0.0, -1.0)).unwrap());
         let p = point_at_depth(ray, Vec3::NEG_Z, 2.0).unwrap();
         assert!((p - Vec3::new(3.0, 1.0, -1.0)).length() < 1e-5, "{p}");
-        assert!(point_at_depth(ray, Vec3::Z, 2.0).is_none(), "behind the camera");
+        assert!(
+            point_at_depth(ray, Vec3::Z, 2.0).is_none(),
+            "behind the camera"
+        );
     }
 }

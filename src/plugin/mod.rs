@@ -78,7 +78,11 @@ impl Plugin for TissuePlugin {
             .add_systems(
                 Update,
                 (
-                    (build::reset_bodies, build::start_builds, build::finish_builds)
+                    (
+                        build::reset_bodies,
+                        build::start_builds,
+                        build::finish_builds,
+                    )
                         .chain()
                         .in_set(TissueSet::Build),
                     render::advance_clock.in_set(TissueSet::Clock),

@@ -114,7 +114,14 @@ pub struct TissueGpu {
     slab_groups: Vec<(bevy::render::render_resource::BufferId, BindGroup)>,
     /// Mapped-and-read staging buffers, reused by later readbacks.
     staging: Arc<Mutex<Vec<Buffer>>>,
+    /// Readbacks mapped but not delivered yet.
+    in_flight: Arc<std::sync::atomic::AtomicUsize>,
+    warned_in_flight: bool,
 }
+
+/// Readbacks in flight beyond which a frame issues none (a driver that delivers them late
+/// must not make the staging buffers pile up).
+const MAX_READBACKS_IN_FLIGHT: usize = 16;
 
 impl TissueGpu {
     /// Host ↔ GPU traffic of the last frame.
@@ -394,9 +401,11 @@ fn rebuild(
     }
 }
 
-/// Bevy's render-diagnostic spans (`RenderDiagnosticsPlugin`): the first dispatch of
-/// each kernel in a frame, so that every pass is reported while the frame's ~35
-/// dispatches per step leave Bevy's 256 timestamp queries to its own passes.
+/// Bevy's render-diagnostic spans (`RenderDiagnosticsPlugin`): one span `tissue` around
+/// all of the frame's tissue work (`render/tissue/elapsed_gpu`: every dispatch), and
+/// inside it the first dispatch of each kernel (`render/tissue/<kernel>/…`), so that
+/// every pass is reported while the frame's ~35 dispatches per step leave Bevy's 256
+/// timestamp queries to its own passes.
 struct Spans<'a> {
     recorder: Option<&'a DiagnosticsRecorder>,
     seen: Vec<&'static str>,
@@ -410,7 +419,9 @@ impl PassRecorder for Spans<'_> {
             && !self.seen.contains(&name)
         {
             self.seen.push(name);
-            r.begin_pass_span(pass, name.into());
+            // Inside the `tissue` span: `tissue/clusters` is reported as
+            // `render/tissue/clusters`.
+            r.begin_pass_span(pass, name.strip_prefix("tissue/").unwrap_or(name).into());
             self.open = true;
         }
     }
@@ -494,10 +505,16 @@ pub fn run_tissue(
         seen: Vec::new(),
         open: false,
     };
+    if let Some(r) = recorder {
+        r.begin_time_span(encoder, "tissue".into());
+    }
     world.record_steps(encoder, kernels, steps, &mut spans);
     world.record_draw(&queue, encoder, kernels, &draw_jobs, &mut spans);
     // Per-body bounds, every frame (32 bytes a body), for frustum culling.
     world.record_bounds(encoder, kernels, &mut spans);
+    if let Some(r) = recorder {
+        r.end_time_span(encoder);
+    }
     // Readback copies.
     let mut items = Vec::new();
     for (i, b) in gpu.bodies.iter().enumerate() {
@@ -520,6 +537,16 @@ pub fn run_tissue(
         }
     }
     if items.is_empty() {
+        return;
+    }
+    if gpu.in_flight.load(std::sync::atomic::Ordering::Relaxed) >= MAX_READBACKS_IN_FLIGHT {
+        if !gpu.warned_in_flight {
+            warn!(
+                "bevy_tissue: {MAX_READBACKS_IN_FLIGHT} readbacks not delivered yet: readbacks \
+                 (bounds, forces, positions) are skipped until they are"
+            );
+            gpu.warned_in_flight = true;
+        }
         return;
     }
     let total: u64 = items.iter().map(|i| i.2).sum();
@@ -560,20 +587,41 @@ pub fn run_tissue(
     });
 }
 
-/// After the frame is submitted: map this frame's readback buffers; the callbacks send
-/// the data to the main world when the GPU is done.
-pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
+/// After the frame is submitted: poll the device (non-blocking) so finished readbacks are
+/// delivered, and map this frame's readback buffers; the callbacks send the data to the
+/// main world when the GPU is done.
+pub fn map_readbacks(
+    mut gpu: ResMut<TissueGpu>,
+    sender: Res<ReadbackSender>,
+    device: Res<RenderDevice>,
+) {
+    // Deliver the readbacks of earlier frames that the GPU has finished: without a poll
+    // some drivers (NVIDIA's Vulkan, measured) run the map callbacks only when something
+    // else polls the device, seconds later.
+    if let Err(e) = device.poll(wgpu::PollType::Poll) {
+        warn!("bevy_tissue: device poll failed: {e}");
+    }
     let pool = gpu.staging.clone();
+    let in_flight = gpu.in_flight.clone();
     for p in gpu.pending.drain(..) {
         let tx = sender.0.clone();
         let pool = pool.clone();
+        let in_flight = in_flight.clone();
+        in_flight.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let buf = p.buffer.clone();
         let items = p.items;
         let step = p.step;
         p.buffer.slice(..).map_async(MapMode::Read, move |res| {
-            if res.is_err() {
+            in_flight.fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+            if let Err(e) = res {
+                warn!("bevy_tissue: a readback failed to map: {e}");
                 return;
             }
+            debug!(
+                "bevy_tissue: readback of step {step}: {} items, {} bytes",
+                items.len(),
+                buf.size()
+            );
             {
                 let data = buf.slice(..).get_mapped_range();
                 for (e, at, len, kind) in items {
@@ -596,20 +644,42 @@ pub fn map_readbacks(mut gpu: ResMut<TissueGpu>, sender: Res<ReadbackSender>) {
     }
 }
 
-/// Marks a body whose divergence was reported (once per build).
-#[derive(Component)]
-pub struct DivergenceReported;
+/// A body whose simulation diverged: how often it was put back at rest since it was
+/// built, and when last (frames of [`receive_readbacks`]).
+#[derive(Component, Debug, Clone, Copy)]
+pub struct DivergenceReported {
+    /// Recoveries (resets to rest) so far.
+    pub recoveries: u32,
+    /// Frame of the last report.
+    pub frame: u64,
+    /// Recovery was given up: the body is left held where it diverged.
+    pub given_up: bool,
+}
 
-/// Main world: delivers readback results to their entities.
+/// Times a diverged body is put back at rest before it is left held (per build).
+pub const MAX_RECOVERIES: u32 = 3;
+/// Frames after a recovery during which divergence flags (readbacks of the world before
+/// the reset, still in flight) are ignored.
+const RECOVERY_QUIET_FRAMES: u64 = 8;
+
+/// Main world: delivers readback results to their entities. A body whose step diverged
+/// (the GPU held the offending particles and flagged it) is put back at rest and
+/// reported, up to [`MAX_RECOVERIES`] times per build; then it is left held, reported
+/// once more.
+#[allow(clippy::too_many_arguments)]
 pub fn receive_readbacks(
     mut commands: Commands,
     rx: Res<ReadbackReceiver>,
-    bodies: Query<(&BuiltBody, &GlobalTransform)>,
-    reported: Query<(), With<DivergenceReported>>,
+    mut bodies: Query<(&mut BuiltBody, &GlobalTransform)>,
+    reported: Query<&DivergenceReported>,
     requests: Query<&ReadbackParticles>,
     mut status: Query<&mut SoftBodyStatus>,
     mut errors: MessageWriter<SoftBodyError>,
+    mut frame: Local<u64>,
 ) {
+    *frame += 1;
+    // Bodies already handled this frame (two frames' flags can arrive together).
+    let mut handled: Vec<Entity> = Vec::new();
     let Ok(rx) = rx.0.lock() else { return };
     while let Ok(msg) = rx.try_recv() {
         match msg {
@@ -628,15 +698,35 @@ pub fn receive_readbacks(
                 }
             }
             ReadbackResult::Bounds(e, lo, hi, diverged) => {
-                if diverged && !reported.contains(e) {
-                    let error = "the simulation diverged (NaN or a particle faster than \
-                        max_speed): the offending particles are held in place; lower dt or \
-                        raise iterations/substeps, or use shape matching"
-                        .to_string();
+                let prev = reported.get(e).ok().copied();
+                let quiet = handled.contains(&e)
+                    || prev.is_some_and(|r| r.given_up || *frame < r.frame + RECOVERY_QUIET_FRAMES);
+                if diverged && !quiet {
+                    handled.push(e);
+                    let n = prev.map_or(0, |r| r.recoveries);
+                    let recover = n < MAX_RECOVERIES;
+                    let what = if recover {
+                        format!("put back at rest (recovery {} of {MAX_RECOVERIES})", n + 1)
+                    } else {
+                        format!("left held where it diverged after {MAX_RECOVERIES} recoveries")
+                    };
+                    let error = format!(
+                        "the simulation diverged (NaN or a particle faster than max_speed) and \
+                         the body was {what}; lower dt, raise iterations/substeps or K, or use \
+                         shape matching"
+                    );
                     warn!("soft body {e}: {error}");
                     errors.write(SoftBodyError { entity: e, error });
+                    if recover && let Ok((mut b, _)) = bodies.get_mut(e) {
+                        b.generation += 1;
+                        b.reset = true;
+                    }
                     if let Ok(mut ec) = commands.get_entity(e) {
-                        ec.insert(DivergenceReported);
+                        ec.insert(DivergenceReported {
+                            recoveries: n + recover as u32,
+                            frame: *frame,
+                            given_up: !recover,
+                        });
                     }
                 }
                 // The entity-local box of the particles, grown by the skin's reach past

@@ -206,7 +206,10 @@ fn draw_panel(
         .collapsible(true)
         .default_open(!p.collapsed)
         .default_width(300.0)
-        .vscroll(true);
+        .vscroll(true)
+        // Tall enough that the timing and the tool forces show without scrolling, where
+        // the window allows.
+        .min_height((ctx.content_rect().height() - 2.0 * MARGIN).clamp(0.0, 760.0));
     window = if p.anchored {
         window.anchor(egui::Align2::LEFT_TOP, [MARGIN, MARGIN])
     } else {

@@ -290,7 +290,7 @@ pub(crate) fn timing_widgets(
     let fps = smoothed(&FrameTimeDiagnosticsPlugin::FPS);
     let frame = smoothed(&FrameTimeDiagnosticsPlugin::FRAME_TIME);
     let rows = store.map(stats::pass_rows).unwrap_or_default();
-    let total = stats::total_ms(&rows);
+    let total = store.and_then(stats::frame_total);
     let steps = clock.map(|c| c.steps_this_frame);
     egui::Grid::new("tissue_timing")
         .num_columns(2)
@@ -314,10 +314,11 @@ pub(crate) fn timing_widgets(
         );
         return;
     }
-    ui.label("GPU time per tissue pass (smoothed)")
+    ui.label("GPU time per tissue kernel (first dispatch in a frame, smoothed)")
         .on_hover_text(
-            "From Bevy's render diagnostics: the time of what the tissue plugin's diagnostic \
-         spans cover in a frame (see `run_tissue`)",
+            "From Bevy's render diagnostics. Each kernel row times its first dispatch in \
+             the frame; the frame row times all of the frame's tissue work (steps, \
+             drawing, bounds), and per step divides it by the steps the frame took.",
         );
     egui::Grid::new("tissue_passes")
         .num_columns(2)
@@ -328,7 +329,7 @@ pub(crate) fn timing_widgets(
                 ui.monospace(stats::fmt_ms(Some(*ms)));
                 ui.end_row();
             }
-            ui.strong("total");
+            ui.strong("frame (all dispatches)");
             ui.strong(stats::fmt_ms(total));
             ui.end_row();
             ui.label("per step");

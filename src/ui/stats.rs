@@ -17,9 +17,9 @@ pub(crate) const STALE_AFTER: Duration = Duration::from_secs(1);
 /// passes not measured for [`STALE_AFTER`] before the newest one are left out.
 ///
 /// Bevy's `RenderDiagnosticsPlugin` puts them there, timing what the plugin's spans in
-/// `run_tissue` cover (at the time of writing the first dispatch of each pass in a
-/// frame, not all its dispatches); without it, or on a GPU without timestamp queries,
-/// the list is empty.
+/// `run_tissue` cover: the first dispatch of each kernel in a frame, not all its
+/// dispatches ([`frame_total`] has them all); without it, or on a GPU without timestamp
+/// queries, the list is empty.
 pub(crate) fn pass_rows(store: &DiagnosticsStore) -> Vec<(String, f64)> {
     let found: Vec<_> = store
         .iter()
@@ -48,13 +48,22 @@ pub(crate) fn pass_rows(store: &DiagnosticsStore) -> Vec<(String, f64)> {
     rows
 }
 
-/// Sum of the rows' times, ms (`None` for no rows).
-pub(crate) fn total_ms(rows: &[(String, f64)]) -> Option<f64> {
-    (!rows.is_empty()).then(|| rows.iter().map(|r| r.1).sum())
+/// Path of the span around all of a frame's tissue GPU work (every dispatch).
+pub(crate) const FRAME_TOTAL: &str = "render/tissue/elapsed_gpu";
+
+/// The frame's tissue GPU time (every dispatch of the steps, the drawing and the bounds),
+/// smoothed, ms.
+pub(crate) fn frame_total(store: &DiagnosticsStore) -> Option<f64> {
+    store
+        .iter()
+        .find(|d| d.is_enabled && d.path().as_str() == FRAME_TOTAL)?
+        .smoothed()
+        .filter(|ms| ms.is_finite())
 }
 
-/// GPU time per simulation step, ms: the frame's tissue GPU time (the sum of the
-/// [`pass_rows`]) over the steps the frame took. `None` when there is no time or no step (nothing to divide).
+/// GPU time per simulation step, ms: the frame's tissue GPU time ([`frame_total`])
+/// over the steps the frame took. `None` when there is no time or no step (nothing to
+/// divide).
 pub(crate) fn ms_per_step(total_ms: Option<f64>, steps: u32) -> Option<f64> {
     let total = total_ms?;
     (steps > 0 && total.is_finite() && total > 0.0).then(|| total / steps as f64)
@@ -83,7 +92,7 @@ mod tests {
     }
 
     #[test]
-    fn rows_are_the_tissue_gpu_passes_sorted_with_a_total() {
+    fn rows_are_the_tissue_gpu_passes_sorted_and_the_frame_total_apart() {
         let now = Instant::now();
         let mut s = DiagnosticsStore::default();
         add(&mut s, "render/tissue/skin/elapsed_gpu", &[0.25], now);
@@ -102,11 +111,13 @@ mod tests {
         add(&mut s, "frame_time", &[16.0], now);
         // Registered but never measured: left out.
         add(&mut s, "render/tissue/knn/elapsed_gpu", &[], now);
+        // The span around all of the frame's tissue work: not a row, the frame total.
+        add(&mut s, "render/tissue/elapsed_gpu", &[4.0], now);
         let rows = pass_rows(&s);
         let names: Vec<&str> = rows.iter().map(|r| r.0.as_str()).collect();
         assert_eq!(names, ["clusters", "gather", "skin"]);
         assert_eq!(rows[0].1, 1.5);
-        assert_eq!(total_ms(&rows), Some(2.25));
+        assert_eq!(frame_total(&s), Some(4.0));
     }
 
     #[test]
@@ -151,7 +162,7 @@ mod tests {
     fn empty_store_has_no_rows_and_no_total() {
         let s = DiagnosticsStore::default();
         assert!(pass_rows(&s).is_empty());
-        assert_eq!(total_ms(&[]), None);
+        assert_eq!(frame_total(&s), None);
     }
 
     #[test]
