@@ -21,14 +21,15 @@ impl Args {
         self.0.iter().any(|s| s == name)
     }
 
+    /// The text after the last `name` (a later option overrides an earlier one).
     fn value(&self, name: &str) -> Option<&String> {
         self.0
             .iter()
-            .position(|s| s == name)
+            .rposition(|s| s == name)
             .and_then(|i| self.0.get(i + 1))
     }
 
-    /// The text after the first `name`, if given.
+    /// The text after the last `name`, if given.
     pub fn text(&self, name: &str) -> Option<&String> {
         self.value(name)
     }
