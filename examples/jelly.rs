@@ -16,11 +16,9 @@ mod bench;
 #[path = "support/scene.rs"]
 mod scene;
 
-use bevy::input::mouse::MouseButtonInput;
 use bevy::prelude::*;
-use bevy::window::PrimaryWindow;
 use bevy_tissue::prelude::*;
-use scene::{SceneArgs, SceneCamera};
+use scene::SceneArgs;
 
 #[derive(Resource)]
 struct Jelly {
@@ -59,19 +57,13 @@ fn setup(
     mut materials: ResMut<Assets<StandardMaterial>>,
     jelly: Res<Jelly>,
 ) {
-    commands.spawn((
-        SceneCamera,
-        Camera3d::default(),
-        Transform::from_xyz(0.0, 1.7, 2.6).looking_at(Vec3::new(0.0, 0.45, 0.0), Vec3::Y),
-    ));
-    commands.spawn((
-        DirectionalLight {
-            shadow_maps_enabled: true,
-            illuminance: 10_000.0,
-            ..default()
-        },
-        Transform::from_xyz(2.0, 5.0, 2.0).looking_at(Vec3::ZERO, Vec3::Y),
-    ));
+    scene::spawn_view(
+        &mut commands,
+        Vec3::new(0.0, 1.7, 2.6),
+        Vec3::new(0.0, 0.45, 0.0),
+        Vec3::new(2.0, 5.0, 2.0),
+        10_000.0,
+    );
     let stone = materials.add(Color::srgb(0.45, 0.47, 0.5));
     // Static colliders, each drawn by the matching Bevy primitive.
     commands.spawn((
@@ -168,18 +160,11 @@ fn keys(
 #[allow(clippy::too_many_arguments)]
 fn script(
     frames: Res<scene::Frames>,
-    camera: Query<(&Camera, &GlobalTransform), With<SceneCamera>>,
     bodies: Query<(&bevy::camera::primitives::Aabb, &GlobalTransform), With<SoftBody>>,
     mut target: Local<Option<Vec3>>,
-    mut window: Query<(Entity, &mut Window), With<PrimaryWindow>>,
-    buttons: Res<ButtonInput<MouseButton>>,
-    mut mouse: MessageWriter<MouseButtonInput>,
-    mut pointer: ResMut<TissuePointer>,
+    mut pointer: scene::ScriptPointer,
 ) {
     let f = frames.count;
-    let Ok((cam, at)) = camera.single() else {
-        return;
-    };
     if f == 145 {
         // The centre of the highest body's box (the top of the pile).
         *target = bodies
@@ -190,15 +175,7 @@ fn script(
     let Some(start) = *target else { return };
     let lift = ((f as f32 - 160.0) / 40.0).clamp(0.0, 1.0) * 0.3;
     let pressed = (150..210).contains(&f);
-    scene::drive_pointer(
-        Some(start + Vec3::Y * lift),
-        pressed,
-        (cam, at),
-        &mut window,
-        &buttons,
-        &mut mouse,
-        &mut pointer,
-    );
+    pointer.drive(start + Vec3::Y * lift, pressed);
 }
 
 /// `--script`: the largest pull the mouse drag felt so far, every 50 frames.

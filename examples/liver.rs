@@ -21,14 +21,12 @@ mod bench;
 mod scene;
 
 use bevy::asset::RenderAssetUsages;
-use bevy::input::mouse::MouseButtonInput;
 use bevy::mesh::{Indices, PrimitiveTopology};
 use bevy::prelude::*;
-use bevy::window::PrimaryWindow;
 use bevy_tissue::core::procedural;
 use bevy_tissue::prelude::*;
 use bevy_tissue::ui::TissueUiPlugin;
-use scene::{SceneArgs, SceneCamera};
+use scene::SceneArgs;
 
 /// Particles of the liver (the paper's largest model, Table 1).
 const DEFAULT_PARTICLES: u32 = 37_982;
@@ -99,19 +97,13 @@ fn setup(
     mut materials: ResMut<Assets<StandardMaterial>>,
     particles: Res<Particles>,
 ) {
-    commands.spawn((
-        SceneCamera,
-        Camera3d::default(),
-        Transform::from_xyz(0.02, 0.22, 0.3).looking_at(Vec3::new(0.0, 0.05, 0.0), Vec3::Y),
-    ));
-    commands.spawn((
-        DirectionalLight {
-            shadow_maps_enabled: true,
-            illuminance: 9000.0,
-            ..default()
-        },
-        Transform::from_xyz(0.6, 1.2, 0.8).looking_at(Vec3::ZERO, Vec3::Y),
-    ));
+    scene::spawn_view(
+        &mut commands,
+        Vec3::new(0.02, 0.22, 0.3),
+        Vec3::new(0.0, 0.05, 0.0),
+        Vec3::new(0.6, 1.2, 0.8),
+        9000.0,
+    );
     commands.insert_resource(GlobalAmbientLight {
         brightness: 300.0,
         ..default()
@@ -249,11 +241,7 @@ fn script(
     frames: Res<scene::Frames>,
     mut probe: Query<&mut Transform, (With<Probe>, Without<Grasper>)>,
     mut grasper: Query<(&mut Transform, &mut TissueCollider), With<Grasper>>,
-    camera: Query<(&Camera, &GlobalTransform), With<SceneCamera>>,
-    mut window: Query<(Entity, &mut Window), With<PrimaryWindow>>,
-    buttons: Res<ButtonInput<MouseButton>>,
-    mut mouse: MessageWriter<MouseButtonInput>,
-    mut pointer: ResMut<TissuePointer>,
+    mut pointer: scene::ScriptPointer,
     mut liver: Query<&mut SoftBody, With<Liver>>,
 ) {
     let f = frames.count as f32;
@@ -287,23 +275,12 @@ fn script(
     }
     // Mouse: press over the right lobe at 240 (the cursor over a point inside it, so the
     // ray meets its top), pull up and right, release at 310.
-    let Ok((cam, at)) = camera.single() else {
-        return;
-    };
     let from = LIVER_AT + Vec3::new(0.05, 0.01, 0.03);
     let to = from + Vec3::new(0.04, 0.05, 0.0);
     let p = from.lerp(to, ramp(250.0, 300.0));
     let pressed = (240.0..310.0).contains(&f);
     if f >= 235.0 {
-        scene::drive_pointer(
-            Some(p),
-            pressed,
-            (cam, at),
-            &mut window,
-            &buttons,
-            &mut mouse,
-            &mut pointer,
-        );
+        pointer.drive(p, pressed);
     }
 }
 

@@ -5,14 +5,8 @@
 use std::path::PathBuf;
 use std::process::Command;
 
-fn example(name: &str) -> PathBuf {
-    let exe = std::env::current_exe().expect("test executable");
-    let dir = exe
-        .parent()
-        .and_then(|d| d.parent())
-        .expect("target/<profile>/deps");
-    dir.join("examples").join(name)
-}
+mod common;
+use common::{ci, example};
 
 /// Runs `name --quick --out <temp dir>`, asserts it succeeded, and returns the output
 /// folder, stdout and stderr.
@@ -34,10 +28,6 @@ fn run_quick(name: &str) -> (PathBuf, String, String) {
     )
 }
 
-fn gpu_required() -> bool {
-    std::env::var("CI").is_ok_and(|v| v == "true")
-}
-
 #[test]
 fn hierarchy_quick_writes_complete_curves() {
     let (out, stdout, stderr) = run_quick("hierarchy");
@@ -56,7 +46,7 @@ fn hierarchy_quick_writes_complete_curves() {
         curves.entry(key).or_default().push((it, ms, r));
     }
     let gpu = !stderr.contains("GPU curves skipped");
-    if gpu_required() {
+    if ci() {
         assert!(gpu, "CI=true but the GPU curves were skipped:\n{stderr}");
     }
     let backends: &[&str] = if gpu { &["CPU", "GPU"] } else { &["CPU"] };
@@ -89,7 +79,7 @@ fn table1_quick_fills_every_cell() {
     let json = std::fs::read_to_string(out.join("table1.json")).expect("JSON written");
     assert!(out.join("table1.png").exists(), "PNG written");
     let gpu = !stderr.contains("GPU rows skipped");
-    if gpu_required() {
+    if ci() {
         assert!(gpu, "CI=true but the GPU rows were skipped:\n{stderr}");
     }
     // Cells: 2 sizes × 2 K × (2 CPU backends + the GPU).

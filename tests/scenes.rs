@@ -9,18 +9,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-fn example(name: &str) -> PathBuf {
-    let exe = std::env::current_exe().expect("test executable");
-    let dir = exe
-        .parent()
-        .and_then(|d| d.parent())
-        .expect("target/<profile>/deps");
-    dir.join("examples").join(name)
-}
-
-fn ci() -> bool {
-    std::env::var("CI").is_ok_and(|v| v == "true")
-}
+mod common;
+use common::{ci, example};
 
 fn have_xvfb() -> bool {
     let ok = Command::new("xvfb-run").arg("--help").output().is_ok();

@@ -18,6 +18,7 @@
 
 use crate::bench::Args;
 use bevy::camera::RenderTarget;
+use bevy::ecs::system::SystemParam;
 use bevy::input::ButtonState;
 use bevy::input::mouse::MouseButtonInput;
 use bevy::prelude::*;
@@ -265,38 +266,62 @@ fn finish(
     exit.write(AppExit::Success);
 }
 
-/// Drives the pointer as the script says: with a window, through the window's cursor and
-/// mouse-button messages (the path a real mouse takes); headless, through
-/// [`TissuePointer`] directly. `at` is a world point the cursor is put over.
-pub fn drive_pointer(
-    at: Option<Vec3>,
-    pressed: bool,
-    camera: (&Camera, &GlobalTransform),
-    window: &mut Query<(Entity, &mut Window), With<PrimaryWindow>>,
-    buttons: &ButtonInput<MouseButton>,
-    mouse: &mut MessageWriter<MouseButtonInput>,
-    pointer: &mut TissuePointer,
-) {
-    let screen = at.and_then(|p| camera.0.world_to_viewport(camera.1, p).ok());
-    if let Ok((entity, mut w)) = window.single_mut() {
-        if screen.is_some() {
-            w.set_cursor_position(screen);
+/// The camera the scene is seen through, and a directional light with shadows that
+/// shines from `sun` toward the origin (`illuminance` in lux).
+pub fn spawn_view(commands: &mut Commands, eye: Vec3, target: Vec3, sun: Vec3, illuminance: f32) {
+    commands.spawn((
+        SceneCamera,
+        Camera3d::default(),
+        Transform::from_translation(eye).looking_at(target, Vec3::Y),
+    ));
+    commands.spawn((
+        DirectionalLight {
+            shadow_maps_enabled: true,
+            illuminance,
+            ..default()
+        },
+        Transform::from_translation(sun).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
+}
+
+/// What a script needs to drive the pointer: with a window, its cursor and mouse-button
+/// messages (the path a real mouse takes); headless, [`TissuePointer`] directly.
+#[derive(SystemParam)]
+pub struct ScriptPointer<'w, 's> {
+    camera: Query<'w, 's, (&'static Camera, &'static GlobalTransform), With<SceneCamera>>,
+    window: Query<'w, 's, (Entity, &'static mut Window), With<PrimaryWindow>>,
+    buttons: Res<'w, ButtonInput<MouseButton>>,
+    mouse: MessageWriter<'w, MouseButtonInput>,
+    pointer: ResMut<'w, TissuePointer>,
+}
+
+impl ScriptPointer<'_, '_> {
+    /// Puts the cursor over the world point `at` (m) and the left button down or up.
+    pub fn drive(&mut self, at: Vec3, pressed: bool) {
+        let Ok((camera, eye)) = self.camera.single() else {
+            return;
+        };
+        let screen = camera.world_to_viewport(eye, at).ok();
+        if let Ok((entity, mut w)) = self.window.single_mut() {
+            if screen.is_some() {
+                w.set_cursor_position(screen);
+            }
+            if pressed != self.buttons.pressed(MouseButton::Left) {
+                self.mouse.write(MouseButtonInput {
+                    button: MouseButton::Left,
+                    state: if pressed {
+                        ButtonState::Pressed
+                    } else {
+                        ButtonState::Released
+                    },
+                    window: entity,
+                });
+            }
+        } else {
+            if screen.is_some() {
+                self.pointer.position = screen;
+            }
+            self.pointer.pressed = pressed;
         }
-        if pressed != buttons.pressed(MouseButton::Left) {
-            mouse.write(MouseButtonInput {
-                button: MouseButton::Left,
-                state: if pressed {
-                    ButtonState::Pressed
-                } else {
-                    ButtonState::Released
-                },
-                window: entity,
-            });
-        }
-    } else {
-        if screen.is_some() {
-            pointer.position = screen;
-        }
-        pointer.pressed = pressed;
     }
 }

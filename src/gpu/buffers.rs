@@ -151,24 +151,25 @@ pub struct GpuCollider {
 impl GpuCollider {
     /// The GPU form of a core collider.
     pub fn from_core(c: &Collider) -> Self {
-        let (kind, shape) = match c.shape {
-            ColliderShape::Plane => (0.0, [0.0; 4]),
-            ColliderShape::Sphere { radius } => (1.0, [radius, 0.0, 0.0, 0.0]),
+        // Grasper mode: 0 open, 1 capture, 2 hold.
+        let (kind, shape, mode) = match c.shape {
+            ColliderShape::Plane => (0.0, [0.0; 4], 0.0),
+            ColliderShape::Sphere { radius } => (1.0, [radius, 0.0, 0.0, 0.0], 0.0),
             ColliderShape::Capsule {
                 half_length,
                 radius,
-            } => (2.0, [half_length, radius, 0.0, 0.0]),
-            ColliderShape::Cuboid { half_extents } => (3.0, half_extents.extend(0.0).to_array()),
-            ColliderShape::Grasper { radius, .. } => (4.0, [radius, 0.0, 0.0, 0.0]),
-        };
-        // Grasper mode: 0 open, 1 capture, 2 hold.
-        let mode = match c.shape {
-            ColliderShape::Grasper { mode, .. } => match mode {
-                GraspMode::Open => 0.0,
-                GraspMode::Capture => 1.0,
-                GraspMode::Hold => 2.0,
-            },
-            _ => 0.0,
+            } => (2.0, [half_length, radius, 0.0, 0.0], 0.0),
+            ColliderShape::Cuboid { half_extents } => {
+                (3.0, half_extents.extend(0.0).to_array(), 0.0)
+            }
+            ColliderShape::Grasper { radius, mode } => {
+                let mode = match mode {
+                    GraspMode::Open => 0.0,
+                    GraspMode::Capture => 1.0,
+                    GraspMode::Hold => 2.0,
+                };
+                (4.0, [radius, 0.0, 0.0, 0.0], mode)
+            }
         };
         Self {
             kind_fr: [kind, c.friction, mode, 0.0],

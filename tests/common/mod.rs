@@ -15,7 +15,7 @@ pub fn meshes_dir() -> Option<PathBuf> {
     if dir.is_dir() {
         return Some(dir);
     }
-    if std::env::var("CI").is_ok_and(|v| v == "true") {
+    if ci() {
         panic!(
             "CI=true but the shared meshes folder {} is missing",
             dir.display()
@@ -173,4 +173,20 @@ pub fn enclosed_volume(positions: &[Vec3], indices: &[u32]) -> f64 {
         .map(|t| [t[0], t[1], t[2]])
         .collect();
     bevy_tissue::core::mesh::signed_volume(&p64, &tris)
+}
+
+/// An example binary: `cargo test` builds the examples next to the test's own
+/// executable (`target/<profile>/examples/`).
+pub fn example(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable");
+    let dir = exe
+        .parent()
+        .and_then(|d| d.parent())
+        .expect("target/<profile>/deps");
+    dir.join("examples").join(name)
+}
+
+/// Under `CI=true` nothing may be skipped (a missing GPU or Xvfb is a failure).
+pub fn ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| v == "true")
 }
