@@ -225,7 +225,10 @@ fn build(scene: Scene, c: &Config, sizes: &Sizes) -> Model {
     };
     let mut model = Model::new();
     if let Err(e) = model.add_body(&mesh, &desc) {
-        eprintln!("speed_accuracy: cannot build the {} body: {e}", scene.name());
+        eprintln!(
+            "speed_accuracy: cannot build the {} body: {e}",
+            scene.name()
+        );
         std::process::exit(1);
     }
     model
@@ -319,15 +322,8 @@ fn run_cpu(scene: Scene, c: &Config, model: &Model, seconds: f32) -> Option<Run>
 /// Steps a scene on the GPU (the same model and settings; the GPU always iterates Jacobi).
 fn run_gpu(g: &Headless, scene: Scene, c: &Config, model: &Model, seconds: f32) -> Option<Run> {
     let state = State::new(model);
-    let mut world = GpuWorld::new(
-        &g.device,
-        &g.kernels,
-        model,
-        &state,
-        settings(scene, c),
-        0,
-    )
-    .ok()?;
+    let mut world =
+        GpuWorld::new(&g.device, &g.kernels, model, &state, settings(scene, c), 0).ok()?;
     let steps = (seconds * 60.0).round() as usize;
     let squeeze = squeeze(scene);
     let n = world.particle_count();
@@ -380,7 +376,7 @@ fn squeeze(scene: Scene) -> f32 {
 /// Whether the positions after `step` (0-based) are kept.
 fn sampled(scene: Scene, step: usize, steps: usize) -> bool {
     match scene {
-        Scene::Reference => (step + 1) % 6 == 0,
+        Scene::Reference => (step + 1).is_multiple_of(6),
         _ => step + 1 == steps,
     }
 }
@@ -421,7 +417,10 @@ fn cantilever_error(model: &Model, x: &[Vec3]) -> f64 {
 /// Mean distance of the particles from the centroid along `axis`.
 fn spread(x: &[Vec3], axis: usize) -> f64 {
     let c = x.iter().copied().sum::<Vec3>() / x.len() as f32;
-    x.iter().map(|p| (p[axis] - c[axis]).abs() as f64).sum::<f64>() / x.len() as f64
+    x.iter()
+        .map(|p| (p[axis] - c[axis]).abs() as f64)
+        .sum::<f64>()
+        / x.len() as f64
 }
 
 /// `|ν_measured − ν| / ν` under uniaxial compression: the lateral strain from the mean
@@ -434,8 +433,7 @@ fn poisson_error(model: &Model, x: &[Vec3]) -> f64 {
     // The imposed strain between the plates (the body touches both once squeezed).
     let axial = -squeeze(Scene::Poisson) as f64;
     let lateral =
-        0.5 * (spread(x, 0) / spread(&model.rest, 0) + spread(x, 2) / spread(&model.rest, 2))
-            - 1.0;
+        0.5 * (spread(x, 0) / spread(&model.rest, 0) + spread(x, 2) / spread(&model.rest, 2)) - 1.0;
     let nu = -lateral / axial;
     (nu - poisson_ratio as f64).abs() / poisson_ratio as f64
 }
@@ -682,8 +680,9 @@ fn main() {
     }
 
     // CSV, the table behind the chart.
-    let mut csv =
-        String::from("scene,model,backend,iterations,substeps,k,hierarchy,particles,ms_per_step,error\n");
+    let mut csv = String::from(
+        "scene,model,backend,iterations,substeps,k,hierarchy,particles,ms_per_step,error\n",
+    );
     for r in &rows {
         let c = &r.config;
         let _ = writeln!(
@@ -698,7 +697,8 @@ fn main() {
             c.hierarchy,
             r.particles,
             r.ms_per_step,
-            r.error.map_or("diverged".to_string(), |e| format!("{e:.4e}"))
+            r.error
+                .map_or("diverged".to_string(), |e| format!("{e:.4e}"))
         );
     }
     if let Err(e) = std::fs::write(out.join("speed_accuracy.csv"), csv) {
@@ -716,7 +716,9 @@ fn main() {
         let cell = |s: Scene| -> String {
             match rows.iter().find(|r| r.config == *c && r.scene == s) {
                 None => "–".into(),
-                Some(r) => r.error.map_or("diverged".into(), |e| format!("{:.2}%", e * 100.0)),
+                Some(r) => r
+                    .error
+                    .map_or("diverged".into(), |e| format!("{:.2}%", e * 100.0)),
             }
         };
         let ms = rows

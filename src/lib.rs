@@ -25,5 +25,6 @@ pub mod prelude {
         ResetSoftBody, SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock,
         TissueCollider, TissueHierarchy, TissueMaterial, TissueResolution, TissueSettings,
     };
+    pub use crate::plugin::sleep::{BodyMotion, Sleeping, TissueSleep};
     pub use crate::plugin::{TissuePlugin, TissueSet};
 }

@@ -718,3 +718,137 @@ fn a_body_with_a_hierarchy_matches_the_cpu_hierarchy() {
         "GPU and CPU differ by {d} m (size {size} m)"
     );
 }
+
+/// Updates until the body's `Sleeping` marker is `asleep` (at most `max` frames).
+fn until_asleep(app: &mut App, e: Entity, asleep: bool, max: u32) -> bool {
+    until(app, max, |app| {
+        app.world().get::<Sleeping>(e).is_some() == asleep
+    })
+}
+
+/// Steps the GPU world has taken.
+fn gpu_steps(app: &App) -> u64 {
+    let rw = app.sub_app(RenderApp).world();
+    rw.resource::<TissueGpu>().world().map_or(0, |w| w.step)
+}
+
+/// Reads the body's particles once.
+fn read_now(app: &mut App, e: Entity) -> ParticlePositions {
+    app.world_mut().entity_mut(e).remove::<ParticlePositions>();
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles::default());
+    assert!(
+        until(app, 30, |app| app
+            .world()
+            .get::<ParticlePositions>(e)
+            .is_some()),
+        "no readback arrived"
+    );
+    app.world().get::<ParticlePositions>(e).unwrap().clone()
+}
+
+#[test]
+fn a_body_at_rest_sleeps_without_gpu_work_and_wakes_on_settings_and_contact() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    app.insert_resource(TissueSleep {
+        speed: 0.01,
+        frames: 5,
+        margin: 0.02,
+    });
+    app.world_mut()
+        .spawn(TissueCollider::new(ColliderKind::Plane));
+    let (body, _) = body_of(SHAPE);
+    // The box is 5 cm tall: it drops 5 mm onto the ground and comes to rest.
+    let e = spawn_body(&mut app, Vec3::new(0.0, 0.03, 0.0), body, None);
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(5);
+    }
+    assert!(
+        until_asleep(&mut app, e, true, 300),
+        "the body never fell asleep (motion {:?})",
+        app.world().get::<BodyMotion>(e)
+    );
+    let speed = app.world().get::<BodyMotion>(e).unwrap().max_speed;
+    assert!(speed < 0.01, "asleep while moving at {speed} m/s");
+
+    // Asleep: no step is recorded and the particles do not move at all.
+    let a = read_now(&mut app, e);
+    let steps = gpu_steps(&app);
+    for _ in 0..10 {
+        app.update();
+    }
+    let b = read_now(&mut app, e);
+    assert_eq!(
+        gpu_steps(&app),
+        steps,
+        "steps were recorded for a sleeping world"
+    );
+    let rw = app.sub_app(RenderApp).world();
+    assert_eq!(rw.resource::<TissueGpu>().stats().steps, 0);
+    assert_eq!(a.positions, b.positions, "a sleeping body moved");
+    assert!(app.world().get::<Sleeping>(e).is_some());
+
+    // A settings change wakes it; it falls asleep again.
+    app.world_mut().resource_mut::<TissueSettings>().damping = 2.0;
+    assert!(
+        until_asleep(&mut app, e, false, 3),
+        "a settings change did not wake it"
+    );
+    app.update();
+    let rw = app.sub_app(RenderApp).world();
+    assert_eq!(
+        rw.resource::<TissueGpu>().stats().steps,
+        5,
+        "awake, but no steps"
+    );
+    assert!(
+        until_asleep(&mut app, e, true, 300),
+        "it did not fall asleep again"
+    );
+
+    // A collider far away, even moving, leaves it asleep...
+    let ball = app
+        .world_mut()
+        .spawn((
+            TissueCollider::new(ColliderKind::Sphere { radius: 0.02 }),
+            Transform::from_xyz(0.0, 0.3, 0.0),
+        ))
+        .id();
+    for i in 0..5 {
+        app.world_mut()
+            .entity_mut(ball)
+            .insert(Transform::from_xyz(0.01 * i as f32, 0.3, 0.0));
+        app.update();
+    }
+    assert!(
+        app.world().get::<Sleeping>(e).is_some(),
+        "woken by a far collider"
+    );
+    // ...one pressed into it wakes it, and the body gives way.
+    let before = read_now(&mut app, e);
+    app.world_mut()
+        .entity_mut(ball)
+        .insert(Transform::from_xyz(0.0, 0.025, 0.0));
+    assert!(
+        until_asleep(&mut app, e, false, 3),
+        "a collider pressing in did not wake it"
+    );
+    for _ in 0..10 {
+        app.update();
+    }
+    let after = read_now(&mut app, e);
+    let moved = before
+        .positions
+        .iter()
+        .zip(&after.positions)
+        .map(|(p, q)| p.distance(*q))
+        .fold(0.0, f32::max);
+    assert!(moved > 1e-3, "the woken body did not give way ({moved} m)");
+}

@@ -173,3 +173,136 @@ pub fn draw(
     }
     root.present().map_err(|e| e.to_string())
 }
+
+/// One cell of a [`Map`]: its fill colour and up to a few lines of text.
+pub struct MapCell {
+    /// Fill colour (r, g, b).
+    pub color: (u8, u8, u8),
+    /// Text lines, centred in the cell.
+    pub lines: Vec<String>,
+}
+
+/// A categorical map: a grid of coloured cells with row and column labels and a legend.
+pub struct Map {
+    /// Title above the grid.
+    pub title: String,
+    /// One label per row (left of the grid).
+    pub row_labels: Vec<String>,
+    /// One label per column (above the grid; `\n` breaks lines).
+    pub col_labels: Vec<String>,
+    /// Cells, row by row (`cells[row][col]`).
+    pub cells: Vec<Vec<MapCell>>,
+    /// Legend entries below the grid: (text, colour).
+    pub legend: Vec<(String, (u8, u8, u8))>,
+    /// Lines of small print under the legend.
+    pub notes: Vec<String>,
+}
+
+/// Draws `map` into a PNG at `path`, each cell `cell` pixels (width, height), the row
+/// labels in a column `label_width` pixels wide.
+pub fn draw_map(path: &Path, map: &Map, cell: (u32, u32), label_width: u32) -> Result<(), String> {
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
+    font();
+    let rows = map.row_labels.len() as u32;
+    let cols = map.col_labels.len() as u32;
+    let header_lines = map
+        .col_labels
+        .iter()
+        .map(|l| l.lines().count())
+        .max()
+        .unwrap_or(1) as u32;
+    let (title_h, line_h) = (40u32, 16u32);
+    let header_h = header_lines * line_h + 12;
+    let legend_h = 34 + map.notes.len() as u32 * line_h;
+    let width = label_width + cols * cell.0 + 20;
+    let height = title_h + header_h + rows * cell.1 + legend_h + 10;
+    let root = BitMapBackend::new(path, (width, height)).into_drawing_area();
+    let e = |e: DrawingAreaErrorKind<_>| e.to_string();
+    root.fill(&WHITE).map_err(e)?;
+    let text = |size: u32, h: HPos| {
+        TextStyle::from(("sans-serif", size).into_font())
+            .color(&BLACK)
+            .pos(Pos::new(h, VPos::Center))
+    };
+    root.draw(&Text::new(
+        map.title.clone(),
+        ((width / 2) as i32, (title_h / 2) as i32),
+        text(20, HPos::Center),
+    ))
+    .map_err(e)?;
+    let x0 = label_width as i32;
+    let y0 = (title_h + header_h) as i32;
+    let (cw, ch) = (cell.0 as i32, cell.1 as i32);
+    for (c, label) in map.col_labels.iter().enumerate() {
+        let n = label.lines().count() as i32;
+        for (k, line) in label.lines().enumerate() {
+            let y = y0 - 6 - (n - k as i32) * line_h as i32 + line_h as i32 / 2;
+            root.draw(&Text::new(
+                line.to_string(),
+                (x0 + c as i32 * cw + cw / 2, y),
+                text(13, HPos::Center),
+            ))
+            .map_err(e)?;
+        }
+    }
+    for (r, label) in map.row_labels.iter().enumerate() {
+        root.draw(&Text::new(
+            label.clone(),
+            (x0 - 8, y0 + r as i32 * ch + ch / 2),
+            text(14, HPos::Right),
+        ))
+        .map_err(e)?;
+    }
+    for (r, row) in map.cells.iter().enumerate() {
+        for (c, m) in row.iter().enumerate() {
+            let (ax, ay) = (x0 + c as i32 * cw, y0 + r as i32 * ch);
+            let (rr, gg, bb) = m.color;
+            root.draw(&Rectangle::new(
+                [(ax, ay), (ax + cw, ay + ch)],
+                RGBColor(rr, gg, bb).filled(),
+            ))
+            .map_err(e)?;
+            root.draw(&Rectangle::new(
+                [(ax, ay), (ax + cw, ay + ch)],
+                WHITE.stroke_width(2),
+            ))
+            .map_err(e)?;
+            let n = m.lines.len() as i32;
+            for (k, line) in m.lines.iter().enumerate() {
+                let y = ay + ch / 2 + (2 * k as i32 - (n - 1)) * line_h as i32 / 2;
+                root.draw(&Text::new(
+                    line.clone(),
+                    (ax + cw / 2, y),
+                    text(13, HPos::Center),
+                ))
+                .map_err(e)?;
+            }
+        }
+    }
+    // Legend: swatches and names in one line, then the notes.
+    let ly = y0 + rows as i32 * ch + 20;
+    let mut lx = x0;
+    for (name, (rr, gg, bb)) in &map.legend {
+        root.draw(&Rectangle::new(
+            [(lx, ly - 7), (lx + 14, ly + 7)],
+            RGBColor(*rr, *gg, *bb).filled(),
+        ))
+        .map_err(e)?;
+        root.draw(&Text::new(
+            name.clone(),
+            (lx + 20, ly),
+            text(14, HPos::Left),
+        ))
+        .map_err(e)?;
+        lx += 20 + 9 * name.chars().count() as i32 + 24;
+    }
+    for (k, note) in map.notes.iter().enumerate() {
+        root.draw(&Text::new(
+            note.clone(),
+            (x0, ly + 20 + k as i32 * line_h as i32),
+            text(12, HPos::Left),
+        ))
+        .map_err(e)?;
+    }
+    root.present().map_err(|e| e.to_string())
+}

@@ -85,8 +85,9 @@ pub struct GpuBody {
     pub first: u32,
     /// Particles.
     pub count: u32,
-    /// Padding.
-    pub pad: u32,
+    /// 1 while the body sleeps (the kernels skip it), else 0; written by
+    /// [`crate::gpu::GpuWorld::set_asleep`].
+    pub asleep: u32,
     /// Shape matching: per-iteration stiffness.
     pub k_iter: f32,
     /// Shear modulus μ, Pa.
@@ -396,7 +397,7 @@ impl Packed {
                     kind,
                     first: b.first,
                     count: b.count,
-                    pad: 0,
+                    asleep: 0,
                     k_iter,
                     mu,
                     lambda,

@@ -223,6 +223,8 @@ pub struct GpuWorld {
     knn_k: u32,
     contacts_on: bool,
     params: GpuParams,
+    /// Which bodies sleep (the `asleep` word of their `Body` record).
+    asleep: Vec<bool>,
 }
 
 /// Largest number of skin dispatches (runs of bodies sharing a vertex slab) per frame.
@@ -615,7 +617,27 @@ impl GpuWorld {
             knn_k,
             contacts_on,
             params,
+            asleep: vec![false; packed.bodies.len()],
         })
+    }
+
+    /// Marks bodies asleep or awake (`asleep[b]` for body `b` in model order; bodies past
+    /// the end stay as they are). The kernels skip a sleeping body's particles and
+    /// clusters: they keep their positions and zero velocity. Writes only what changed.
+    pub fn set_asleep(&mut self, queue: &RenderQueue, asleep: &[bool]) {
+        let n = self.ranges.len();
+        for (b, (mine, &want)) in self.asleep[..n].iter_mut().zip(asleep).enumerate() {
+            if *mine != want {
+                *mine = want;
+                let offset = (b * size_of::<GpuBody>() + 12) as u64;
+                queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&(want as u32)));
+            }
+        }
+    }
+
+    /// Whether every body sleeps (a frame then records no step).
+    pub fn all_asleep(&self) -> bool {
+        !self.ranges.is_empty() && self.asleep[..self.ranges.len()].iter().all(|a| *a)
     }
 
     /// Particles in the world.
@@ -702,8 +724,8 @@ impl GpuWorld {
     }
 
     /// Per-body bounding boxes of the particles (two vec4 per body: min, max; m, world
-    /// frame; the min's w is the body's divergence flag), written by
-    /// [`GpuWorld::record_bounds`].
+    /// frame; the min's w is the body's divergence flag, the max's w its fastest
+    /// particle's speed in m/s), written by [`GpuWorld::record_bounds`].
     pub fn bounds(&self) -> &Buffer {
         &self.b.bounds
     }

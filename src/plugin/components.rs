@@ -157,7 +157,7 @@ impl TissueHierarchy {
 /// ```
 #[derive(Component, Debug, Clone, PartialEq, Reflect)]
 #[reflect(Component, Default)]
-#[require(Transform, Visibility, SoftBodyStatus)]
+#[require(Transform, Visibility, SoftBodyStatus, super::sleep::BodyMotion)]
 pub struct SoftBody {
     /// Elastic model and stiffness.
     pub material: TissueMaterial,

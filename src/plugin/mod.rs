@@ -24,6 +24,7 @@
 pub mod build;
 pub mod components;
 pub mod render;
+pub mod sleep;
 
 use bevy::prelude::*;
 use bevy::render::mesh::allocator::MeshAllocatorSettings;
@@ -58,6 +59,7 @@ impl Plugin for TissuePlugin {
         let (tx, rx) = mpsc::channel();
         app.insert_resource(self.settings.clone())
             .init_resource::<TissueClock>()
+            .init_resource::<sleep::TissueSleep>()
             .insert_resource(render::ReadbackReceiver(Mutex::new(rx)))
             .add_message::<SoftBodyError>()
             .add_message::<SoftBodyReady>()
@@ -71,6 +73,9 @@ impl Plugin for TissuePlugin {
             .register_type::<SoftBodyStatus>()
             .register_type::<TissueSettings>()
             .register_type::<TissueClock>()
+            .register_type::<sleep::TissueSleep>()
+            .register_type::<sleep::Sleeping>()
+            .register_type::<sleep::BodyMotion>()
             .configure_sets(
                 Update,
                 (TissueSet::Build, TissueSet::Clock, TissueSet::Readback).chain(),
@@ -86,7 +91,9 @@ impl Plugin for TissuePlugin {
                         .chain()
                         .in_set(TissueSet::Build),
                     render::advance_clock.in_set(TissueSet::Clock),
-                    render::receive_readbacks.in_set(TissueSet::Readback),
+                    (render::receive_readbacks, sleep::update_sleep)
+                        .chain()
+                        .in_set(TissueSet::Readback),
                 ),
             )
             .add_systems(Last, render::remember_collider_poses)

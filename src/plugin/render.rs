@@ -36,6 +36,8 @@ pub struct ExtractedBody {
     pub readback: bool,
     /// This generation starts from rest ([`ResetSoftBody`]).
     pub reset: bool,
+    /// The body sleeps ([`super::sleep::Sleeping`]): the GPU skips it.
+    pub asleep: bool,
 }
 
 /// What the main world hands the render world each frame.
@@ -59,9 +61,9 @@ pub enum ReadbackResult {
     Force(Entity, Vec3),
     /// A GPU-side error for a body.
     Error(Entity, String),
-    /// A body's particle bounds (world frame, m), for culling, and whether any of its
-    /// particles diverged (and was held).
-    Bounds(Entity, Vec3, Vec3, bool),
+    /// A body's particle bounds (world frame, m), for culling, whether any of its
+    /// particles diverged (and was held), and its fastest particle's speed (m/s).
+    Bounds(Entity, Vec3, Vec3, bool, f32),
 }
 
 /// What a readback item is.
@@ -89,6 +91,8 @@ pub struct FrameTraffic {
     pub readback_bytes: u64,
     /// Bytes of per-body bounds copied for culling (32 per body).
     pub bounds_bytes: u64,
+    /// Steps recorded (0 when every body sleeps).
+    pub steps: u32,
 }
 
 /// The render world's simulation state.
@@ -177,6 +181,7 @@ pub fn extract_tissue(
             &BuiltBody,
             &GlobalTransform,
             Option<&ReadbackParticles>,
+            Has<super::sleep::Sleeping>,
         )>,
     >,
     colliders: Extract<
@@ -195,7 +200,7 @@ pub fn extract_tissue(
 ) {
     let mut list: Vec<ExtractedBody> = bodies
         .iter()
-        .map(|(e, b, t, r)| ExtractedBody {
+        .map(|(e, b, t, r, asleep)| ExtractedBody {
             entity: e,
             model: b.model.clone(),
             generation: b.generation,
@@ -203,6 +208,7 @@ pub fn extract_tissue(
             to_world: *t,
             readback: r.is_some(),
             reset: b.reset,
+            asleep,
         })
         .collect();
     list.sort_by_key(|b| b.entity.index_u32());
@@ -450,7 +456,11 @@ pub fn run_tissue(
     let device = ctx.render_device().clone();
     let recorder = ctx.diagnostic_recorder();
     let recorder = recorder.as_deref();
-    let steps = gpu.steps;
+    // Sleeping bodies are skipped by the kernels; when all sleep, no step is recorded.
+    let asleep: Vec<bool> = gpu.bodies.iter().map(|b| b.asleep).collect();
+    world.set_asleep(&queue, &asleep);
+    let steps = if world.all_asleep() { 0 } else { gpu.steps };
+    gpu.traffic.steps = steps;
     // Draw records: where each body's vertices are in the allocator's slabs (slabs can
     // move, so this is looked up every frame).
     let mut draws = Vec::with_capacity(gpu.bodies.len());
@@ -631,7 +641,9 @@ pub fn map_readbacks(
                     let msg = match kind {
                         Item::Force => ReadbackResult::Force(e, p[0]),
                         Item::Positions => ReadbackResult::Positions(e, p, step),
-                        Item::Bounds => ReadbackResult::Bounds(e, p[0], p[1], v[0][3] != 0.0),
+                        Item::Bounds => {
+                            ReadbackResult::Bounds(e, p[0], p[1], v[0][3] != 0.0, v[1][3])
+                        }
                     };
                     let _ = tx.send(msg);
                 }
@@ -674,6 +686,8 @@ pub fn receive_readbacks(
     reported: Query<&DivergenceReported>,
     requests: Query<&ReadbackParticles>,
     mut status: Query<&mut SoftBodyStatus>,
+    mut motion: Query<&mut super::sleep::BodyMotion>,
+    sleep: Res<super::sleep::TissueSleep>,
     mut errors: MessageWriter<SoftBodyError>,
     mut frame: Local<u64>,
 ) {
@@ -697,7 +711,10 @@ pub fn receive_readbacks(
                     ec.insert(ColliderForce(f));
                 }
             }
-            ReadbackResult::Bounds(e, lo, hi, diverged) => {
+            ReadbackResult::Bounds(e, lo, hi, diverged, speed) => {
+                if let Ok(mut m) = motion.get_mut(e) {
+                    m.record(lo, hi, if diverged { f32::INFINITY } else { speed }, &sleep);
+                }
                 let prev = reported.get(e).ok().copied();
                 let quiet = handled.contains(&e)
                     || prev.is_some_and(|r| r.given_up || *frame < r.frame + RECOVERY_QUIET_FRAMES);

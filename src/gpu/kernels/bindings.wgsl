@@ -52,6 +52,11 @@ fn grab_target(i: u32) -> vec4<f32> {
     return vec4<f32>(c.pos.xyz + quat_rotate(c.rot, g.xyz), f32(k));
 }
 
+// Whether particle (or cluster) i belongs to a sleeping body (plugin::sleep).
+fn asleep(i: u32) -> bool {
+    return bodies[pinfo[i].x].asleep != 0u;
+}
+
 fn inv_mass(i: u32) -> f32 {
     if (pinfo[i].y != NONE) {
         return 0.0;

@@ -45,7 +45,9 @@ fn solve_clusters(
     let local = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
     let c = range.first + local;
     let lane = lid % LANES;
-    let valid = local < range.count;
+    // A sleeping body's clusters are skipped (their corrections are read only by its own
+    // particles, which skip gathering).
+    let valid = local < range.count && !asleep(c);
     var mp = vec3<f32>(0.0);
     var mq = vec3<f32>(0.0);
     var a0 = vec3<f32>(0.0);

@@ -44,7 +44,7 @@ struct Body {
     kind: u32,               // 0 shape matching, 1 hyperelastic
     first: u32,
     count: u32,
-    _pad: u32,
+    asleep: u32,             // 1: the body sleeps, its particles and clusters are skipped
     k_iter: f32,             // shape matching: per-iteration stiffness
     mu: f32,                 // Pa
     lambda: f32,             // Pa

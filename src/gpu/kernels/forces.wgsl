@@ -34,6 +34,7 @@ fn force_partial(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocatio
 }
 
 var<workgroup> lo_red: array<vec3<f32>, 256>;
+var<workgroup> speed_red: array<f32, 256>;
 
 // Each body's bounding box (bounds[2b] = min, bounds[2b + 1] = max, m, world frame): one
 // workgroup per body, a fixed-shape tree reduction. Read back a frame later for culling.
@@ -46,18 +47,22 @@ fn body_bounds(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
     let body = bodies[b];
     var lo = vec3<f32>(3.4e38);
     var hi = vec3<f32>(-3.4e38);
+    var fast = 0.0;
     for (var i = lid.x; i < body.count; i = i + FWG) {
         let q = x[body.first + i].xyz;
         lo = min(lo, q);
         hi = max(hi, q);
+        fast = max(fast, length(v[body.first + i].xyz));
     }
     lo_red[lid.x] = lo;
     red[lid.x] = hi;
+    speed_red[lid.x] = fast;
     workgroupBarrier();
     for (var s = FWG / 2u; s > 0u; s = s >> 1u) {
         if (lid.x < s) {
             lo_red[lid.x] = min(lo_red[lid.x], lo_red[lid.x + s]);
             red[lid.x] = max(red[lid.x], red[lid.x + s]);
+            speed_red[lid.x] = max(speed_red[lid.x], speed_red[lid.x + s]);
         }
         workgroupBarrier();
     }
@@ -65,7 +70,8 @@ fn body_bounds(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
         // w of the minimum carries the body's divergence flag (so one small readback
         // serves culling and the warning).
         bounds[2u * b] = vec4<f32>(lo_red[0], f32(atomicLoad(&status[b])));
-        bounds[2u * b + 1u] = vec4<f32>(red[0], 0.0);
+        // w of the maximum: the fastest particle's speed, m/s (for sleeping).
+        bounds[2u * b + 1u] = vec4<f32>(red[0], speed_red[0]);
     }
 }
 

@@ -129,7 +129,8 @@ fn gather(
     var a = 0.0;
     if (valid) {
         let s0 = pinfo[j].z;
-        let s1 = pinfo[j + 1u].z;
+        // A sleeping body's particles gather nothing (its clusters were skipped).
+        let s1 = select(pinfo[j + 1u].z, s0, asleep(j));
         for (var s = s0 + lane; s < s1; s = s + LANES) {
             let k = lists[params.inv_offset + s];
             let w = corr[k];

@@ -35,6 +35,10 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (i >= params.n) {
         return;
     }
+    if (asleep(i)) {
+        p[i] = x[i];
+        return;
+    }
     let vv = v[i].xyz + params.gravity.xyz * params.h;
     v[i] = vec4<f32>(vv, 0.0);
     var pp = x[i].xyz + vv * params.h;
@@ -58,6 +62,10 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
 fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
     if (i >= params.n) {
+        return;
+    }
+    if (asleep(i)) {
+        v[i] = vec4<f32>(0.0);
         return;
     }
     let pp = p[i].xyz;
