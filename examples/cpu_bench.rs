@@ -6,9 +6,15 @@
 //! baseline) and all-core Jacobi, both elastic models, and ms per KNN refresh (K = 32,
 //! all cores and one thread).
 //!
+//! With `--scale` it instead times the liver from 37,982 up to 1,000,000 particles (SPEC §6
+//! scaling; shape matching k = 1, the plugin's default; Jacobi on all cores, 5 steps after
+//! 5 warm-up steps, the same stage breakdown). `--sizes a,b,..` picks other counts
+//! (sampled at the 37,982-particle spacing scaled by the cube root of the ratio).
+//!
 //! ```text
 //! cargo run --release --example cpu_bench            # the full table
 //! cargo run --release --example cpu_bench -- --quick # small sizes only, seconds
+//! cargo run --release --example cpu_bench -- --scale # 38k to 1M particles, minutes
 //! ```
 use bevy_tissue::core::knn::knn_all;
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
@@ -78,7 +84,71 @@ fn cell(r: &Result<(f64, StageTimes), String>) -> String {
     }
 }
 
+/// `--scale`: Jacobi on all cores at growing sizes, ms per step and per stage.
+fn scale() {
+    let args: Vec<String> = std::env::args().collect();
+    let sizes: Vec<u32> = args
+        .iter()
+        .position(|a| a == "--sizes")
+        .and_then(|i| args.get(i + 1))
+        .map(|v| v.split(',').filter_map(|s| s.parse().ok()).collect())
+        .unwrap_or_else(|| vec![37_982, 131_072, 524_288, 1_000_000]);
+    let threads = bevy_tissue::core::par::default_threads();
+    let mesh = procedural::liver(5);
+    let (lo, hi) = procedural::liver_ligament();
+    let desc = |resolution| BodyDesc {
+        resolution,
+        neighbours: 32,
+        material: Material::ShapeMatching { stiffness: 1.0 },
+        pins: vec![PinRegion::Box { min: lo, max: hi }],
+        ..Default::default()
+    };
+    let mut base = Model::new();
+    base.add_body(&mesh, &desc(Resolution::Particles(37_982)))
+        .expect("the procedural liver is valid");
+    let spacing = base.bodies[0].spacing;
+    println!(
+        "CPU scaling: Jacobi on {threads} threads, shape matching k = 1, K = 32, 10 iterations, \
+         KNN every 10th step\n"
+    );
+    println!(
+        "| particles | build s | ms per step | KNN | predict | clusters | gather | contacts/colliders/pins | finish |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for n in sizes {
+        let t = Instant::now();
+        let mut model = Model::new();
+        let r = Resolution::Spacing(spacing * (37_982.0 / n as f32).cbrt());
+        if let Err(e) = model.add_body(&mesh, &desc(r)) {
+            eprintln!("{n}: {e}");
+            continue;
+        }
+        let build = t.elapsed().as_secs_f64();
+        eprintln!("built {} particles in {build:.1} s", model.particle_count());
+        match time_steps(&model, Method::Jacobi, 0, 5) {
+            Ok((ms, s)) => println!(
+                "| {} | {build:.1} | {ms:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
+                model.particle_count(),
+                s.knn,
+                s.predict,
+                s.clusters,
+                s.gather,
+                s.boundary,
+                s.finish
+            ),
+            Err(e) => println!(
+                "| {} | {build:.1} | {e} | | | | | | |",
+                model.particle_count()
+            ),
+        }
+    }
+}
+
 fn main() {
+    if std::env::args().any(|a| a == "--scale") {
+        scale();
+        return;
+    }
     let quick = std::env::args().any(|a| a == "--quick");
     let sizes: &[u32] = if quick {
         &[512, 4096]

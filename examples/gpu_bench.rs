@@ -7,8 +7,13 @@
 //! submission, GPU synchronised, median of 5 repeats), ms per KNN refresh, and GPU time
 //! per pass from timestamp queries. Markdown on stdout.
 //!
+//! With `--scale` it instead runs the liver from 37,982 up to 4,000,000 particles (SPEC
+//! §6 scaling; shape matching k = 1, the plugin's default; 50 steps, median of 3), with
+//! the same per-pass table; `--sizes a,b,..` picks other counts.
+//!
 //! ```text
 //! cargo run --release --example gpu_bench            # the full set (a real GPU)
+//! cargo run --release --example gpu_bench -- --scale # 38k to 4M particles
 //! cargo run --release --example gpu_bench -- --quick # small sizes (lavapipe: seconds)
 //! ```
 #[path = "support/bench.rs"]
@@ -232,6 +237,42 @@ fn main() {
             steps,
             repeats,
         ));
+    } else if std::env::args().any(|a| a == "--scale") {
+        let a: Vec<String> = std::env::args().collect();
+        let sizes: Vec<u32> = a
+            .iter()
+            .position(|x| x == "--sizes")
+            .and_then(|i| a.get(i + 1))
+            .map(|v| v.split(',').filter_map(|s| s.parse().ok()).collect())
+            .unwrap_or_else(|| vec![37_982, 131_072, 524_288, 1_000_000, 2_000_000, 4_000_000]);
+        let rigid = Material::ShapeMatching { stiffness: 1.0 };
+        let s38 = liver(Resolution::Particles(37982), 32, rigid).bodies[0].spacing;
+        for n in sizes {
+            let t = Instant::now();
+            let model = liver(
+                Resolution::Spacing(s38 * (37982.0 / n as f32).cbrt()),
+                32,
+                rigid,
+            );
+            eprintln!(
+                "{} particles built in {:.1} s",
+                model.particle_count(),
+                t.elapsed().as_secs_f64()
+            );
+            let check = SolverSettings {
+                method: Method::Jacobi,
+                ..Default::default()
+            };
+            if let Err(e) = GpuWorld::check_limits(&g.device.limits(), &model, &check) {
+                println!(
+                    "| liver {} | does not fit: {e} | | | |",
+                    model.particle_count()
+                );
+                continue;
+            }
+            let name = format!("liver {}, shape matching k = 1", model.particle_count());
+            rows.push(bench(&g, &name, &model, steps.min(50), repeats.min(3)));
+        }
     } else {
         let t = Instant::now();
         let l38 = liver(Resolution::Particles(37982), 32, sm);

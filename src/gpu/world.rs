@@ -816,7 +816,7 @@ impl GpuWorld {
         let g = groups(self.n, WORKGROUP);
         let sg = &self.scan_group;
         let cfg = ((self.levels.len() + all as usize) * size_of::<GpuScanLevel>()) as u32;
-        let clear = groups(self.scan_len.max(self.params.grid_table), WORKGROUP);
+        let clear = groups(self.scan_len.max(self.params.grid_table), WORKGROUP).min(65_535);
         let w = &self.world_group;
         r.dispatch(w, "tissue/grid", &k.grid_clear, Some((sg, cfg)), (clear, 1));
         r.dispatch(w, "tissue/grid", &k.grid_count, Some((sg, cfg)), (g, 1));

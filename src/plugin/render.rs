@@ -123,6 +123,10 @@ pub struct TissueGpu {
     warned_in_flight: bool,
 }
 
+/// Frames of readbacks outstanding at which the render world waits for the GPU (frame
+/// pacing where no swapchain does it, see [`map_readbacks`]).
+const MAX_FRAMES_BEHIND: usize = 3;
+
 /// Readbacks in flight beyond which a frame issues none (a driver that delivers them late
 /// must not make the staging buffers pile up).
 const MAX_READBACKS_IN_FLIGHT: usize = 16;
@@ -608,8 +612,25 @@ pub fn map_readbacks(
     // Deliver the readbacks of earlier frames that the GPU has finished: without a poll
     // some drivers (NVIDIA's Vulkan, measured) run the map callbacks only when something
     // else polls the device, seconds later.
-    if let Err(e) = device.poll(wgpu::PollType::Poll) {
-        warn!("bevy_tissue: device poll failed: {e}");
+    //
+    // Frame pacing: with nothing else to hold the CPU back (headless, no swapchain) it
+    // runs ever further ahead of the GPU; on the H100 the per-frame bounds readback then
+    // arrived tens of frames late and a mouse drag's pick timed out. When readbacks of
+    // MAX_FRAMES_BEHIND frames are outstanding, poll until the oldest is delivered (not
+    // until the GPU is idle: the frames behind it keep the GPU busy meanwhile), for at
+    // most a second. A window's swapchain keeps the lag below that, so this only acts
+    // where nothing else paces.
+    let start = std::time::Instant::now();
+    loop {
+        if let Err(e) = device.poll(wgpu::PollType::Poll) {
+            warn!("bevy_tissue: device poll failed: {e}");
+            break;
+        }
+        let behind = gpu.in_flight.load(std::sync::atomic::Ordering::Relaxed);
+        if behind < MAX_FRAMES_BEHIND || start.elapsed().as_secs_f32() > 1.0 {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_micros(50));
     }
     let pool = gpu.staging.clone();
     let in_flight = gpu.in_flight.clone();

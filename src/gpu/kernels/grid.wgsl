@@ -17,14 +17,19 @@ const SCAN_WG: u32 = 256u;
 const SCAN_BLOCK: u32 = 1024u;
 var<workgroup> tsum: array<u32, 256>;
 
-// Zeroes the bucket counts and cursors (in the pass, instead of a buffer clear).
+// Zeroes the bucket counts and cursors (in the pass, instead of a buffer clear); each
+// thread strides over the arrays, so the dispatch stays within 65,535 workgroups for
+// any table size (above ~4M particles the table has more than 65,535 × 128 buckets).
 @compute @workgroup_size(128)
-fn grid_clear(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i < arrayLength(&scan)) {
+fn grid_clear(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+) {
+    let stride = nwg.x * 128u;
+    for (var i = gid.x; i < arrayLength(&scan); i = i + stride) {
         atomicStore(&scan[i], 0u);
     }
-    if (i < arrayLength(&cursor)) {
+    for (var i = gid.x; i < arrayLength(&cursor); i = i + stride) {
         atomicStore(&cursor[i], 0u);
     }
 }
