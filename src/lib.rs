@@ -23,7 +23,8 @@ pub mod prelude {
     pub use crate::plugin::components::{
         ColliderForce, ColliderKind, ParticlePositions, PinShape, Pinned, ReadbackParticles,
         ResetSoftBody, SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock,
-        TissueCollider, TissueHierarchy, TissueMaterial, TissueResolution, TissueSettings,
+        TissueCollider, TissueHierarchy, TissueMaterial, TissueQuality, TissueResolution,
+        TissueSettings,
     };
     pub use crate::plugin::sleep::{BodyMotion, Sleeping, TissueSleep};
     pub use crate::plugin::{TissuePlugin, TissueSet};

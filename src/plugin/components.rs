@@ -1,6 +1,7 @@
 //! What a scene writes: the [`SoftBody`] component and its companions, the global
 //! [`TissueSettings`], the [`TissueClock`], and the messages the plugin sends.
 
+pub use super::quality::TissueQuality;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::hierarchy::HierarchyDesc;
 use crate::core::model::{Material, PinRegion};
@@ -169,6 +170,10 @@ pub struct SoftBody {
     pub resolution: TissueResolution,
     /// Hierarchical PBD levels.
     pub hierarchy: TissueHierarchy,
+    /// Accuracy level: when not [`TissueQuality::Custom`] (the default), it sets the
+    /// world's iterations and substeps (the most demanding body's; see
+    /// [`super::quality`]).
+    pub quality: TissueQuality,
 }
 
 impl Default for SoftBody {
@@ -179,6 +184,7 @@ impl Default for SoftBody {
             neighbours: 32,
             resolution: TissueResolution::default(),
             hierarchy: TissueHierarchy::default(),
+            quality: TissueQuality::default(),
         }
     }
 }

@@ -23,6 +23,7 @@
 
 pub mod build;
 pub mod components;
+pub mod quality;
 pub mod render;
 pub mod sleep;
 
@@ -74,6 +75,7 @@ impl Plugin for TissuePlugin {
             .register_type::<TissueSettings>()
             .register_type::<TissueClock>()
             .register_type::<sleep::TissueSleep>()
+            .register_type::<quality::TissueQuality>()
             .register_type::<sleep::Sleeping>()
             .register_type::<sleep::BodyMotion>()
             .configure_sets(
@@ -84,6 +86,7 @@ impl Plugin for TissuePlugin {
                 Update,
                 (
                     (
+                        quality::apply_quality,
                         build::reset_bodies,
                         build::start_builds,
                         build::finish_builds,
