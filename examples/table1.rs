@@ -19,7 +19,8 @@
 //! cargo run --release --example table1 -- --no-cpu     # the GPU rows only
 //! ```
 //! Options: `--steps N` (default 300), `--repeats N` (default 5), `--no-cpu`,
-//! `--no-gpu`, `--out DIR` (default `table1_out`).
+//! `--no-gpu`, `--k 32,64` (the neighbour counts to run), `--out DIR` (default
+//! `table1_out`).
 
 #[path = "support/bench.rs"]
 mod bench;
@@ -250,9 +251,13 @@ fn main() {
             }
         }
     };
+    let ks: Vec<u32> = match a.text("--k") {
+        Some(v) => v.split(',').filter_map(|k| k.parse().ok()).collect(),
+        None => vec![32, 64],
+    };
     let t0 = Instant::now();
     let mut cells = Vec::new();
-    for &k in &[32u32, 64] {
+    for &k in &ks {
         for &target in sizes {
             let model = liver(target, k);
             for &b in &backends {
