@@ -74,6 +74,13 @@ fn time_steps(
     Ok((per_step.iter().sum::<f64>() / per_step.len() as f64, stages))
 }
 
+/// The stage times as Markdown cells (KNN, predict, clusters, gather, boundary, finish).
+fn stage_cells(s: &StageTimes, decimals: usize) -> String {
+    [s.knn, s.predict, s.clusters, s.gather, s.boundary, s.finish]
+        .map(|v| format!("{v:.decimals$}"))
+        .join(" | ")
+}
+
 fn cell(r: &Result<(f64, StageTimes), String>) -> String {
     match r {
         Ok((ms, _)) => format!("{ms:.1}"),
@@ -127,14 +134,9 @@ fn scale() {
         eprintln!("built {} particles in {build:.1} s", model.particle_count());
         match time_steps(&model, Method::Jacobi, 0, 5) {
             Ok((ms, s)) => println!(
-                "| {} | {build:.1} | {ms:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
+                "| {} | {build:.1} | {ms:.0} | {} |",
                 model.particle_count(),
-                s.knn,
-                s.predict,
-                s.clusters,
-                s.gather,
-                s.boundary,
-                s.finish
+                stage_cells(&s, 0)
             ),
             Err(e) => println!(
                 "| {} | {build:.1} | {e} | | | | | | |",
@@ -214,14 +216,9 @@ fn main() {
             for (method, r) in [("GS 1 thread", &gs), ("Jacobi all cores", &jc)] {
                 if let Ok((_, s)) = r {
                     breakdown.push(format!(
-                        "| {} | {name} | {method} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+                        "| {} | {name} | {method} | {} |",
                         model.particle_count(),
-                        s.knn,
-                        s.predict,
-                        s.clusters,
-                        s.gather,
-                        s.boundary,
-                        s.finish
+                        stage_cells(s, 1)
                     ));
                 }
             }

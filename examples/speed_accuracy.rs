@@ -535,7 +535,8 @@ fn grid(quick: bool, cpu: bool, gpu: bool) -> Vec<Config> {
             for &k in ks {
                 out.push(Config { k, ..base });
             }
-            for &iterations in &iters[..iters.len().min(2)] {
+            let hier = if quick { 1 } else { 2 };
+            for &iterations in &iters[..iters.len().min(hier)] {
                 out.push(Config {
                     iterations,
                     hierarchy: true,

@@ -194,17 +194,7 @@ fn step_and_read(app: &mut App, e: Entity, frames: u32) -> ParticlePositions {
     for _ in 0..3 {
         app.update();
     }
-    app.world_mut()
-        .entity_mut(e)
-        .insert(ReadbackParticles::default());
-    assert!(
-        until(app, 30, |app| app
-            .world()
-            .get::<ParticlePositions>(e)
-            .is_some()),
-        "no readback arrived"
-    );
-    app.world().get::<ParticlePositions>(e).unwrap().clone()
+    read_now(app, e)
 }
 
 #[test]
