@@ -749,6 +749,7 @@ fn a_body_at_rest_sleeps_without_gpu_work_and_wakes_on_settings_and_contact() {
         speed: 0.01,
         frames: 5,
         margin: 0.02,
+        ..default()
     });
     app.world_mut()
         .spawn(TissueCollider::new(ColliderKind::Plane));

@@ -13,6 +13,8 @@
 //! --script            scripted input (tool moves, a drag) and one step per frame
 //! --warmup N          frames before the frame-rate report starts (default 120)
 //! --lite              no shadow maps, no MSAA (software rasterisers, CI)
+//! --no-sleep          bodies never sleep (to measure what sleeping saves)
+//! --sleep-speed V     bodies sleep below V m/s (TissueSleep::speed)
 //! ```
 #![allow(dead_code)]
 
@@ -45,6 +47,10 @@ pub struct SceneArgs {
     pub warmup: u32,
     /// No shadow maps and no MSAA (for software rasterisers such as lavapipe).
     pub lite: bool,
+    /// Bodies never sleep (to measure what sleeping saves).
+    pub no_sleep: bool,
+    /// Sleep threshold, m/s (`TissueSleep::speed`; `None`: the plugin's default).
+    pub sleep_speed: Option<f32>,
 }
 
 impl SceneArgs {
@@ -80,6 +86,10 @@ impl SceneArgs {
             script: args.flag("--script"),
             warmup: args.num("--warmup", 120),
             lite: args.flag("--lite"),
+            no_sleep: args.flag("--no-sleep"),
+            sleep_speed: args
+                .text("--sleep-speed")
+                .map(|_| args.num("--sleep-speed", 0.0)),
         }
     }
 }
@@ -131,8 +141,18 @@ pub fn app(args: &SceneArgs, title: &str, mut settings: TissueSettings) -> App {
         // One step per frame: the script's timeline is in frames, whatever the frame rate.
         settings.max_steps_per_frame = 1;
     }
-    app.add_plugins(TissuePlugin { settings })
-        .insert_resource(args.clone())
+    app.add_plugins(TissuePlugin { settings });
+    if args.no_sleep || args.sleep_speed.is_some() {
+        app.insert_resource(TissueSleep {
+            speed: if args.no_sleep {
+                0.0
+            } else {
+                args.sleep_speed.unwrap_or_default()
+            },
+            ..default()
+        });
+    }
+    app.insert_resource(args.clone())
         .init_resource::<Frames>()
         .add_systems(PreStartup, make_target)
         .add_systems(Update, (aim_camera, count_frames, lite_lights))
@@ -205,6 +225,7 @@ fn finish(
     target: Option<Res<TargetImage>>,
     clock: Res<TissueClock>,
     store: Option<Res<bevy::diagnostic::DiagnosticsStore>>,
+    bodies: Query<(Has<Sleeping>, &BodyMotion), With<SoftBody>>,
     mut commands: Commands,
     mut exit: MessageWriter<AppExit>,
 ) {
@@ -239,6 +260,21 @@ fn finish(
             clock.steps
         );
     }
+    let mut awake: Vec<f32> = bodies
+        .iter()
+        .filter(|(asleep, _)| !asleep)
+        .map(|(_, m)| m.max_speed)
+        .collect();
+    awake.sort_by(f32::total_cmp);
+    println!(
+        "bodies asleep at exit: {} of {}; fastest particle of the awake ones, m/s: {:?}",
+        bodies.iter().filter(|(asleep, _)| *asleep).count(),
+        bodies.iter().count(),
+        awake
+            .iter()
+            .map(|v| (v * 1e3).round() / 1e3)
+            .collect::<Vec<_>>()
+    );
     // GPU time per render pass (with RenderDiagnosticsPlugin, which the panel adds).
     if let Some(store) = store {
         let mut passes: Vec<(String, f64)> = store

@@ -6,7 +6,9 @@
 //!
 //! * a collider that moved, or whose kind changed (a grasper closing), comes within reach
 //!   of its bounds — the mouse drag is such a collider;
-//! * an awake body's bounds come within reach of its bounds;
+//! * an awake body faster than [`TissueSleep::wake_speed`] comes within reach of its
+//!   bounds (a slower neighbour does not: in a pile, one creeping body would otherwise
+//!   keep every body it touches awake);
 //! * its [`SoftBody`] or [`Pinned`] or its transform changes, or it is reset;
 //! * [`TissueSettings`] change (gravity, for one).
 //!
@@ -31,15 +33,20 @@ pub struct TissueSleep {
     /// Reach around a body's particle bounds within which a moving collider or an awake
     /// body wakes it, m.
     pub margin: f32,
+    /// A neighbouring body wakes a sleeping one only while its fastest particle is faster
+    /// than this, m/s.
+    pub wake_speed: f32,
 }
 
 impl Default for TissueSleep {
-    /// 2 mm/s for 60 frames (a second at 60 Hz), woken within 2 cm.
+    /// 2 mm/s for 60 frames (a second at 60 Hz), woken within 2 cm, by neighbours
+    /// faster than 5 cm/s.
     fn default() -> Self {
         Self {
             speed: 0.002,
             frames: 60,
             margin: 0.02,
+            wake_speed: 0.05,
         }
     }
 }
@@ -132,10 +139,10 @@ pub fn update_sleep(
         })
         .map(|(c, t, _)| collider_box(&c, &t))
         .collect();
-    // Moving bodies (a still one about to sleep must not keep its neighbours awake).
+    // Bodies moving fast enough to wake their neighbours.
     let awake: Vec<(Vec3, Vec3)> = bodies
         .iter()
-        .filter(|b| !b.2 && b.1.known && b.1.still_frames == 0)
+        .filter(|b| !b.2 && b.1.known && b.1.max_speed > sleep.wake_speed.max(sleep.speed))
         .map(|b| (b.1.min, b.1.max))
         .collect();
     for (e, mut motion, asleep, body, transform, pinned, built) in &mut bodies {
