@@ -219,6 +219,8 @@ fn count_frames(mut frames: ResMut<Frames>) {
 }
 
 /// PNG frames, the frame limit and the frame-rate report.
+// A Bevy system: its arguments are the resources and queries it reads.
+#[allow(clippy::too_many_arguments)]
 fn finish(
     args: Res<SceneArgs>,
     frames: Res<Frames>,
