@@ -16,18 +16,16 @@
 //! cargo run --release --example cpu_bench -- --quick # small sizes only, seconds
 //! cargo run --release --example cpu_bench -- --scale # 38k to 1M particles, minutes
 //! ```
+#[path = "support/bench.rs"]
+mod bench;
+
+use bench::median;
 use bevy_tissue::core::knn::knn_all;
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, StageTimes, State};
 use std::time::Instant;
-
-/// Median of a list of milliseconds.
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 /// Mean ms per step over `steps` steps (and the mean time per stage), or the error if
 /// the run diverged.
@@ -93,13 +91,8 @@ fn cell(r: &Result<(f64, StageTimes), String>) -> String {
 
 /// `--scale`: Jacobi on all cores at growing sizes, ms per step and per stage.
 fn scale() {
-    let args: Vec<String> = std::env::args().collect();
-    let sizes: Vec<u32> = args
-        .iter()
-        .position(|a| a == "--sizes")
-        .and_then(|i| args.get(i + 1))
-        .map(|v| v.split(',').filter_map(|s| s.parse().ok()).collect())
-        .unwrap_or_else(|| vec![37_982, 131_072, 524_288, 1_000_000]);
+    let sizes: Vec<u32> =
+        bench::Args::new().list("--sizes", &[37_982, 131_072, 524_288, 1_000_000]);
     let threads = bevy_tissue::core::par::default_threads();
     let mesh = procedural::liver(5);
     let (lo, hi) = procedural::liver_ligament();
@@ -147,11 +140,12 @@ fn scale() {
 }
 
 fn main() {
-    if std::env::args().any(|a| a == "--scale") {
+    let args = bench::Args::new();
+    if args.flag("--scale") {
         scale();
         return;
     }
-    let quick = std::env::args().any(|a| a == "--quick");
+    let quick = args.flag("--quick");
     let sizes: &[u32] = if quick {
         &[512, 4096]
     } else {

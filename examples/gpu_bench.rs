@@ -192,7 +192,8 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
 }
 
 fn main() {
-    let quick = std::env::args().any(|a| a == "--quick");
+    let args = bench::Args::new();
+    let quick = args.flag("--quick");
     let g = match headless() {
         Ok(g) => g,
         Err(e) => {
@@ -203,20 +204,8 @@ fn main() {
     println!("GPU: {}\n", g.adapter);
     let sm = Material::ShapeMatching { stiffness: 0.5 };
     let he = Material::default();
-    let arg = |name: &str| {
-        let a: Vec<String> = std::env::args().collect();
-        a.iter()
-            .position(|x| x == name)
-            .and_then(|i| a.get(i + 1))
-            .and_then(|v| v.parse::<u32>().ok())
-    };
-    let (mut steps, mut repeats) = if quick { (20, 3) } else { (300, 5) };
-    if let Some(s) = arg("--steps") {
-        steps = s;
-    }
-    if let Some(r) = arg("--repeats") {
-        repeats = r as usize;
-    }
+    let steps: u32 = args.num("--steps", if quick { 20 } else { 300 });
+    let repeats: usize = args.num("--repeats", if quick { 3 } else { 5 });
     let mut rows = Vec::new();
     println!(
         "| scene | particles | GPU ms per step | wall ms per step (incl. wgpu encoding) | wall ms per KNN (K=32) |"
@@ -237,14 +226,11 @@ fn main() {
             steps,
             repeats,
         ));
-    } else if std::env::args().any(|a| a == "--scale") {
-        let a: Vec<String> = std::env::args().collect();
-        let sizes: Vec<u32> = a
-            .iter()
-            .position(|x| x == "--sizes")
-            .and_then(|i| a.get(i + 1))
-            .map(|v| v.split(',').filter_map(|s| s.parse().ok()).collect())
-            .unwrap_or_else(|| vec![37_982, 131_072, 524_288, 1_000_000, 2_000_000, 4_000_000]);
+    } else if args.flag("--scale") {
+        let sizes: Vec<u32> = args.list(
+            "--sizes",
+            &[37_982, 131_072, 524_288, 1_000_000, 2_000_000, 4_000_000],
+        );
         let rigid = Material::ShapeMatching { stiffness: 1.0 };
         let s38 = liver(Resolution::Particles(37982), 32, rigid).bodies[0].spacing;
         for n in sizes {

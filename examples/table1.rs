@@ -251,10 +251,7 @@ fn main() {
             }
         }
     };
-    let ks: Vec<u32> = match a.text("--k") {
-        Some(v) => v.split(',').filter_map(|k| k.parse().ok()).collect(),
-        None => vec![32, 64],
-    };
+    let ks: Vec<u32> = a.list("--k", &[32, 64]);
     let t0 = Instant::now();
     let mut cells = Vec::new();
     for &k in &ks {

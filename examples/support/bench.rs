@@ -54,6 +54,23 @@ impl Args {
         }
     }
 
+    /// The comma-separated numbers after `name` (`--sizes 1000,2000`), or `default`;
+    /// exits with a message on a bad number.
+    pub fn list<T: FromStr + Clone>(&self, name: &str, default: &[T]) -> Vec<T> {
+        match self.value(name) {
+            Some(v) => v
+                .split(',')
+                .map(|s| {
+                    s.trim().parse().unwrap_or_else(|_| {
+                        eprintln!("{name} needs comma-separated numbers, got {v}");
+                        std::process::exit(2)
+                    })
+                })
+                .collect(),
+            None => default.to_vec(),
+        }
+    }
+
     /// The path after `name`, or `default`.
     pub fn path(&self, name: &str, default: &str) -> PathBuf {
         PathBuf::from(self.value(name).map_or(default, |v| v.as_str()))

@@ -621,12 +621,12 @@ impl GpuWorld {
         })
     }
 
-    /// Marks bodies asleep or awake (`asleep[b]` for body `b` in model order; bodies past
-    /// the end stay as they are). The kernels skip a sleeping body's particles and
-    /// clusters: they keep their positions and zero velocity. Writes only what changed.
-    pub fn set_asleep(&mut self, queue: &RenderQueue, asleep: &[bool]) {
+    /// Marks bodies asleep or awake (one flag per body in model order; bodies past the
+    /// end stay as they are). The kernels skip a sleeping body's particles and clusters:
+    /// they keep their positions and zero velocity. Writes only what changed.
+    pub fn set_asleep(&mut self, queue: &RenderQueue, asleep: impl IntoIterator<Item = bool>) {
         let n = self.ranges.len();
-        for (b, (mine, &want)) in self.asleep[..n].iter_mut().zip(asleep).enumerate() {
+        for (b, (mine, want)) in self.asleep[..n].iter_mut().zip(asleep).enumerate() {
             if *mine != want {
                 *mine = want;
                 let offset = (b * size_of::<GpuBody>() + 12) as u64;

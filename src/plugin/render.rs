@@ -461,8 +461,7 @@ pub fn run_tissue(
     let recorder = ctx.diagnostic_recorder();
     let recorder = recorder.as_deref();
     // Sleeping bodies are skipped by the kernels; when all sleep, no step is recorded.
-    let asleep: Vec<bool> = gpu.bodies.iter().map(|b| b.asleep).collect();
-    world.set_asleep(&queue, &asleep);
+    world.set_asleep(&queue, gpu.bodies.iter().map(|b| b.asleep));
     let steps = if world.all_asleep() { 0 } else { gpu.steps };
     gpu.traffic.steps = steps;
     // Draw records: where each body's vertices are in the allocator's slabs (slabs can
