@@ -202,7 +202,9 @@ fn main() {
         }
     };
     println!("GPU: {}\n", g.adapter);
-    let sm = Material::ShapeMatching { stiffness: 0.5 };
+    // Shape matching at the plugin's default stiffness (k = 1: softer k stretches far
+    // under Jacobi averaging, BENCHMARKS.md).
+    let sm = Material::ShapeMatching { stiffness: 1.0 };
     let he = Material::default();
     let steps: u32 = args.num("--steps", if quick { 20 } else { 300 });
     let repeats: usize = args.num("--repeats", if quick { 3 } else { 5 });

@@ -148,11 +148,25 @@ fn gpu_matches_cpu_jacobi_after_200_steps_both_models() {
             colliders.len() as u64 * 16,
         );
         let gf: &[[f32; 4]] = bytemuck::cast_slice(&bytes);
-        for (k, f) in cpu_forces.iter().enumerate() {
-            let gv = Vec3::new(gf[k][0], gf[k][1], gf[k][2]);
+        let gpu_forces: Vec<Vec3> = (0..colliders.len())
+            .map(|k| Vec3::new(gf[k][0], gf[k][1], gf[k][2]))
+            .collect();
+        // The tissue's total push on the colliders agrees tightly. A particle pressed by
+        // both the sphere and the ground charges its whole correction to the collider
+        // that touched it last, so a few µm of rounding can move one particle's share
+        // (~0.02 N here) from one to the other: each collider within 2% of the total.
+        let (gt, ct) = (
+            gpu_forces.iter().sum::<Vec3>(),
+            cpu_forces.iter().sum::<Vec3>(),
+        );
+        assert!(
+            gt.distance(ct) <= 1e-3 * ct.length(),
+            "{material:?}: total GPU force {gt} N, CPU {ct} N"
+        );
+        for (k, (gv, f)) in gpu_forces.iter().zip(&cpu_forces).enumerate() {
             assert!(
-                gv.distance(*f) <= 1e-3 * f.length().max(1e-3),
-                "collider {k}: GPU force {gv} N, CPU {f} N"
+                gv.distance(*f) <= 2e-2 * ct.length(),
+                "{material:?}, collider {k}: GPU force {gv} N, CPU {f} N"
             );
         }
         assert!(

@@ -15,6 +15,10 @@
 //! --lite              no shadow maps, no MSAA (software rasterisers, CI)
 //! --no-sleep          bodies never sleep (to measure what sleeping saves)
 //! --sleep-speed V     bodies sleep below V m/s (TissueSleep::speed)
+//! --msaa N            MSAA samples, 1, 2 or 4 (default 4; --lite: 1)
+//! --pause             start with the simulation paused (what drawing alone costs)
+//! --profile           where a frame's time goes: the main world's update, the render
+//!                     world's stages, and CPU and GPU ms per render pass
 //! ```
 #![allow(dead_code)]
 
@@ -51,6 +55,12 @@ pub struct SceneArgs {
     pub no_sleep: bool,
     /// Sleep threshold, m/s (`TissueSleep::speed`; `None`: the plugin's default).
     pub sleep_speed: Option<f32>,
+    /// MSAA samples (1, 2 or 4).
+    pub msaa: u32,
+    /// Start with the simulation clock paused.
+    pub pause: bool,
+    /// Report where a frame's time goes.
+    pub profile: bool,
 }
 
 impl SceneArgs {
@@ -90,6 +100,15 @@ impl SceneArgs {
             sleep_speed: args
                 .text("--sleep-speed")
                 .map(|_| args.num("--sleep-speed", 0.0)),
+            msaa: match args.num("--msaa", 4u32) {
+                m @ (1 | 2 | 4) => m,
+                m => {
+                    eprintln!("--msaa takes 1, 2 or 4, got {m}");
+                    std::process::exit(2)
+                }
+            },
+            pause: args.flag("--pause"),
+            profile: args.flag("--profile"),
         }
     }
 }
@@ -162,6 +181,14 @@ pub fn app(args: &SceneArgs, title: &str, mut settings: TissueSettings) -> App {
             clock.fixed_steps_per_frame = Some(1);
         });
     }
+    if args.pause {
+        app.add_systems(Startup, |mut clock: ResMut<TissueClock>| {
+            clock.paused = true
+        });
+    }
+    if args.profile {
+        profile::add(&mut app);
+    }
     app
 }
 
@@ -191,7 +218,8 @@ fn aim_camera(
     }
 }
 
-/// `--lite`: directional lights cast no shadows and the camera takes one sample a pixel.
+/// `--lite`: directional lights cast no shadows and the camera takes one sample a pixel;
+/// `--msaa`: the camera's samples.
 fn lite_lights(
     args: Res<SceneArgs>,
     mut lights: Query<&mut DirectionalLight, Added<DirectionalLight>>,
@@ -202,9 +230,14 @@ fn lite_lights(
         for mut l in &mut lights {
             l.shadow_maps_enabled = false;
         }
-        for e in &cameras {
-            commands.entity(e).insert(Msaa::Off);
-        }
+    }
+    let msaa = match (args.lite, args.msaa) {
+        (true, _) | (false, 1) => Msaa::Off,
+        (false, 2) => Msaa::Sample2,
+        _ => Msaa::Sample4,
+    };
+    for e in &cameras {
+        commands.entity(e).insert(msaa);
     }
 }
 
@@ -216,6 +249,16 @@ fn count_frames(mut frames: ResMut<Frames>) {
         frames.times.push(dt);
     }
     frames.last = Some(now);
+}
+
+/// Whether this is the last frame (`--frames`, and a few frames more than the last shot,
+/// so that the PNGs are written).
+fn at_end(args: &SceneArgs, frames: &Frames) -> bool {
+    let Some(limit) = args.frames else {
+        return false;
+    };
+    let last_shot = args.shots.iter().map(|s| s.0).max().unwrap_or(0);
+    frames.count >= limit.max(last_shot + 5)
 }
 
 /// PNG frames, the frame limit and the frame-rate report.
@@ -241,10 +284,7 @@ fn finish(
             commands.spawn(shot).observe(save_to_disk(path.clone()));
         }
     }
-    let Some(limit) = args.frames else { return };
-    // A few frames more than the last shot, so that the PNGs are written.
-    let last_shot = args.shots.iter().map(|s| s.0).max().unwrap_or(0);
-    if n < limit.max(last_shot + 5) {
+    if !at_end(&args, &frames) {
         return;
     }
     let times = &frames.times[(args.warmup as usize).min(frames.times.len())..];
@@ -288,6 +328,25 @@ fn finish(
             .filter_map(|d| Some((d.path().to_string(), d.smoothed()?)))
             .collect();
         passes.sort_by(|a, b| b.1.total_cmp(&a.1));
+        if args.profile {
+            let cpu: f64 = store
+                .iter()
+                .filter(|d| d.path().as_str().ends_with("/elapsed_cpu"))
+                .filter_map(|d| d.smoothed())
+                .sum();
+            let gpu: f64 = store
+                .iter()
+                .filter(|d| {
+                    let p = d.path().as_str();
+                    // Spans nest (`tissue` holds `tissue/<kernel>`): count the outer ones.
+                    p.ends_with("/elapsed_gpu") && p.matches('/').count() == 2
+                })
+                .filter_map(|d| d.smoothed())
+                .sum();
+            println!(
+                "render passes (smoothed): CPU {cpu:.3} ms encoding, GPU {gpu:.3} ms in outer spans"
+            );
+        }
         if !passes.is_empty() {
             let list: Vec<String> = passes
                 .iter()
@@ -306,18 +365,31 @@ fn finish(
 
 /// The camera the scene is seen through, and a directional light with shadows that
 /// shines from `sun` toward the origin (`illuminance` in lux).
+///
+/// The shadow map is one cascade reaching twice the camera's distance to `target`: these
+/// scenes are small and seen from one side, and each cascade draws every shadow caster
+/// again (Bevy's default, four cascades to 150 m, cost about 2 ms a frame on an H100,
+/// whose raster units are few; BENCHMARKS.md, "Scenes").
 pub fn spawn_view(commands: &mut Commands, eye: Vec3, target: Vec3, sun: Vec3, illuminance: f32) {
     commands.spawn((
         SceneCamera,
         Camera3d::default(),
         Transform::from_translation(eye).looking_at(target, Vec3::Y),
     ));
+    let reach = 2.0 * eye.distance(target);
     commands.spawn((
         DirectionalLight {
             shadow_maps_enabled: true,
             illuminance,
             ..default()
         },
+        bevy::light::CascadeShadowConfigBuilder {
+            num_cascades: 1,
+            minimum_distance: 0.01 * reach,
+            maximum_distance: reach,
+            ..default()
+        }
+        .build(),
         Transform::from_translation(sun).looking_at(Vec3::ZERO, Vec3::Y),
     ));
 }
@@ -361,5 +433,122 @@ impl ScriptPointer<'_, '_> {
             }
             self.pointer.pressed = pressed;
         }
+    }
+}
+
+/// `--profile`: where a frame's time goes. The main world's update (`First` to `Last`),
+/// and the render world's stages (Bevy's `RenderSystems`: extract commands to the end of
+/// bind-group preparation, the render graph — encoding and submitting every pass, the
+/// tissue kernels included —, and cleanup, where the tissue plugin paces a CPU running
+/// ahead of the GPU) and its frame-to-frame time.
+mod profile {
+    use super::{Frames, SceneArgs, at_end};
+    use bevy::prelude::*;
+    use bevy::render::diagnostic::RenderDiagnosticsPlugin;
+    use bevy::render::{Render, RenderApp, RenderSystems};
+    use std::sync::{Arc, Mutex};
+    use std::time::Instant;
+
+    /// Samples (ms) shared by both worlds.
+    #[derive(Default)]
+    struct Samples {
+        main_start: Option<Instant>,
+        main: Vec<f64>,
+        marks: [Option<Instant>; 4],
+        last_frame: Option<Instant>,
+        prepare: Vec<f64>,
+        graph: Vec<f64>,
+        cleanup: Vec<f64>,
+        render_frame: Vec<f64>,
+    }
+
+    #[derive(Resource, Clone, Default)]
+    struct Shared(Arc<Mutex<Samples>>);
+
+    fn ms(a: Instant, b: Instant) -> f64 {
+        (b - a).as_secs_f64() * 1e3
+    }
+
+    pub fn add(app: &mut App) {
+        if !app.is_plugin_added::<RenderDiagnosticsPlugin>() {
+            app.add_plugins(RenderDiagnosticsPlugin);
+        }
+        let shared = Shared::default();
+        app.insert_resource(shared.clone())
+            .add_systems(First, main_start)
+            .add_systems(Last, (main_end, report.before(super::finish)));
+        if let Some(render) = app.get_sub_app_mut(RenderApp) {
+            render.insert_resource(shared).add_systems(
+                Render,
+                (
+                    mark::<0>.in_set(RenderSystems::ExtractCommands),
+                    mark::<1>
+                        .after(RenderSystems::PrepareBindGroups)
+                        .before(RenderSystems::Render),
+                    mark::<2>
+                        .after(RenderSystems::Render)
+                        .before(RenderSystems::Cleanup),
+                    mark::<3>.in_set(RenderSystems::PostCleanup),
+                ),
+            );
+        }
+    }
+
+    fn main_start(shared: Res<Shared>) {
+        if let Ok(mut s) = shared.0.lock() {
+            s.main_start = Some(Instant::now());
+        }
+    }
+
+    fn main_end(shared: Res<Shared>) {
+        if let Ok(mut s) = shared.0.lock()
+            && let Some(t) = s.main_start
+        {
+            s.main.push(ms(t, Instant::now()));
+        }
+    }
+
+    fn mark<const I: usize>(shared: Res<Shared>) {
+        let now = Instant::now();
+        let Ok(mut s) = shared.0.lock() else { return };
+        s.marks[I] = Some(now);
+        if I == 0 {
+            if let Some(l) = s.last_frame {
+                s.render_frame.push(ms(l, now));
+            }
+            s.last_frame = Some(now);
+        }
+        if I == 3
+            && let [Some(a), Some(b), Some(c), Some(d)] = s.marks
+        {
+            s.prepare.push(ms(a, b));
+            s.graph.push(ms(b, c));
+            s.cleanup.push(ms(c, d));
+            s.marks = [None; 4];
+        }
+    }
+
+    fn report(args: Res<SceneArgs>, frames: Res<Frames>, shared: Res<Shared>) {
+        if !at_end(&args, &frames) {
+            return;
+        }
+        let Ok(s) = shared.0.lock() else { return };
+        let mean = |v: &[f64]| {
+            let v = &v[(args.warmup as usize).min(v.len())..];
+            if v.is_empty() {
+                return f64::NAN;
+            }
+            v.iter().sum::<f64>() / v.len() as f64
+        };
+        println!(
+            "profile, mean ms after the warm-up: main world update {:.3}; render world: \
+             frame-to-frame {:.3}, prepare {:.3}, render graph (encode + submit) {:.3}, \
+             cleanup (with the tissue plugin's frame pacing) {:.3}",
+            mean(&s.main),
+            mean(&s.render_frame),
+            mean(&s.prepare),
+            mean(&s.graph),
+            mean(&s.cleanup)
+        );
     }
 }

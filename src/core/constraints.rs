@@ -10,9 +10,10 @@
 //! (Müller et al. 2005, "Meshless deformations based on shape matching", eq. 7;
 //! Müller et al. 2022, "Physically based shape matching").
 //!
-//! **Corrections as affine maps.** Every cluster solve here returns a [`ClusterCorrection`]
-//! `(M, t, a)`; member `j` moves by `Δx_j = M X_j + t − a p_j` (`X_j` its rest position).
-//! Shape matching gives `M = aR`, `t = a (x_cm − R X_cm)`; XPBD gives `a = 0`. So a Jacobi pass is: one gather per cluster
+//! **Corrections as maps of the rest position.** Every cluster solve here returns a
+//! [`ClusterCorrection`]; member `j` moves by `Δx_j = M X_j + t − a p_j` (`X_j` its rest
+//! position). Shape matching gives `M = aR`, `t = a (x_cm − R X_cm)` (stored as `R`, `a t`,
+//! `a`); XPBD gives `a = 0`. So a Jacobi pass is: one gather per cluster
 //! (`A_pq`), a 3×3 solve, then one gather per particle over the clusters that contain it
 //! — no scatter, no atomics, deterministic on every thread count and on the GPU.
 
@@ -222,50 +223,88 @@ pub fn cluster_moments(
     (origin + c_rel, a, rest_data.com + mq * inv_m)
 }
 
-/// A cluster's correction as an affine map of the rest position: member `j` moves by
-/// `Δx_j = m X_j + t − a p_j`. Stored 16-byte aligned (`Mat3A` and `t, a` in one `Vec4`)
-/// so that a particle sums its clusters' corrections with four SIMD adds each.
+/// A cluster's correction of its members, in the two forms the GPU stores (its `corr`
+/// buffer; `kernels/common.wgsl`): member `j` (rest position `X_j`, current `p_j`) moves by
+/// - shape matching, [`Rigid`](Self::Rigid): `Δx_j = a (R X_j + t) − a p_j`, with `R` a
+///   unit quaternion (32 bytes on the GPU);
+/// - XPBD, [`Affine`](Self::Affine): `Δx_j = M X_j + t` (48 bytes).
+///
+/// [`apply`](Self::apply) evaluates both in the GPU's order of operations, so that the
+/// CPU Jacobi solver stays the GPU's twin to rounding.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ClusterCorrection {
-    /// Linear part applied to the rest position `X_j` (dimensionless).
-    pub m: Mat3A,
-    /// Translation `t` (m) in `xyz` and the weight `a` of the current position
-    /// (dimensionless, in [0, 1]) in `w`.
-    pub ta: Vec4,
+pub enum ClusterCorrection {
+    /// Shape matching: `Δx = a (R X + t) − a p`.
+    Rigid {
+        /// Rotation `R` of the goal.
+        rot: Quat,
+        /// `a t` (m) in `xyz`, with `t = x_cm − R X_cm`, and `a` (dimensionless, in
+        /// [0, 1]) in `w`.
+        ta: Vec4,
+    },
+    /// XPBD: `Δx = M X + t`.
+    Affine {
+        /// `M` (dimensionless), applied to the rest position.
+        m: Mat3A,
+        /// `t`, m.
+        t: Vec3A,
+    },
 }
 
 impl ClusterCorrection {
     /// No correction.
-    pub const ZERO: Self = Self {
+    pub const ZERO: Self = Self::Affine {
         m: Mat3A::ZERO,
-        ta: Vec4::ZERO,
+        t: Vec3A::ZERO,
     };
 
-    /// The map `Δx = m X + t − a p`.
+    /// The shape-matching correction toward the goal `R X + t` with weight `a`.
     #[inline]
-    pub fn new(m: Mat3, t: Vec3, a: f32) -> Self {
-        Self {
-            m: Mat3A::from(m),
-            ta: t.extend(a),
+    pub fn rigid(rot: Quat, t: Vec3, a: f32) -> Self {
+        Self::Rigid {
+            rot,
+            ta: (t * a).extend(a),
         }
     }
 
-    /// Translation, m.
+    /// The affine correction `M X + t`.
     #[inline]
-    pub fn t(&self) -> Vec3 {
-        self.ta.truncate()
+    pub fn affine(m: Mat3, t: Vec3) -> Self {
+        Self::Affine {
+            m: Mat3A::from(m),
+            t: Vec3A::from(t),
+        }
     }
 
-    /// Weight of the current position.
+    /// Weight `a` of the current position (0 for an affine correction).
     #[inline]
     pub fn a(&self) -> f32 {
-        self.ta.w
+        match self {
+            Self::Rigid { ta, .. } => ta.w,
+            Self::Affine { .. } => 0.0,
+        }
+    }
+
+    /// `Δx + a p` (m) in `xyz` and `a` in `w` for a member with rest position `x_rest`:
+    /// what a particle sums over its clusters (then `Δx = xyz − w p`).
+    #[inline(always)]
+    pub fn goal_part(&self, x_rest: Vec3A) -> Vec4 {
+        match self {
+            Self::Rigid { rot, ta } => {
+                // X + 2w (q × X) + 2 q × (q × X), as kernels/gather.wgsl.
+                let q = Vec3A::new(rot.x, rot.y, rot.z);
+                let u = 2.0 * q.cross(x_rest);
+                let rx = x_rest + rot.w * u + q.cross(u);
+                (ta.w * rx).extend(0.0) + *ta
+            }
+            Self::Affine { m, t } => (*m * x_rest + *t).extend(0.0),
+        }
     }
 
     /// The displacement of a member with rest position `x_rest` and current position `p`.
     #[inline(always)]
     pub fn apply(&self, x_rest: Vec3, p: Vec3) -> Vec3 {
-        Vec3::from(self.m * Vec3A::from(x_rest)) + self.t() - self.a() * p
+        let g = self.goal_part(Vec3A::from(x_rest));
+        g.truncate() - g.w * p
     }
 }
 
@@ -314,7 +353,7 @@ pub fn solve_shape_matching(
 ) -> ClusterCorrection {
     extract_rotation(apq, rot, rotation_iterations);
     let r = Mat3::from_quat(*rot);
-    ClusterCorrection::new(r * alpha, (c - r * rest.com) * alpha, alpha)
+    ClusterCorrection::rigid(*rot, c - r * rest.com, alpha)
 }
 
 /// Lamé parameters `(μ, λ)` in Pa of Young's modulus `e` (Pa) and Poisson ratio `nu`.
@@ -547,7 +586,7 @@ fn correction_of(g: &Mat3, rest: &ClusterRest) -> ClusterCorrection {
         return ClusterCorrection::ZERO;
     }
     let m = *g * rest.aqq_inv;
-    ClusterCorrection::new(m, -(m * rest.com), 0.0)
+    ClusterCorrection::affine(m, -(m * rest.com))
 }
 
 /// The strain that f32 rounding alone puts into a cluster's `F`: positions near

@@ -1008,16 +1008,19 @@ impl Solver {
 }
 
 /// Sum of the corrections of all clusters containing particle `j` (at position `pj`):
-/// `Σ_c (M_c X_j + t_c − a_c p_j)`, summed as `(Σ M_c) X_j + Σ t_c − (Σ a_c) p_j`.
+/// `Σ_c (M_c X_j + t_c − a_c p_j)`, summed as `Σ_c (M_c X_j + t_c) − (Σ_c a_c) p_j`.
+///
+/// Each cluster's map is applied to `X_j` and the results summed (as the GPU's gather
+/// does, which reads each map once per member; the same sum as applying the summed maps,
+/// up to rounding).
 #[inline]
 fn gather(model: &Model, work: &[(ClusterCorrection, Multipliers)], j: usize, pj: Vec3) -> Vec3 {
-    let (mut m, mut ta) = (glam::Mat3A::ZERO, glam::Vec4::ZERO);
+    let xr = glam::Vec3A::from(model.rest[j]);
+    let mut acc = glam::Vec4::ZERO;
     for &c in model.clusters_of(j) {
-        let w = &work[c as usize].0;
-        m += w.m;
-        ta += w.ta;
+        acc += work[c as usize].0.goal_part(xr);
     }
-    Vec3::from(m * glam::Vec3A::from(model.rest[j])) + ta.truncate() - ta.w * pj
+    acc.truncate() - acc.w * pj
 }
 
 /// Inverse mass of particle `i`, 1/kg; 0 for a pinned particle (infinite mass).

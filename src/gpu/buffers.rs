@@ -26,6 +26,9 @@ pub const WORKGROUP: u32 = 128;
 pub const SCAN_BLOCK: u32 = 1024;
 /// Largest K of the GPU neighbour search.
 pub const MAX_GPU_K: u32 = 64;
+/// Bytes of one cluster's correction in the `corr` buffer (three `vec4<f32>`; layout in
+/// `kernels/common.wgsl`, `CORR_STRIDE`).
+pub const CORR_BYTES: u64 = 48;
 
 /// Per-step constants (`Params` in WGSL).
 #[repr(C)]

@@ -234,14 +234,22 @@ fn groups(n: u32, per: u32) -> u32 {
     n.div_ceil(per).max(1)
 }
 
-/// Particles (or clusters) handled by one workgroup of the lane kernels (clusters,
-/// gather: 8 threads each).
+/// Particles handled by one workgroup of the gather kernel (8 threads each).
 pub const PER_LANE_GROUP: u32 = WORKGROUP / 8;
 
-/// A 2-D grid of workgroups for the lane kernels (the kernels linearise it), so that
+/// A 2-D grid of workgroups for the gather kernel (the kernels linearise it), so that
 /// millions of particles stay under the 65,535 groups per dimension.
 fn lane_groups(n: u32) -> (u32, u32) {
-    let g = groups(n, PER_LANE_GROUP);
+    grid_2d(groups(n, PER_LANE_GROUP))
+}
+
+/// The same for the cluster kernel (a workgroup per 128 clusters).
+fn cluster_groups(n: u32) -> (u32, u32) {
+    grid_2d(groups(n, WORKGROUP))
+}
+
+/// `g` workgroups as a 2-D grid within 65,535 per dimension.
+fn grid_2d(g: u32) -> (u32, u32) {
     if g <= 65_535 {
         (g, 1)
     } else {
@@ -293,7 +301,7 @@ impl GpuWorld {
         let max_bind = limits.max_storage_buffer_binding_size;
         let checks: [(&'static str, u64); 5] = [
             ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
-            ("cluster corrections", n * 64),
+            ("cluster corrections", n * CORR_BYTES),
             ("cluster lists", lists * 4),
             ("contact lists", n * contact_k.max(1) * 4),
             ("render vertices", nv * 32),
@@ -435,7 +443,7 @@ impl GpuWorld {
             crest: init("tissue crest", bytemuck::cast_slice(&packed.crest), st),
             bodies: init("tissue bodies", bytemuck::cast_slice(&packed.bodies), st),
             cstate: init("tissue cstate", bytemuck::cast_slice(&cstate), st),
-            corr: zeroed("tissue corr", total * 64, st),
+            corr: zeroed("tissue corr", total * CORR_BYTES, st),
             pins: init("tissue pins", bytemuck::cast_slice(&pins), st),
             coldp: zeroed("tissue coldp", total * 16, st),
             contacts: init(
@@ -858,6 +866,7 @@ impl GpuWorld {
     ) {
         let g = groups(self.n, WORKGROUP);
         let lg = lane_groups(self.n);
+        let cg = cluster_groups(self.n);
         let mut r = Recording::new(encoder, rec);
         let w = &self.world_group;
         let s = &self.settings;
@@ -877,7 +886,7 @@ impl GpuWorld {
                     self.record_levels(&mut r, k);
                 }
                 for _ in 0..s.iterations {
-                    r.dispatch(w, "tissue/clusters", &k.clusters, lv0, lg);
+                    r.dispatch(w, "tissue/clusters", &k.clusters, lv0, cg);
                     r.dispatch(w, "tissue/gather", &k.gather, lv0, lg);
                     if self.contacts_on {
                         r.dispatch(w, "tissue/contacts", &k.contact, None, (g, 1));
@@ -914,9 +923,10 @@ impl GpuWorld {
             let trs = Some((&self.level_group, (3 + 3 * l as u32) * REC));
             let g = (groups(lv.count, WORKGROUP), 1);
             let lg = lane_groups(lv.count);
+            let cg = cluster_groups(lv.count);
             r.dispatch(w, "tissue/levels", &k.level_in, parts, g);
             for _ in 0..self.settings.coarse_iterations {
-                r.dispatch(w, "tissue/levels", &k.clusters, parts, lg);
+                r.dispatch(w, "tissue/levels", &k.clusters, parts, cg);
                 r.dispatch(w, "tissue/levels", &k.gather, parts, lg);
             }
             r.dispatch(w, "tissue/levels", &k.level_out, parts, g);

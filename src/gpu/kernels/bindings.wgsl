@@ -16,7 +16,7 @@ const MAX_COLLIDERS: u32 = 128u;
 @group(0) @binding(9) var<storage, read> crest: array<ClusterRest>;
 @group(0) @binding(10) var<storage, read> bodies: array<Body>;
 @group(0) @binding(11) var<storage, read_write> cstate: array<ClusterState>;
-@group(0) @binding(12) var<storage, read_write> corr: array<Corr>;
+@group(0) @binding(12) var<storage, read_write> corr: array<vec4<f32>>;
 @group(0) @binding(13) var<storage, read> pins: array<vec4<f32>>;
 @group(0) @binding(14) var<storage, read_write> coldp: array<vec4<f32>>;
 @group(0) @binding(15) var<storage, read_write> contacts: array<u32>;

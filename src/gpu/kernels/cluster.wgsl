@@ -25,16 +25,24 @@ fn mat_finite(m: mat3x3<f32>) -> bool {
     return ok;
 }
 
-fn store_corr(c: u32, m: mat3x3<f32>, t: vec3<f32>, a: f32) {
-    corr[c] = Corr(vec4<f32>(m[0], t.x), vec4<f32>(m[1], t.y), vec4<f32>(m[2], t.z),
-                   vec4<f32>(a, 0.0, 0.0, 0.0));
+// Hyperelastic: Δx = M X + t.
+fn store_affine(c: u32, m: mat3x3<f32>, t: vec3<f32>) {
+    let o = c * CORR_STRIDE;
+    corr[o] = vec4<f32>(m[0], t.x);
+    corr[o + 1u] = vec4<f32>(m[1], t.y);
+    corr[o + 2u] = vec4<f32>(m[2], t.z);
 }
 
-// LANES threads share a cluster: each sums every LANES-th member, the partial sums are
-// combined in lane order (deterministic), and lane 0 solves. Eight times the threads of
-// one-thread-per-cluster hides the latency of the scattered member reads.
+// A workgroup solves 128 clusters in two phases. Sums: LANES threads share a cluster,
+// each summing every LANES-th member (eight times the threads of one-per-cluster hides
+// the latency of the scattered member reads), over LANES rounds of 128 / LANES clusters;
+// one lane per cluster combines the partial sums in lane order (deterministic) into
+// `mom`. Solve: every thread then solves its own cluster, so the polar decomposition and
+// the XPBD solve run on all lanes of a warp, not on one lane in LANES.
 const LANES: u32 = 8u;
+const ROUND: u32 = 128u / LANES;
 var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
+var<workgroup> mom: array<array<vec4<f32>, 5>, 128>;
 
 @compute @workgroup_size(128)
 fn solve_clusters(
@@ -42,53 +50,69 @@ fn solve_clusters(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let local = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
-    let c = range.first + local;
+    let base = (wid.x + wid.y * nwg.x) * 128u;
     let lane = lid % LANES;
-    // A sleeping body's clusters are skipped (their corrections are read only by its own
-    // particles, which skip gathering).
-    let valid = local < range.count && !asleep(c);
-    var mp = vec3<f32>(0.0);
-    var mq = vec3<f32>(0.0);
-    var a0 = vec3<f32>(0.0);
-    var a1 = vec3<f32>(0.0);
-    var a2 = vec3<f32>(0.0);
-    var origin = vec3<f32>(0.0);
-    var com = vec3<f32>(0.0);
-    if (valid) {
-        let start = pinfo[c].w;
-        let end = pinfo[c + 1u].w;
-        com = crest[c].com_mass.xyz;
-        origin = p[lists[start]].xyz;
-        for (var s = start + lane; s < end; s = s + LANES) {
-            let j = lists[s];
-            let r = rest[j];
-            let m = r.w;
-            let md = (p[j].xyz - origin) * m;
-            let q = r.xyz - com;
-            mp = mp + md;
-            mq = mq + q * m;
-            a0 = a0 + md * q.x;
-            a1 = a1 + md * q.y;
-            a2 = a2 + md * q.z;
+    for (var round = 0u; round < LANES; round = round + 1u) {
+        let slot = round * ROUND + lid / LANES;
+        let local = base + slot;
+        let c = range.first + local;
+        // A sleeping body's clusters are skipped (their corrections are read only by its
+        // own particles, which skip gathering).
+        let valid = local < range.count && !asleep(c);
+        var mp = vec3<f32>(0.0);
+        var mq = vec3<f32>(0.0);
+        var a0 = vec3<f32>(0.0);
+        var a1 = vec3<f32>(0.0);
+        var a2 = vec3<f32>(0.0);
+        var origin = vec3<f32>(0.0);
+        if (valid) {
+            let start = pinfo[c].w;
+            let end = pinfo[c + 1u].w;
+            let com = crest[c].com_mass.xyz;
+            origin = p[lists[start]].xyz;
+            for (var s = start + lane; s < end; s = s + LANES) {
+                let j = lists[s];
+                let r = rest[j];
+                let m = r.w;
+                let md = (p[j].xyz - origin) * m;
+                let q = r.xyz - com;
+                mp = mp + md;
+                mq = mq + q * m;
+                a0 = a0 + md * q.x;
+                a1 = a1 + md * q.y;
+                a2 = a2 + md * q.z;
+            }
         }
+        part[lid] = array<vec4<f32>, 4>(vec4<f32>(mp, a0.x), vec4<f32>(mq, a0.y), vec4<f32>(a1, a0.z), vec4<f32>(a2, 0.0));
+        workgroupBarrier();
+        if (valid && lane == 0u) {
+            for (var l = 1u; l < LANES; l = l + 1u) {
+                let o = part[lid + l];
+                mp = mp + o[0].xyz;
+                mq = mq + o[1].xyz;
+                a0 = a0 + vec3<f32>(o[0].w, o[1].w, o[2].w);
+                a1 = a1 + o[2].xyz;
+                a2 = a2 + o[3].xyz;
+            }
+            mom[slot] = array<vec4<f32>, 5>(vec4<f32>(mp, 0.0), vec4<f32>(mq, 0.0), vec4<f32>(a0, 0.0), vec4<f32>(a1, 0.0), vec4<f32>(a2, 0.0));
+            mom[slot][0].w = origin.x;
+            mom[slot][1].w = origin.y;
+            mom[slot][2].w = origin.z;
+        }
+        workgroupBarrier();
     }
-    part[lid] = array<vec4<f32>, 4>(vec4<f32>(mp, a0.x), vec4<f32>(mq, a0.y), vec4<f32>(a1, a0.z), vec4<f32>(a2, 0.0));
-    workgroupBarrier();
-    if (!valid || lane != 0u) {
+    let local = base + lid;
+    let c = range.first + local;
+    if (local >= range.count || asleep(c)) {
         return;
     }
-    for (var l = 1u; l < LANES; l = l + 1u) {
-        let o = part[lid + l];
-        mp = mp + o[0].xyz;
-        mq = mq + o[1].xyz;
-        a0 = a0 + vec3<f32>(o[0].w, o[1].w, o[2].w);
-        a1 = a1 + o[2].xyz;
-        a2 = a2 + o[3].xyz;
-    }
+    let o = mom[lid];
+    let origin = vec3<f32>(o[0].w, o[1].w, o[2].w);
+    let com = crest[c].com_mass.xyz;
     let inv_m = 1.0 / crest[c].com_mass.w;
-    let c_rel = mp * inv_m;
-    let mo = Moments(origin + c_rel, mat3x3<f32>(a0, a1, a2) - outer(c_rel, mq), com + mq * inv_m);
+    let c_rel = o[0].xyz * inv_m;
+    let mq = o[1].xyz;
+    let mo = Moments(origin + c_rel, mat3x3<f32>(o[2].xyz, o[3].xyz, o[4].xyz) - outer(c_rel, mq), com + mq * inv_m);
     solve_cluster(c, mo);
 }
 
@@ -102,7 +126,9 @@ fn solve_cluster(c: u32, mo: Moments) {
         let alpha = body.k_iter * params.omega * cr.weight.x;
         st.rot = extract_rotation(mo.apq, st.rot, params.rot_iters);
         let r = quat_mat(st.rot);
-        store_corr(c, r * alpha, (mo.com - r * mo.rest_com) * alpha, alpha);
+        let o = c * CORR_STRIDE;
+        corr[o] = st.rot;
+        corr[o + 1u] = vec4<f32>((mo.com - r * mo.rest_com) * alpha, alpha);
         cstate[c] = st;
         return;
     }
@@ -175,9 +201,9 @@ fn solve_cluster(c: u32, mo: Moments) {
     cstate[c] = st;
     let gz = all(g[0] == vec3<f32>(0.0)) && all(g[1] == vec3<f32>(0.0)) && all(g[2] == vec3<f32>(0.0));
     if (gz) {
-        store_corr(c, g, vec3<f32>(0.0), 0.0);
+        store_affine(c, g, vec3<f32>(0.0));
         return;
     }
     let m = g * cr.aqq;
-    store_corr(c, m, -(m * mo.rest_com), 0.0);
+    store_affine(c, m, -(m * mo.rest_com));
 }

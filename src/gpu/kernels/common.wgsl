@@ -70,13 +70,12 @@ struct ClusterState {
     lam1: vec4<f32>,         // Λxy, Λxz, Λyz, -
 };
 
-// Affine correction Δx = M X + t − a p: columns of M with t in w, and a.
-struct Corr {
-    c0: vec4<f32>,
-    c1: vec4<f32>,
-    c2: vec4<f32>,
-    a: vec4<f32>,
-};
+// A cluster's correction of its members, three vec4 per cluster in `corr` (48 B; the
+// gather reads it once per member, so its size is the gather's memory traffic):
+// - shape matching: Δx = a (R X + t) − a p, stored as [R as a quaternion xyzw],
+//   [a t, a] (32 B read);
+// - hyperelastic: Δx = M X + t, stored as the columns of M with t in w (48 B read).
+const CORR_STRIDE: u32 = 3u;
 
 struct Collider {
     kind_fr: vec4<f32>,      // x: kind (0 plane, 1 sphere, 2 capsule, 3 box, 4 grasper),

@@ -108,10 +108,11 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     return q;
 }
 
-// LANES threads share a particle: each sums every LANES-th cluster correction; the
-// partial sums are combined in lane order and lane 0 finishes.
+// LANES threads share a particle: each applies every LANES-th cluster correction to the
+// particle (shape matching: a quaternion rotation, 32 B read; hyperelastic: an affine
+// map, 48 B), the partial sums are combined in lane order and lane 0 finishes.
 const LANES: u32 = 8u;
-var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
+var<workgroup> part: array<vec4<f32>, 128>;
 
 @compute @workgroup_size(128)
 fn gather(
@@ -123,39 +124,48 @@ fn gather(
     let j = range.first + local;
     let lane = lid % LANES;
     let valid = local < range.count;
-    var c0 = vec4<f32>(0.0);
-    var c1 = vec4<f32>(0.0);
-    var c2 = vec4<f32>(0.0);
-    var a = 0.0;
+    // Σ over the clusters of Δx + a p (xyz) and Σ a (w).
+    var acc = vec4<f32>(0.0);
+    var xr = vec3<f32>(0.0);
     if (valid) {
-        let s0 = pinfo[j].z;
+        let info = pinfo[j];
+        let body = bodies[info.x];
+        xr = rest[j].xyz;
+        let s0 = info.z;
         // A sleeping body's particles gather nothing (its clusters were skipped).
-        let s1 = select(pinfo[j + 1u].z, s0, asleep(j));
-        for (var s = s0 + lane; s < s1; s = s + LANES) {
-            let k = lists[params.inv_offset + s];
-            let w = corr[k];
-            c0 = c0 + w.c0;
-            c1 = c1 + w.c1;
-            c2 = c2 + w.c2;
-            a = a + w.a.x;
+        let s1 = select(pinfo[j + 1u].z, s0, body.asleep != 0u);
+        if (body.kind == 0u) {
+            for (var s = s0 + lane; s < s1; s = s + LANES) {
+                let o = lists[params.inv_offset + s] * CORR_STRIDE;
+                let q = corr[o];
+                let ta = corr[o + 1u];
+                // Rotate X by the unit quaternion q: X + 2w (q × X) + 2 q × (q × X).
+                let u = 2.0 * cross(q.xyz, xr);
+                let rx = xr + q.w * u + cross(q.xyz, u);
+                acc = acc + vec4<f32>(ta.w * rx + ta.xyz, ta.w);
+            }
+        } else {
+            for (var s = s0 + lane; s < s1; s = s + LANES) {
+                let o = lists[params.inv_offset + s] * CORR_STRIDE;
+                let c0 = corr[o];
+                let c1 = corr[o + 1u];
+                let c2 = corr[o + 2u];
+                let d = c0.xyz * xr.x + c1.xyz * xr.y + c2.xyz * xr.z
+                    + vec3<f32>(c0.w, c1.w, c2.w);
+                acc = acc + vec4<f32>(d, 0.0);
+            }
         }
     }
-    part[lid] = array<vec4<f32>, 4>(c0, c1, c2, vec4<f32>(a, 0.0, 0.0, 0.0));
+    part[lid] = acc;
     workgroupBarrier();
     if (!valid || lane != 0u) {
         return;
     }
     for (var l = 1u; l < LANES; l = l + 1u) {
-        let o = part[lid + l];
-        c0 = c0 + o[0];
-        c1 = c1 + o[1];
-        c2 = c2 + o[2];
-        a = a + o[3].x;
+        acc = acc + part[lid + l];
     }
-    let xr = rest[j].xyz;
     let pj = p[j].xyz;
-    let m = mat3x3<f32>(c0.xyz, c1.xyz, c2.xyz);
-    let out = pj + ((m * xr) + vec3<f32>(c0.w, c1.w, c2.w) - a * pj);
+    let out = pj + (acc.xyz - acc.w * pj);
     if (range.flag == 0u) {
         p[j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
