@@ -15,7 +15,7 @@
 //! --lite              no shadow maps, no MSAA (software rasterisers, CI)
 //! --no-sleep          bodies never sleep (to measure what sleeping saves)
 //! --sleep-speed V     bodies sleep below V m/s (TissueSleep::speed)
-//! --msaa N            MSAA samples, 1, 2 or 4 (default 4; --lite: 1)
+//! --msaa N            MSAA samples, 1, 2 or 4 (default 2; --lite: 1)
 //! --pause             start with the simulation paused (what drawing alone costs)
 //! --profile           where a frame's time goes: the main world's update, the render
 //!                     world's stages, and CPU and GPU ms per render pass
@@ -100,7 +100,7 @@ impl SceneArgs {
             sleep_speed: args
                 .text("--sleep-speed")
                 .map(|_| args.num("--sleep-speed", 0.0)),
-            msaa: match args.num("--msaa", 4u32) {
+            msaa: match args.num("--msaa", 2u32) {
                 m @ (1 | 2 | 4) => m,
                 m => {
                     eprintln!("--msaa takes 1, 2 or 4, got {m}");
@@ -233,8 +233,8 @@ fn lite_lights(
     }
     let msaa = match (args.lite, args.msaa) {
         (true, _) | (false, 1) => Msaa::Off,
-        (false, 2) => Msaa::Sample2,
-        _ => Msaa::Sample4,
+        (false, 4) => Msaa::Sample4,
+        _ => Msaa::Sample2,
     };
     for e in &cameras {
         commands.entity(e).insert(msaa);
@@ -366,16 +366,20 @@ fn finish(
 /// The camera the scene is seen through, and a directional light with shadows that
 /// shines from `sun` toward the origin (`illuminance` in lux).
 ///
-/// The shadow map is one cascade reaching twice the camera's distance to `target`: these
-/// scenes are small and seen from one side, and each cascade draws every shadow caster
-/// again (Bevy's default, four cascades to 150 m, cost about 2 ms a frame on an H100,
-/// whose raster units are few; BENCHMARKS.md, "Scenes").
+/// Drawing is kept cheap where it costs the look little, because an H100 or H200 (where
+/// the frame rates in BENCHMARKS.md, "Scenes", are measured) rasterises on few units and
+/// pays for every pixel and every shadow-map texel: the shadow map is one cascade of
+/// 1024² reaching twice the camera's distance to `target` (these scenes are small and
+/// seen from one side; Bevy's default is four cascades of 2048² out to 150 m), filtered
+/// with one hardware 2×2 lookup, and the camera takes 2 samples a pixel (`--msaa`).
 pub fn spawn_view(commands: &mut Commands, eye: Vec3, target: Vec3, sun: Vec3, illuminance: f32) {
     commands.spawn((
         SceneCamera,
         Camera3d::default(),
+        bevy::light::ShadowFilteringMethod::Hardware2x2,
         Transform::from_translation(eye).looking_at(target, Vec3::Y),
     ));
+    commands.insert_resource(bevy::light::DirectionalLightShadowMap { size: 1024 });
     let reach = 2.0 * eye.distance(target);
     commands.spawn((
         DirectionalLight {

@@ -234,8 +234,9 @@ fn groups(n: u32, per: u32) -> u32 {
     n.div_ceil(per).max(1)
 }
 
-/// Particles handled by one workgroup of the gather kernel (8 threads each).
-pub const PER_LANE_GROUP: u32 = WORKGROUP / 8;
+/// Particles handled by one workgroup of the gather kernel (4 threads each; the lane
+/// count is `LANES` in `gather.wgsl`).
+pub const PER_LANE_GROUP: u32 = WORKGROUP / 4;
 
 /// A 2-D grid of workgroups for the gather kernel (the kernels linearise it), so that
 /// millions of particles stay under the 65,535 groups per dimension.
@@ -243,7 +244,7 @@ fn lane_groups(n: u32) -> (u32, u32) {
     grid_2d(groups(n, PER_LANE_GROUP))
 }
 
-/// The same for the cluster kernel (a workgroup per 128 clusters).
+/// The same for the cluster kernel (a thread per cluster).
 fn cluster_groups(n: u32) -> (u32, u32) {
     grid_2d(groups(n, WORKGROUP))
 }

@@ -33,87 +33,25 @@ fn store_affine(c: u32, m: mat3x3<f32>, t: vec3<f32>) {
     corr[o + 2u] = vec4<f32>(m[2], t.z);
 }
 
-// A workgroup solves 128 clusters in two phases. Sums: LANES threads share a cluster,
-// each summing every LANES-th member (eight times the threads of one-per-cluster hides
-// the latency of the scattered member reads), over LANES rounds of 128 / LANES clusters;
-// one lane per cluster combines the partial sums in lane order (deterministic) into
-// `mom`. Solve: every thread then solves its own cluster, so the polar decomposition and
-// the XPBD solve run on all lanes of a warp, not on one lane in LANES.
-const LANES: u32 = 8u;
-const ROUND: u32 = 128u / LANES;
-var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
-var<workgroup> mom: array<array<vec4<f32>, 5>, 128>;
-
+// One thread per cluster: its moments summed over the members in list order (the CPU
+// twin's order), then its solve. Measured on an H100 (BENCHMARKS.md, "GPU"): threads
+// sharing a cluster (8, 4 or 2 lanes summing every LANES-th member, one lane solving)
+// were slower at every size, most at 1M particles (7.6 ms per step with 8 lanes, 4.2 ms
+// with one): the solve then runs on one lane in LANES.
 @compute @workgroup_size(128)
 fn solve_clusters(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let base = (wid.x + wid.y * nwg.x) * 128u;
-    let lane = lid % LANES;
-    for (var round = 0u; round < LANES; round = round + 1u) {
-        let slot = round * ROUND + lid / LANES;
-        let local = base + slot;
-        let c = range.first + local;
-        // A sleeping body's clusters are skipped (their corrections are read only by its
-        // own particles, which skip gathering).
-        let valid = local < range.count && !asleep(c);
-        var mp = vec3<f32>(0.0);
-        var mq = vec3<f32>(0.0);
-        var a0 = vec3<f32>(0.0);
-        var a1 = vec3<f32>(0.0);
-        var a2 = vec3<f32>(0.0);
-        var origin = vec3<f32>(0.0);
-        if (valid) {
-            let start = pinfo[c].w;
-            let end = pinfo[c + 1u].w;
-            let com = crest[c].com_mass.xyz;
-            origin = p[lists[start]].xyz;
-            for (var s = start + lane; s < end; s = s + LANES) {
-                let j = lists[s];
-                let r = rest[j];
-                let m = r.w;
-                let md = (p[j].xyz - origin) * m;
-                let q = r.xyz - com;
-                mp = mp + md;
-                mq = mq + q * m;
-                a0 = a0 + md * q.x;
-                a1 = a1 + md * q.y;
-                a2 = a2 + md * q.z;
-            }
-        }
-        part[lid] = array<vec4<f32>, 4>(vec4<f32>(mp, a0.x), vec4<f32>(mq, a0.y), vec4<f32>(a1, a0.z), vec4<f32>(a2, 0.0));
-        workgroupBarrier();
-        if (valid && lane == 0u) {
-            for (var l = 1u; l < LANES; l = l + 1u) {
-                let o = part[lid + l];
-                mp = mp + o[0].xyz;
-                mq = mq + o[1].xyz;
-                a0 = a0 + vec3<f32>(o[0].w, o[1].w, o[2].w);
-                a1 = a1 + o[2].xyz;
-                a2 = a2 + o[3].xyz;
-            }
-            mom[slot] = array<vec4<f32>, 5>(vec4<f32>(mp, 0.0), vec4<f32>(mq, 0.0), vec4<f32>(a0, 0.0), vec4<f32>(a1, 0.0), vec4<f32>(a2, 0.0));
-            mom[slot][0].w = origin.x;
-            mom[slot][1].w = origin.y;
-            mom[slot][2].w = origin.z;
-        }
-        workgroupBarrier();
-    }
-    let local = base + lid;
+    let local = (wid.x + wid.y * nwg.x) * 128u + lid;
     let c = range.first + local;
+    // A sleeping body's clusters are skipped (their corrections are read only by its own
+    // particles, which skip gathering).
     if (local >= range.count || asleep(c)) {
         return;
     }
-    let o = mom[lid];
-    let origin = vec3<f32>(o[0].w, o[1].w, o[2].w);
-    let com = crest[c].com_mass.xyz;
-    let inv_m = 1.0 / crest[c].com_mass.w;
-    let c_rel = o[0].xyz * inv_m;
-    let mq = o[1].xyz;
-    let mo = Moments(origin + c_rel, mat3x3<f32>(o[2].xyz, o[3].xyz, o[4].xyz) - outer(c_rel, mq), com + mq * inv_m);
-    solve_cluster(c, mo);
+    solve_cluster(c, cluster_moments(c, true));
 }
 
 fn solve_cluster(c: u32, mo: Moments) {

@@ -110,8 +110,10 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
 
 // LANES threads share a particle: each applies every LANES-th cluster correction to the
 // particle (shape matching: a quaternion rotation, 32 B read; hyperelastic: an affine
-// map, 48 B), the partial sums are combined in lane order and lane 0 finishes.
-const LANES: u32 = 8u;
+// map, 48 B), the partial sums are combined in lane order and lane 0 finishes. Four
+// lanes measured fastest on an H100 (8: 0.161 → 0.136 ms per step at 37,982 particles,
+// 2.97 → 2.23 at 1M; 16 slower; BENCHMARKS.md).
+const LANES: u32 = 4u;
 var<workgroup> part: array<vec4<f32>, 128>;
 
 @compute @workgroup_size(128)
