@@ -1,7 +1,8 @@
 // Exact K nearest neighbours on the hashed grid: shells (Chebyshev rings) of cells
 // around the query's cell until the K-th best distance is below the distance to every
 // cell not yet visited; candidates ordered by (squared distance, index), so ties break
-// by the smaller index and the result equals the CPU's bit for bit.
+// by the smaller index and the result equals the CPU's bit for bit. Cells whose box lies
+// farther than the K-th best candidate found so far are skipped.
 // Mode 0: K nearest of all other particles (knn_out, stride knn_k) — CPU twin
 // core::knn::knn_all. Mode 1: contact candidates, the contact_k nearest particles of
 // other bodies within 2 (r_i + r_max) (contacts) — CPU twin
@@ -31,6 +32,8 @@ fn knn_query(i: u32, mode: u32) {
     }
     let c = cell_coords(q, cell);
     let rel = q / cell;
+    // Rounding slack of the cell-box distance (m): a few ulps of the coordinates.
+    let slack = 1.0e-6 * (max(max(abs(q.x), abs(q.y)), abs(q.z)) + cell);
     for (var r = 0; r <= MAX_RING; r = r + 1) {
         for (var dz = -r; dz <= r; dz = dz + 1) {
             let zr = dz == -r || dz == r;
@@ -44,6 +47,23 @@ fn knn_query(i: u32, mode: u32) {
                         continue;
                     }
                     let cc = c + vec3<i32>(dx, dy, dz);
+                    // Skip a cell whose every point is farther than the K-th best so far
+                    // (or than the contact reach): the box distance less a rounding
+                    // slack, so that no point that could enter the list is skipped and
+                    // the result stays the CPU's exactly.
+                    var cut = max2;
+                    if (cnt == k && k > 0u) {
+                        cut = min(cut, bd[k - 1u]);
+                    }
+                    if (cut < 3.4028235e38) {
+                        let lo = vec3<f32>(cc) * cell;
+                        let gap = max(max(lo - q, q - lo - vec3<f32>(cell)), vec3<f32>(0.0));
+                        let m = length(gap) - slack;
+                        if (m > 0.0 && m * m > cut) {
+                            dx = dx + 1;
+                            continue;
+                        }
+                    }
                     let h = cell_hash(cc);
                     let s0 = atomicLoad(&scan[h]);
                     let s1 = atomicLoad(&scan[h + 1u]);
