@@ -126,54 +126,66 @@ fn gpu_matches_cpu_jacobi_after_200_steps_both_models() {
     ] {
         let (model, colliders) = hanging(material);
         let (cpu, cpu_forces) = run_cpu(&model, &colliders, 200);
-        let state = State::new(&model);
-        let mut world =
-            GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
-        let x = run_gpu(g, &mut world, &colliders, 200);
-        let size = model.bodies[0].size;
-        let moved = max_dist(&cpu.x, &State::new(&model).x);
-        let d = max_dist(&x, &cpu.x);
-        eprintln!("{material:?}: GPU–CPU {d:.3e} m, body size {size:.3} m, moved {moved:.3e} m");
-        assert!(moved > 0.01 * size, "the scene must deform ({moved} m)");
-        assert!(
-            d < 1e-4 * size,
-            "{material:?}: GPU and CPU differ by {d} m after 200 steps (size {size} m)"
-        );
-        // Collider forces of the last step.
-        let bytes = read_buffer(
-            &g.device,
-            &g.queue,
-            world.forces(),
-            world.force_offset(),
-            colliders.len() as u64 * 16,
-        );
-        let gf: &[[f32; 4]] = bytemuck::cast_slice(&bytes);
-        let gpu_forces: Vec<Vec3> = (0..colliders.len())
-            .map(|k| Vec3::new(gf[k][0], gf[k][1], gf[k][2]))
-            .collect();
-        // The tissue's total push on the colliders agrees tightly. A particle pressed by
-        // both the sphere and the ground charges its whole correction to the collider
-        // that touched it last, so a few µm of rounding can move one particle's share
-        // (~0.02 N here) from one to the other: each collider within 2% of the total.
-        let (gt, ct) = (
-            gpu_forces.iter().sum::<Vec3>(),
-            cpu_forces.iter().sum::<Vec3>(),
-        );
-        assert!(
-            gt.distance(ct) <= 1e-3 * ct.length(),
-            "{material:?}: total GPU force {gt} N, CPU {ct} N"
-        );
-        for (k, (gv, f)) in gpu_forces.iter().zip(&cpu_forces).enumerate() {
+        // Both cluster kernels: a thread per cluster, and 8 lanes (the default for a
+        // range this small).
+        for lanes_below in [0, u32::MAX] {
+            let state = State::new(&model);
+            let mut world =
+                GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
+            world.lane_clusters_below = lanes_below;
+            let x = run_gpu(g, &mut world, &colliders, 200);
+            let size = model.bodies[0].size;
+            let moved = max_dist(&cpu.x, &State::new(&model).x);
+            let d = max_dist(&x, &cpu.x);
+            let kernel = if lanes_below == 0 {
+                "a thread per cluster"
+            } else {
+                "8 lanes"
+            };
+            eprintln!(
+                "{material:?}, {kernel}: GPU–CPU {d:.3e} m, body size {size:.3} m, moved {moved:.3e} m"
+            );
+            assert!(moved > 0.01 * size, "the scene must deform ({moved} m)");
             assert!(
-                gv.distance(*f) <= 2e-2 * ct.length(),
-                "{material:?}, collider {k}: GPU force {gv} N, CPU {f} N"
+                d < 1e-4 * size,
+                "{material:?}: GPU and CPU differ by {d} m after 200 steps (size {size} m)"
+            );
+            // Collider forces of the last step.
+            let bytes = read_buffer(
+                &g.device,
+                &g.queue,
+                world.forces(),
+                world.force_offset(),
+                colliders.len() as u64 * 16,
+            );
+            let gf: &[[f32; 4]] = bytemuck::cast_slice(&bytes);
+            let gpu_forces: Vec<Vec3> = (0..colliders.len())
+                .map(|k| Vec3::new(gf[k][0], gf[k][1], gf[k][2]))
+                .collect();
+            // The tissue's total push on the colliders agrees tightly. A particle pressed by
+            // both the sphere and the ground charges its whole correction to the collider
+            // that touched it last, so a few µm of rounding can move one particle's share
+            // (~0.02 N here) from one to the other: each collider within 2% of the total.
+            let (gt, ct) = (
+                gpu_forces.iter().sum::<Vec3>(),
+                cpu_forces.iter().sum::<Vec3>(),
+            );
+            assert!(
+                gt.distance(ct) <= 1e-3 * ct.length(),
+                "{material:?}: total GPU force {gt} N, CPU {ct} N"
+            );
+            for (k, (gv, f)) in gpu_forces.iter().zip(&cpu_forces).enumerate() {
+                assert!(
+                    gv.distance(*f) <= 2e-2 * ct.length(),
+                    "{material:?}, collider {k}: GPU force {gv} N, CPU {f} N"
+                );
+            }
+            assert!(
+                cpu_forces[0].y < 0.0,
+                "the tissue must press on the ground: {:?}",
+                cpu_forces[0]
             );
         }
-        assert!(
-            cpu_forces[0].y < 0.0,
-            "the tissue must press on the ground: {:?}",
-            cpu_forces[0]
-        );
     }
 }
 

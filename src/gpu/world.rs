@@ -203,6 +203,10 @@ pub struct GpuWorld {
     pub step: u64,
     /// Particle and vertex ranges of the bodies, in model order.
     pub ranges: Vec<BodyRange>,
+    /// Ranges of fewer clusters than this are solved with 8 threads per cluster, larger
+    /// ones with a thread per cluster ([`LANE_CLUSTERS_BELOW`] by default; the two give
+    /// the same result up to the order of the member sums).
+    pub lane_clusters_below: u32,
     b: Buffers,
     surface: Buffer,
     levels: Vec<(u32, u32)>,
@@ -244,9 +248,21 @@ fn lane_groups(n: u32) -> (u32, u32) {
     grid_2d(groups(n, PER_LANE_GROUP))
 }
 
-/// The same for the cluster kernel (a thread per cluster).
-fn cluster_groups(n: u32) -> (u32, u32) {
-    grid_2d(groups(n, WORKGROUP))
+/// Below this many clusters a range is solved by `solve_clusters_lanes` (8 threads per
+/// cluster), from it on by `solve_clusters` (a thread per cluster). Measured on an H100
+/// (BENCHMARKS.md, "GPU" and "Hierarchy"): a thread per cluster was faster from 13,824
+/// clusters up (hyperelastic; 37,982 shape matching), 8 lanes on the hierarchy's coarse
+/// levels of 6,534 and 972 clusters.
+pub const LANE_CLUSTERS_BELOW: u32 = 8192;
+
+/// The cluster kernel for a range of `n` clusters and its workgroup grid (8 lanes below
+/// `lanes_below` clusters).
+fn cluster_kernel(k: &Kernels, n: u32, lanes_below: u32) -> (&ComputePipeline, (u32, u32)) {
+    if n < lanes_below {
+        (&k.clusters_lanes, grid_2d(groups(n, WORKGROUP / 8)))
+    } else {
+        (&k.clusters, grid_2d(groups(n, WORKGROUP)))
+    }
 }
 
 /// `g` workgroups as a 2-D grid within 65,535 per dimension.
@@ -610,6 +626,7 @@ impl GpuWorld {
             settings,
             step: state.step,
             ranges,
+            lane_clusters_below: LANE_CLUSTERS_BELOW,
             b,
             surface,
             levels,
@@ -867,7 +884,7 @@ impl GpuWorld {
     ) {
         let g = groups(self.n, WORKGROUP);
         let lg = lane_groups(self.n);
-        let cg = cluster_groups(self.n);
+        let (cp, cg) = cluster_kernel(k, self.n, self.lane_clusters_below);
         let mut r = Recording::new(encoder, rec);
         let w = &self.world_group;
         let s = &self.settings;
@@ -887,7 +904,7 @@ impl GpuWorld {
                     self.record_levels(&mut r, k);
                 }
                 for _ in 0..s.iterations {
-                    r.dispatch(w, "tissue/clusters", &k.clusters, lv0, cg);
+                    r.dispatch(w, "tissue/clusters", cp, lv0, cg);
                     r.dispatch(w, "tissue/gather", &k.gather, lv0, lg);
                     if self.contacts_on {
                         r.dispatch(w, "tissue/contacts", &k.contact, None, (g, 1));
@@ -924,10 +941,10 @@ impl GpuWorld {
             let trs = Some((&self.level_group, (3 + 3 * l as u32) * REC));
             let g = (groups(lv.count, WORKGROUP), 1);
             let lg = lane_groups(lv.count);
-            let cg = cluster_groups(lv.count);
+            let (cp, cg) = cluster_kernel(k, lv.count, self.lane_clusters_below);
             r.dispatch(w, "tissue/levels", &k.level_in, parts, g);
             for _ in 0..self.settings.coarse_iterations {
-                r.dispatch(w, "tissue/levels", &k.clusters, parts, cg);
+                r.dispatch(w, "tissue/levels", cp, parts, cg);
                 r.dispatch(w, "tissue/levels", &k.gather, parts, lg);
             }
             r.dispatch(w, "tissue/levels", &k.level_out, parts, g);

@@ -12,4 +12,4 @@ pub const SOURCE: &str = concat!(
 );
 
 /// Entry points of the module.
-pub const ENTRY_POINTS: &[&str] = &["solve_clusters"];
+pub const ENTRY_POINTS: &[&str] = &["solve_clusters", "solve_clusters_lanes"];

@@ -54,6 +54,71 @@ fn solve_clusters(
     solve_cluster(c, cluster_moments(c, true));
 }
 
+// The same for small ranges (the hierarchy's coarse levels, small worlds): LANES threads
+// share a cluster, each sums every LANES-th member, the partial sums are combined in lane
+// order (deterministic) and lane 0 solves. Eight times the threads hide the latency of
+// the member reads where a thread per cluster would leave the GPU mostly idle: on an
+// H100 the bar's coarse pass (6,534 and 972 clusters) took 1.06 ms with a thread per
+// cluster against 0.70 ms with 8 lanes (BENCHMARKS.md, "Hierarchy").
+const LANES: u32 = 8u;
+var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
+
+@compute @workgroup_size(128)
+fn solve_clusters_lanes(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let local = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
+    let c = range.first + local;
+    let lane = lid % LANES;
+    // A sleeping body's clusters are skipped (their corrections are read only by its own
+    // particles, which skip gathering).
+    let valid = local < range.count && !asleep(c);
+    var mp = vec3<f32>(0.0);
+    var mq = vec3<f32>(0.0);
+    var a0 = vec3<f32>(0.0);
+    var a1 = vec3<f32>(0.0);
+    var a2 = vec3<f32>(0.0);
+    var origin = vec3<f32>(0.0);
+    var com = vec3<f32>(0.0);
+    if (valid) {
+        let start = pinfo[c].w;
+        let end = pinfo[c + 1u].w;
+        com = crest[c].com_mass.xyz;
+        origin = p[lists[start]].xyz;
+        for (var s = start + lane; s < end; s = s + LANES) {
+            let j = lists[s];
+            let r = rest[j];
+            let m = r.w;
+            let md = (p[j].xyz - origin) * m;
+            let q = r.xyz - com;
+            mp = mp + md;
+            mq = mq + q * m;
+            a0 = a0 + md * q.x;
+            a1 = a1 + md * q.y;
+            a2 = a2 + md * q.z;
+        }
+    }
+    part[lid] = array<vec4<f32>, 4>(vec4<f32>(mp, a0.x), vec4<f32>(mq, a0.y), vec4<f32>(a1, a0.z), vec4<f32>(a2, 0.0));
+    workgroupBarrier();
+    if (!valid || lane != 0u) {
+        return;
+    }
+    for (var l = 1u; l < LANES; l = l + 1u) {
+        let o = part[lid + l];
+        mp = mp + o[0].xyz;
+        mq = mq + o[1].xyz;
+        a0 = a0 + vec3<f32>(o[0].w, o[1].w, o[2].w);
+        a1 = a1 + o[2].xyz;
+        a2 = a2 + o[3].xyz;
+    }
+    let inv_m = 1.0 / crest[c].com_mass.w;
+    let c_rel = mp * inv_m;
+    let mo = Moments(origin + c_rel, mat3x3<f32>(a0, a1, a2) - outer(c_rel, mq), com + mq * inv_m);
+    solve_cluster(c, mo);
+}
+
 fn solve_cluster(c: u32, mo: Moments) {
     let info = pinfo[c];
     let body = bodies[info.x];

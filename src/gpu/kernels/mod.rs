@@ -90,8 +90,10 @@ pub struct Kernels {
     pub knn_all: ComputePipeline,
     /// `knn.wgsl`: contact candidates.
     pub knn_contacts: ComputePipeline,
-    /// `cluster.wgsl`: Jacobi pass A.
+    /// `cluster.wgsl`: Jacobi pass A, a thread per cluster.
     pub clusters: ComputePipeline,
+    /// `cluster.wgsl`: Jacobi pass A, 8 threads per cluster (small ranges).
+    pub clusters_lanes: ComputePipeline,
     /// `gather.wgsl`: Jacobi pass B.
     pub gather: ComputePipeline,
     /// `gather.wgsl`: Jacobi pass C.
@@ -193,6 +195,7 @@ impl Kernels {
             knn_all: pipe(&knn_m, &world_only, "knn_all"),
             knn_contacts: pipe(&knn_m, &world_only, "knn_contacts"),
             clusters: pipe(&cluster_m, &with_scan, "solve_clusters"),
+            clusters_lanes: pipe(&cluster_m, &with_scan, "solve_clusters_lanes"),
             gather: pipe(&gather_m, &with_scan, "gather"),
             contact: pipe(&gather_m, &world_only, "contact"),
             level_snapshot: pipe(&hier_m, &world_only, "level_snapshot"),
