@@ -57,7 +57,10 @@ fn main() {
     let particles = args.num("--particles", DEFAULT_PARTICLES);
     // Steps of 1/240 s, one substep each: a step for every frame of a 240 Hz display,
     // and a step small enough for the hyperelastic Jacobi solve of this pinned liver,
-    // which is not stable at one substep of 1/60 s (BENCHMARKS.md, "Stability").
+    // which is not stable at one substep of 1/60 s (BENCHMARKS.md, "Stability"). Steps
+    // of 1/120 s are stable too and halve the GPU work per simulated second, but leave
+    // the surface visibly wrinkled (less converged); on a smaller GPU, fewer particles
+    // (`--particles 8000`) are the better saving.
     let settings = TissueSettings {
         dt: 1.0 / 240.0,
         substeps: 1,
