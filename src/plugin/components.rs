@@ -94,10 +94,11 @@ pub enum TissueHierarchy {
     /// On where the measurements say it pays: hyperelastic bodies with E ≥
     /// [`TissueHierarchy::AUTO_MIN_YOUNGS`] of at least
     /// [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles (a stiff 50,000-particle bar
-    /// reached the same residual 3.7–19x sooner on the CPU and 2.7–16x on the GPU; a 38k
-    /// liver at 1 MPa 1.9–2.6x on the CPU, and on the GPU flat Jacobi diverged where the
-    /// hierarchy held). Off otherwise: at real-time iteration counts the coarse pass
-    /// costs more than it gains on soft or small bodies.
+    /// reached the same residual 3.7–19x sooner on the CPU and, on an H100, 1.2x sooner
+    /// at residual 1e-3 and 6.3–9.8x at 5e-4 and below; a 38k liver at 1 MPa 1.9–2.6x on
+    /// the CPU, and on the GPU flat Jacobi diverged where the hierarchy held). Off
+    /// otherwise: at real-time iteration counts the coarse pass costs more than it gains
+    /// on soft or small bodies.
     #[default]
     Auto,
     /// Flat: level 0 only.
