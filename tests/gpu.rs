@@ -114,6 +114,20 @@ fn max_dist(a: &[Vec3], b: &[Vec3]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+/// GPU positions `x` after 200 steps agree with the CPU's within 1e-4 of the body size,
+/// and the scene moved (more than 1% of the size) so that the agreement means something.
+fn assert_close_after_200_steps(label: &str, model: &Model, x: &[Vec3], cpu: &[Vec3]) {
+    let size = model.bodies[0].size;
+    let moved = max_dist(cpu, &State::new(model).x);
+    let d = max_dist(x, cpu);
+    eprintln!("{label}: GPU–CPU {d:.3e} m, body size {size:.3} m, moved {moved:.3e} m");
+    assert!(moved > 0.01 * size, "the scene must deform ({moved} m)");
+    assert!(
+        d < 1e-4 * size,
+        "{label}: GPU and CPU differ by {d} m after 200 steps (size {size} m)"
+    );
+}
+
 #[test]
 fn gpu_matches_cpu_jacobi_after_200_steps_both_models() {
     let Some(g) = gpu() else { return };
@@ -134,22 +148,12 @@ fn gpu_matches_cpu_jacobi_after_200_steps_both_models() {
                 GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
             world.lane_clusters_below = lanes_below;
             let x = run_gpu(g, &mut world, &colliders, 200);
-            let size = model.bodies[0].size;
-            let moved = max_dist(&cpu.x, &State::new(&model).x);
-            let d = max_dist(&x, &cpu.x);
             let kernel = if lanes_below == 0 {
                 "a thread per cluster"
             } else {
                 "8 lanes"
             };
-            eprintln!(
-                "{material:?}, {kernel}: GPU–CPU {d:.3e} m, body size {size:.3} m, moved {moved:.3e} m"
-            );
-            assert!(moved > 0.01 * size, "the scene must deform ({moved} m)");
-            assert!(
-                d < 1e-4 * size,
-                "{material:?}: GPU and CPU differ by {d} m after 200 steps (size {size} m)"
-            );
+            assert_close_after_200_steps(&format!("{material:?}, {kernel}"), &model, &x, &cpu.x);
             // Collider forces of the last step.
             let bytes = read_buffer(
                 &g.device,
@@ -233,17 +237,7 @@ fn gpu_hierarchy_matches_the_cpu_hierarchy_after_200_steps() {
         let mut world =
             GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
         let x = run_gpu(g, &mut world, &colliders, 200);
-        let size = model.bodies[0].size;
-        let moved = max_dist(&cpu.x, &State::new(&model).x);
-        let d = max_dist(&x, &cpu.x);
-        eprintln!(
-            "hierarchy, {material:?}: GPU–CPU {d:.3e} m, size {size:.3} m, moved {moved:.3e} m"
-        );
-        assert!(moved > 0.01 * size, "the scene must deform ({moved} m)");
-        assert!(
-            d < 1e-4 * size,
-            "{material:?}: GPU and CPU hierarchies differ by {d} m after 200 steps (size {size} m)"
-        );
+        assert_close_after_200_steps(&format!("hierarchy, {material:?}"), &model, &x, &cpu.x);
     }
 }
 

@@ -255,11 +255,17 @@ fn lane_groups(n: u32) -> (u32, u32) {
 /// levels of 6,534 and 972 clusters.
 pub const LANE_CLUSTERS_BELOW: u32 = 8192;
 
-/// The cluster kernel for a range of `n` clusters and its workgroup grid (8 lanes below
-/// `lanes_below` clusters).
+/// Threads per cluster of `solve_clusters_lanes` (`LANES` in `cluster.wgsl`).
+const CLUSTER_LANES: u32 = 8;
+
+/// The cluster kernel for a range of `n` clusters and its workgroup grid
+/// ([`CLUSTER_LANES`] threads per cluster below `lanes_below` clusters).
 fn cluster_kernel(k: &Kernels, n: u32, lanes_below: u32) -> (&ComputePipeline, (u32, u32)) {
     if n < lanes_below {
-        (&k.clusters_lanes, grid_2d(groups(n, WORKGROUP / 8)))
+        (
+            &k.clusters_lanes,
+            grid_2d(groups(n, WORKGROUP / CLUSTER_LANES)),
+        )
     } else {
         (&k.clusters, grid_2d(groups(n, WORKGROUP)))
     }

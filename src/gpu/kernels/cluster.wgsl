@@ -36,8 +36,9 @@ fn store_affine(c: u32, m: mat3x3<f32>, t: vec3<f32>) {
 // One thread per cluster: its moments summed over the members in list order (the CPU
 // twin's order), then its solve. Measured on an H100 (BENCHMARKS.md, "GPU"): threads
 // sharing a cluster (8, 4 or 2 lanes summing every LANES-th member, one lane solving)
-// were slower at every size, most at 1M particles (7.6 ms per step with 8 lanes, 4.2 ms
-// with one): the solve then runs on one lane in LANES.
+// were slower at 37,982 and at 1M clusters (1M: 7.6 ms per step with 8 lanes, 4.2 ms
+// with one), as the solve then runs on one lane in LANES. Small ranges use
+// solve_clusters_lanes below (world.rs, LANE_CLUSTERS_BELOW).
 @compute @workgroup_size(128)
 fn solve_clusters(
     @builtin(workgroup_id) wid: vec3<u32>,
