@@ -21,7 +21,8 @@
 //! cargo run --release --example hierarchy -- --bar 50000 --liver 0 --no-cpu
 //! ```
 //! Options: `--bar N`, `--liver N` (particles, 0 skips the scene), `--iters N` (most
-//! level-0 iterations), `--coarse N` (iterations per coarse level, default 10),
+//! level-0 iterations), `--coarse N` (iterations per coarse level, default 20),
+//! `--levels N` (levels including level 0; default: chosen from the body's size),
 //! `--no-cpu`, `--no-gpu`, `--out DIR` (default `hierarchy_out`).
 
 #[path = "support/bench.rs"]
@@ -67,6 +68,7 @@ struct Args {
     liver: u32,
     iters: u32,
     coarse: u32,
+    levels: u32,
     cpu: bool,
     gpu: bool,
     out: PathBuf,
@@ -80,6 +82,7 @@ fn args() -> Args {
         liver: a.num("--liver", if quick { 3000 } else { 37_982 }),
         iters: a.num("--iters", if quick { 40 } else { 200 }),
         coarse: a.num("--coarse", SolverSettings::default().coarse_iterations),
+        levels: a.num("--levels", 0),
         cpu: !a.flag("--no-cpu"),
         gpu: !a.flag("--no-gpu"),
         out: a.path("--out", "hierarchy_out"),
@@ -92,8 +95,15 @@ const STIFF: Material = Material::Hyperelastic {
 };
 
 /// A scene: the model and its deformed start.
+/// `--levels` (0: automatic), set once in `main`.
+static LEVELS: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+
 fn scene(name: &str, n: u32, hierarchy: bool) -> (Model, State) {
-    let h = hierarchy.then(HierarchyDesc::default);
+    let levels = LEVELS.get().copied().filter(|&l| l > 0);
+    let h = hierarchy.then(|| HierarchyDesc {
+        levels,
+        ..Default::default()
+    });
     let mut model = Model::new();
     if name == "bar" {
         let half = Vec3::new(0.15, 0.03, 0.03);
@@ -322,6 +332,7 @@ fn reach(c: &Curve, target: f32) -> Option<Point> {
 
 fn main() {
     let a = args();
+    let _ = LEVELS.set(a.levels);
     std::fs::create_dir_all(&a.out).expect("output folder");
     let gpu = if a.gpu {
         match headless() {

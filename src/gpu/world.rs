@@ -876,7 +876,8 @@ impl GpuWorld {
         let mut r = Recording::new(encoder, rec);
         self.record_grid(&mut r, k, true);
         let g = groups(self.n, WORKGROUP);
-        r.dispatch(&self.world_group, "tissue/knn", &k.knn_all, None, (g, 1));
+        let knn = &k.knn_all[Kernels::knn_slots(self.knn_k)];
+        r.dispatch(&self.world_group, "tissue/knn", knn, None, (g, 1));
     }
 
     /// Records `steps` time steps (one compute pass, unless the recorder times passes).
@@ -897,7 +898,8 @@ impl GpuWorld {
         for _ in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
                 self.record_grid(&mut r, k, false);
-                r.dispatch(w, "tissue/knn", &k.knn_contacts, None, (g, 1));
+                let knn = &k.knn_contacts[Kernels::knn_slots(self.contact_k)];
+                r.dispatch(w, "tissue/knn", knn, None, (g, 1));
             }
             let nc = self.n_colliders;
             if nc > 0 {

@@ -1,9 +1,12 @@
 //! Exact K nearest neighbours on the grid: all particles (`knn_all`) and contact candidates of other bodies (`knn_contacts`).
 //!
-//! Source: `knn.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
+//! Source: `knn.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended), a template whose
+//! candidate list [`source`] writes out as scalar registers (`ld{s}`, `lj{s}`) for a given slot count.
 
-/// WGSL source of this kernel's module.
-pub const SOURCE: &str = concat!(
+use std::fmt::Write as _;
+
+/// WGSL template of this kernel's module (before [`source`] fills in the list).
+pub const TEMPLATE: &str = concat!(
     include_str!("common.wgsl"),
     include_str!("bindings.wgsl"),
     include_str!("knn.wgsl")
@@ -11,3 +14,62 @@ pub const SOURCE: &str = concat!(
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["knn_all", "knn_contacts"];
+
+/// List sizes compiled: a world uses the smallest that holds its K (fewer registers).
+pub const SLOT_COUNTS: [u32; 2] = [32, 64];
+
+/// The module's WGSL for a candidate list of `slots` entries (K ≤ `slots`): the
+/// template with the list's declaration, insertion and output written out slot by slot,
+/// so that every access has a constant index and the list stays in registers.
+pub fn source(slots: u32) -> String {
+    let n = slots as usize;
+    let mut decl = String::new();
+    let mut insert = String::new();
+    let mut out = String::new();
+    for s in 0..n {
+        // Slots before `pad` hold the sentinel (−1, 0); the others start empty (FAR).
+        let _ = writeln!(
+            decl,
+            "    var ld{s} = select(FAR, -1.0, {s}u < pad);\n    var lj{s} = select(NONE, 0u, {s}u < pad);"
+        );
+        let _ = writeln!(insert, "                        let c{s} = before(d2, j, ld{s}, lj{s});");
+        let _ = writeln!(out, "    if (pad <= {s}u) {{ put(mode, base + {s}u, ld{s}, lj{s}); }}");
+    }
+    // From the last slot down, so that slot s − 1 still holds its old value.
+    for s in (1..n).rev() {
+        let p = s - 1;
+        let _ = writeln!(
+            insert,
+            "                        if (c{p}) {{ ld{s} = ld{p}; lj{s} = lj{p}; }} else if (c{s}) {{ ld{s} = d2; lj{s} = j; }}"
+        );
+    }
+    let _ = writeln!(
+        insert,
+        "                        if (c0) {{ ld0 = d2; lj0 = j; }}"
+    );
+    let last = n - 1;
+    TEMPLATE
+        .replace("LIST_SLOTS_VALUE", &slots.to_string())
+        .replace("//LIST_DECL\n", &decl)
+        .replace("//LIST_INSERT\n", &insert)
+        .replace("//LIST_OUT\n", &out)
+        .replace("LAST_D", &format!("ld{last}"))
+        .replace("LAST_J", &format!("lj{last}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_placeholder_is_filled() {
+        for slots in SLOT_COUNTS {
+            let s = source(slots);
+            for token in ["LIST_SLOTS_VALUE", "//LIST_", "LAST_D", "LAST_J"] {
+                assert!(!s.contains(token), "{token} left in the {slots}-slot source");
+            }
+            assert!(s.contains(&format!("var ld{} ", slots - 1)));
+            assert!(!s.contains(&format!("var ld{} ", slots)));
+        }
+    }
+}

@@ -7,25 +7,42 @@
 // core::knn::knn_all. Mode 1: contact candidates, the contact_k nearest particles of
 // other bodies within 2 (r_i + r_max) (contacts) — CPU twin
 // core::solver::Solver::refresh_contacts.
+//
+// The candidate list lives in registers: LIST_SLOTS scalar pairs (ld_s, lj_s), sorted by
+// (squared distance, index), written out by `knn.rs` (`source`) for 32 or 64 slots so
+// that every access has a constant index. The list is right-aligned: for K below
+// LIST_SLOTS the first LIST_SLOTS − K slots hold a sentinel (−1, 0) that sorts before
+// every candidate, so the K-th best is always the last slot. An insertion moves every
+// slot at once (slot s takes slot s−1 if the candidate beats slot s−1, else the
+// candidate if it beats slot s). A list in a dynamically indexed private array (local
+// memory) or in workgroup memory was slower on an H100 (BENCHMARKS.md, "GPU").
 
-const MAX_K: u32 = 64u;
+const LIST_SLOTS: u32 = LIST_SLOTS_VALUEu;
 const MAX_RING: i32 = 64;
+const FAR: f32 = 3.4028235e38;
+
+// Whether (d, j) sorts before (e, l): by squared distance, ties by index.
+fn before(d: f32, j: u32, e: f32, l: u32) -> bool {
+    return d < e || (d == e && j < l);
+}
 
 fn knn_query(i: u32, mode: u32) {
-    var bd: array<f32, 64>;
-    var bi: array<u32, 64>;
-    var cnt = 0u;
     let q = x[i].xyz;
     var k = params.knn_k;
-    var max2 = 3.4028235e38;
-    var reach = 3.4028235e38;
+    var max2 = FAR;
+    var reach = FAR;
     let body_i = pinfo[i].x;
     if (mode == 1u) {
         k = params.contact_k;
         reach = 2.0 * (bodies[body_i].radius + params.max_radius);
         max2 = reach * reach;
     }
-    k = min(k, MAX_K);
+    k = min(k, LIST_SLOTS);
+    if (k == 0u) {
+        return;
+    }
+    let pad = LIST_SLOTS - k;
+//LIST_DECL
     var cell = params.knn_cell;
     if (mode == 1u) {
         cell = params.grid_cell;
@@ -51,11 +68,8 @@ fn knn_query(i: u32, mode: u32) {
                     // (or than the contact reach): the box distance less a rounding
                     // slack, so that no point that could enter the list is skipped and
                     // the result stays the CPU's exactly.
-                    var cut = max2;
-                    if (cnt == k && k > 0u) {
-                        cut = min(cut, bd[k - 1u]);
-                    }
-                    if (cut < 3.4028235e38) {
+                    let cut = min(max2, LAST_D);
+                    if (cut < FAR) {
                         let lo = vec3<f32>(cc) * cell;
                         let gap = max(max(lo - q, q - lo - vec3<f32>(cell)), vec3<f32>(0.0));
                         let m = length(gap) - slack;
@@ -75,28 +89,11 @@ fn knn_query(i: u32, mode: u32) {
                         if (mode == 1u && pinfo[j].x == body_i) { continue; }
                         let d2 = dist2(q, e.xyz);
                         if (d2 > max2) { continue; }
-                        // insert into the sorted list (by d2, then index)
-                        if (cnt == k) {
-                            let ld = bd[k - 1u];
-                            if (!(d2 < ld || (d2 == ld && j < bi[k - 1u]))) {
-                                continue;
-                            }
+                        // Insert into the sorted list unless it is full of better ones.
+                        if (!before(d2, j, LAST_D, LAST_J)) {
+                            continue;
                         }
-                        var pos = min(cnt, k - 1u);
-                        if (cnt < k) { cnt = cnt + 1u; }
-                        loop {
-                            if (pos == 0u) { break; }
-                            let pd = bd[pos - 1u];
-                            if (d2 < pd || (d2 == pd && j < bi[pos - 1u])) {
-                                bd[pos] = pd;
-                                bi[pos] = bi[pos - 1u];
-                                pos = pos - 1u;
-                            } else {
-                                break;
-                            }
-                        }
-                        bd[pos] = d2;
-                        bi[pos] = j;
+//LIST_INSERT
                     }
                     dx = dx + 1;
                 }
@@ -105,32 +102,33 @@ fn knn_query(i: u32, mode: u32) {
         if (f32(r) * cell >= reach + cell) {
             break;
         }
-        if (cnt == k && k > 0u) {
-            var bound = 3.4028235e38;
+        if (LAST_D < FAR) {
+            var bound = FAR;
             for (var a = 0; a < 3; a = a + 1) {
                 bound = min(bound, rel[a] - f32(c[a] - r));
                 bound = min(bound, f32(c[a] + r + 1) - rel[a]);
             }
             let b = max(bound, 0.0) * cell;
-            if (bd[k - 1u] < b * b) {
+            if (LAST_D < b * b) {
                 break;
             }
         }
     }
+    // Slot pad + s is the s-th nearest; unfilled slots (FAR) write NONE.
+    var stride = params.knn_k;
     if (mode == 1u) {
-        let stride = params.contact_k;
-        for (var s = 0u; s < stride; s = s + 1u) {
-            var o = NONE;
-            if (s < cnt) { o = bi[s]; }
-            contacts[i * stride + s] = o;
-        }
+        stride = params.contact_k;
+    }
+    let base = i * stride - pad;
+//LIST_OUT
+}
+
+fn put(mode: u32, at: u32, d: f32, j: u32) {
+    let o = select(j, NONE, d == FAR);
+    if (mode == 1u) {
+        contacts[at] = o;
     } else {
-        let stride = params.knn_k;
-        for (var s = 0u; s < stride; s = s + 1u) {
-            var o = NONE;
-            if (s < cnt) { o = bi[s]; }
-            knn_out[i * stride + s] = o;
-        }
+        knn_out[at] = o;
     }
 }
 

@@ -86,10 +86,11 @@ pub struct Kernels {
     pub scan_add: ComputePipeline,
     /// `grid.wgsl`: scatter.
     pub grid_scatter: ComputePipeline,
-    /// `knn.wgsl`: K nearest of all particles.
-    pub knn_all: ComputePipeline,
-    /// `knn.wgsl`: contact candidates.
-    pub knn_contacts: ComputePipeline,
+    /// `knn.wgsl`: K nearest of all particles, one pipeline per list size
+    /// ([`knn::SLOT_COUNTS`]; pick with [`Kernels::knn_slots`]).
+    pub knn_all: [ComputePipeline; 2],
+    /// `knn.wgsl`: contact candidates, per list size like `knn_all`.
+    pub knn_contacts: [ComputePipeline; 2],
     /// `cluster.wgsl`: Jacobi pass A, a thread per cluster.
     pub clusters: ComputePipeline,
     /// `cluster.wgsl`: Jacobi pass A, 8 threads per cluster (small ranges).
@@ -121,6 +122,15 @@ pub struct Kernels {
 }
 
 impl Kernels {
+    /// Index into [`Kernels::knn_all`] and [`Kernels::knn_contacts`] of the smallest list
+    /// that holds `k` neighbours.
+    pub fn knn_slots(k: u32) -> usize {
+        knn::SLOT_COUNTS
+            .iter()
+            .position(|&s| k <= s)
+            .unwrap_or(knn::SLOT_COUNTS.len() - 1)
+    }
+
     /// Compiles every kernel for `device`. Fails with [`TissueError::GpuLimit`] if the
     /// adapter cannot bind the storage buffers the kernels need.
     pub fn new(device: &RenderDevice) -> Result<Self, TissueError> {
@@ -162,7 +172,12 @@ impl Kernels {
         };
         let integrate_m = module("tissue integrate", integrate::SOURCE);
         let grid_m = module("tissue grid", grid::SOURCE);
-        let knn_m = module("tissue knn", knn::SOURCE);
+        let knn_m = knn::SLOT_COUNTS.map(|slots| {
+            device.create_and_validate_shader_module(ShaderModuleDescriptor {
+                label: Some("tissue knn"),
+                source: ShaderSource::Wgsl(Cow::Owned(knn::source(slots))),
+            })
+        });
         let cluster_m = module("tissue cluster", cluster::SOURCE);
         let gather_m = module("tissue gather", gather::SOURCE);
         let hier_m = module("tissue hierarchy", hierarchy::SOURCE);
@@ -192,8 +207,8 @@ impl Kernels {
             scan_block: pipe(&grid_m, &with_scan, "scan_block"),
             scan_add: pipe(&grid_m, &with_scan, "scan_add"),
             grid_scatter: pipe(&grid_m, &with_scan, "grid_scatter"),
-            knn_all: pipe(&knn_m, &world_only, "knn_all"),
-            knn_contacts: pipe(&knn_m, &world_only, "knn_contacts"),
+            knn_all: knn_m.each_ref().map(|m| pipe(m, &world_only, "knn_all")),
+            knn_contacts: knn_m.each_ref().map(|m| pipe(m, &world_only, "knn_contacts")),
             clusters: pipe(&cluster_m, &with_scan, "solve_clusters"),
             clusters_lanes: pipe(&cluster_m, &with_scan, "solve_clusters_lanes"),
             gather: pipe(&gather_m, &with_scan, "gather"),
