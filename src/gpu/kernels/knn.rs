@@ -32,8 +32,14 @@ pub fn source(slots: u32) -> String {
             decl,
             "    var ld{s} = select(FAR, -1.0, {s}u < pad);\n    var lj{s} = select(NONE, 0u, {s}u < pad);"
         );
-        let _ = writeln!(insert, "                        let c{s} = before(d2, j, ld{s}, lj{s});");
-        let _ = writeln!(out, "    if (pad <= {s}u) {{ put(mode, base + {s}u, ld{s}, lj{s}); }}");
+        let _ = writeln!(
+            insert,
+            "                        let c{s} = before(d2, j, ld{s}, lj{s});"
+        );
+        let _ = writeln!(
+            out,
+            "    if (pad <= {s}u) {{ put(mode, base + {s}u, ld{s}, lj{s}); }}"
+        );
     }
     // From the last slot down, so that slot s − 1 still holds its old value.
     for s in (1..n).rev() {
@@ -66,7 +72,10 @@ mod tests {
         for slots in SLOT_COUNTS {
             let s = source(slots);
             for token in ["LIST_SLOTS_VALUE", "//LIST_", "LAST_D", "LAST_J"] {
-                assert!(!s.contains(token), "{token} left in the {slots}-slot source");
+                assert!(
+                    !s.contains(token),
+                    "{token} left in the {slots}-slot source"
+                );
             }
             assert!(s.contains(&format!("var ld{} ", slots - 1)));
             assert!(!s.contains(&format!("var ld{} ", slots)));

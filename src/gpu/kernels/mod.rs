@@ -208,7 +208,9 @@ impl Kernels {
             scan_add: pipe(&grid_m, &with_scan, "scan_add"),
             grid_scatter: pipe(&grid_m, &with_scan, "grid_scatter"),
             knn_all: knn_m.each_ref().map(|m| pipe(m, &world_only, "knn_all")),
-            knn_contacts: knn_m.each_ref().map(|m| pipe(m, &world_only, "knn_contacts")),
+            knn_contacts: knn_m
+                .each_ref()
+                .map(|m| pipe(m, &world_only, "knn_contacts")),
             clusters: pipe(&cluster_m, &with_scan, "solve_clusters"),
             clusters_lanes: pipe(&cluster_m, &with_scan, "solve_clusters_lanes"),
             gather: pipe(&gather_m, &with_scan, "gather"),
