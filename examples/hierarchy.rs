@@ -23,8 +23,6 @@
 //! Options: `--bar N`, `--liver N` (particles, 0 skips the scene), `--iters N` (most
 //! level-0 iterations), `--coarse N` (iterations per coarse level, default 20),
 //! `--levels N` (levels including level 0; default: chosen from the body's size),
-//! `--fuse-below N` (GPU: coarse levels of fewer particles run in one workgroup; default
-//! [`FUSE_LEVELS_BELOW`], 0 = never),
 //! `--no-cpu`, `--no-gpu`, `--out DIR` (default `hierarchy_out`).
 
 #[path = "support/bench.rs"]
@@ -40,7 +38,7 @@ use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use bevy_tissue::gpu::buffers::GpuClusterState;
 use bevy_tissue::gpu::profile::GpuProfiler;
-use bevy_tissue::gpu::world::{FUSE_LEVELS_BELOW, read_buffer, read_vec3};
+use bevy_tissue::gpu::world::{read_buffer, read_vec3};
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
 use glam::{Quat, Vec3};
 use std::fmt::Write as _;
@@ -71,7 +69,6 @@ struct Args {
     iters: u32,
     coarse: u32,
     levels: u32,
-    fuse_below: u32,
     cpu: bool,
     gpu: bool,
     out: PathBuf,
@@ -86,7 +83,6 @@ fn args() -> Args {
         iters: a.num("--iters", if quick { 40 } else { 200 }),
         coarse: a.num("--coarse", SolverSettings::default().coarse_iterations),
         levels: a.num("--levels", 0),
-        fuse_below: a.num("--fuse-below", FUSE_LEVELS_BELOW),
         cpu: !a.flag("--no-cpu"),
         gpu: !a.flag("--no-gpu"),
         out: a.path("--out", "hierarchy_out"),
@@ -101,8 +97,6 @@ const STIFF: Material = Material::Hyperelastic {
 /// A scene: the model and its deformed start.
 /// `--levels` (0: automatic), set once in `main`.
 static LEVELS: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
-/// `--fuse-below`, set once in `main`.
-static FUSE_BELOW: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
 
 fn scene(name: &str, n: u32, hierarchy: bool) -> (Model, State) {
     let levels = LEVELS.get().copied().filter(|&l| l > 0);
@@ -235,7 +229,6 @@ fn gpu_curve(
         let s = settings(it, coarse);
         let mut world = GpuWorld::new(&g.device, &g.kernels, &model, &state, s.clone(), 0)
             .unwrap_or_else(|e| panic!("{name}: {e}"));
-        world.fuse_levels_below = FUSE_BELOW.get().copied().unwrap_or(FUSE_LEVELS_BELOW);
         world.write_params(&g.queue);
         let mut enc = g.device.create_command_encoder(&Default::default());
         world.record_steps(&mut enc, &g.kernels, 1, &mut NoTiming);
@@ -340,7 +333,6 @@ fn reach(c: &Curve, target: f32) -> Option<Point> {
 fn main() {
     let a = args();
     let _ = LEVELS.set(a.levels);
-    let _ = FUSE_BELOW.set(a.fuse_below);
     std::fs::create_dir_all(&a.out).expect("output folder");
     let gpu = if a.gpu {
         match headless() {

@@ -233,26 +233,11 @@ fn gpu_hierarchy_matches_the_cpu_hierarchy_after_200_steps() {
         assert_eq!(model.levels.len(), 2);
         let colliders = vec![Collider::ground(0.15)];
         let (cpu, _) = run_cpu(&model, &colliders, 200);
-        // Both ways of running a coarse level: two dispatches per iteration, and all
-        // iterations in one workgroup (the default for levels this small).
-        for fuse_below in [0, u32::MAX] {
-            let state = State::new(&model);
-            let mut world =
-                GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
-            world.fuse_levels_below = fuse_below;
-            let x = run_gpu(g, &mut world, &colliders, 200);
-            let way = if fuse_below == 0 {
-                "two dispatches per iteration"
-            } else {
-                "one workgroup per level"
-            };
-            assert_close_after_200_steps(
-                &format!("hierarchy, {material:?}, {way}"),
-                &model,
-                &x,
-                &cpu.x,
-            );
-        }
+        let state = State::new(&model);
+        let mut world =
+            GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
+        let x = run_gpu(g, &mut world, &colliders, 200);
+        assert_close_after_200_steps(&format!("hierarchy, {material:?}"), &model, &x, &cpu.x);
     }
 }
 

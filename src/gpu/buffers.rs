@@ -74,8 +74,8 @@ pub struct GpuParams {
     pub n_bodies: u32,
     /// Grid cell edge of the all-particle search, m.
     pub knn_cell: f32,
-    /// Jacobi iterations per coarse level of the hierarchy (`level.wgsl`).
-    pub coarse_iterations: u32,
+    /// Padding.
+    pub pad: u32,
 }
 
 /// Per-body constants (`Body` in WGSL).

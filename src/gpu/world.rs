@@ -207,11 +207,6 @@ pub struct GpuWorld {
     /// ones with a thread per cluster ([`LANE_CLUSTERS_BELOW`] by default; the two give
     /// the same result up to the order of the member sums).
     pub lane_clusters_below: u32,
-    /// Coarse levels of fewer particles than this run all their iterations in one
-    /// workgroup and one dispatch (`level.wgsl`), larger ones two dispatches per
-    /// iteration ([`FUSE_LEVELS_BELOW`] by default; the same arithmetic as a thread per
-    /// cluster).
-    pub fuse_levels_below: u32,
     b: Buffers,
     surface: Buffer,
     levels: Vec<(u32, u32)>,
@@ -244,7 +239,7 @@ fn groups(n: u32, per: u32) -> u32 {
 }
 
 /// Particles handled by one workgroup of the gather kernel (4 threads each; the lane
-/// count is `GATHER_LANES` in `gather.wgsl`).
+/// count is `LANES` in `gather.wgsl`).
 pub const PER_LANE_GROUP: u32 = WORKGROUP / 4;
 
 /// A 2-D grid of workgroups for the gather kernel (the kernels linearise it), so that
@@ -260,12 +255,7 @@ fn lane_groups(n: u32) -> (u32, u32) {
 /// levels of 6,534 and 972 clusters.
 pub const LANE_CLUSTERS_BELOW: u32 = 8192;
 
-/// Coarse levels of fewer particles than this are solved in one workgroup
-/// (`solve_level`: every iteration in one dispatch). Measured on an H100 (BENCHMARKS.md,
-/// "Hierarchy").
-pub const FUSE_LEVELS_BELOW: u32 = 4096;
-
-/// Threads per cluster of `solve_clusters_lanes` (`CLUSTER_LANES` in `cluster.wgsl`).
+/// Threads per cluster of `solve_clusters_lanes` (`LANES` in `cluster.wgsl`).
 const CLUSTER_LANES: u32 = 8;
 
 /// The cluster kernel for a range of `n` clusters and its workgroup grid
@@ -636,14 +626,13 @@ impl GpuWorld {
             knn_k,
             n_bodies: model.bodies.len() as u32,
             knn_cell,
-            coarse_iterations: settings.coarse_iterations,
+            pad: 0,
         };
         Ok(Self {
             settings,
             step: state.step,
             ranges,
             lane_clusters_below: LANE_CLUSTERS_BELOW,
-            fuse_levels_below: FUSE_LEVELS_BELOW,
             b,
             surface,
             levels,
@@ -850,7 +839,6 @@ impl GpuWorld {
     /// Writes the per-step constants (call before submitting recorded steps).
     pub fn write_params(&mut self, queue: &RenderQueue) {
         self.params.n_colliders = self.n_colliders;
-        self.params.coarse_iterations = self.settings.coarse_iterations;
         queue.write_buffer(&self.b.params, 0, bytemuck::bytes_of(&self.params));
     }
 
@@ -963,13 +951,9 @@ impl GpuWorld {
             let lg = lane_groups(lv.count);
             let (cp, cg) = cluster_kernel(k, lv.count, self.lane_clusters_below);
             r.dispatch(w, "tissue/levels", &k.level_in, parts, g);
-            if lv.count < self.fuse_levels_below {
-                r.dispatch(w, "tissue/levels", &k.solve_level, parts, (1, 1));
-            } else {
-                for _ in 0..self.settings.coarse_iterations {
-                    r.dispatch(w, "tissue/levels", cp, parts, cg);
-                    r.dispatch(w, "tissue/levels", &k.gather, parts, lg);
-                }
+            for _ in 0..self.settings.coarse_iterations {
+                r.dispatch(w, "tissue/levels", cp, parts, cg);
+                r.dispatch(w, "tissue/levels", &k.gather, parts, lg);
             }
             r.dispatch(w, "tissue/levels", &k.level_out, parts, g);
             let gr = (groups(lv.rec_count, WORKGROUP), 1);

@@ -35,9 +35,9 @@ fn store_affine(c: u32, m: mat3x3<f32>, t: vec3<f32>) {
 
 // One thread per cluster: its moments summed over the members in list order (the CPU
 // twin's order), then its solve. Measured on an H100 (BENCHMARKS.md, "GPU"): threads
-// sharing a cluster (8, 4 or 2 lanes summing every CLUSTER_LANES-th member, one lane solving)
+// sharing a cluster (8, 4 or 2 lanes summing every LANES-th member, one lane solving)
 // were slower at 37,982 and at 1M clusters (1M: 7.6 ms per step with 8 lanes, 4.2 ms
-// with one), as the solve then runs on one lane in CLUSTER_LANES. Small ranges use
+// with one), as the solve then runs on one lane in LANES. Small ranges use
 // solve_clusters_lanes below (world.rs, LANE_CLUSTERS_BELOW).
 @compute @workgroup_size(128)
 fn solve_clusters(
@@ -55,14 +55,14 @@ fn solve_clusters(
     solve_cluster(c, cluster_moments(c, true));
 }
 
-// The same for small ranges (the hierarchy's coarse levels, small worlds): CLUSTER_LANES threads
-// share a cluster, each sums every CLUSTER_LANES-th member, the partial sums are combined in lane
+// The same for small ranges (the hierarchy's coarse levels, small worlds): LANES threads
+// share a cluster, each sums every LANES-th member, the partial sums are combined in lane
 // order (deterministic) and lane 0 solves. Eight times the threads hide the latency of
 // the member reads where a thread per cluster would leave the GPU mostly idle: on an
 // H100 the bar's coarse pass (6,534 and 972 clusters) took 1.06 ms with a thread per
 // cluster against 0.70 ms with 8 lanes (BENCHMARKS.md, "Hierarchy").
-const CLUSTER_LANES: u32 = 8u;
-var<workgroup> cluster_part: array<array<vec4<f32>, 4>, 128>;
+const LANES: u32 = 8u;
+var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
 
 @compute @workgroup_size(128)
 fn solve_clusters_lanes(
@@ -70,9 +70,9 @@ fn solve_clusters_lanes(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let local = (wid.x + wid.y * nwg.x) * (128u / CLUSTER_LANES) + lid / CLUSTER_LANES;
+    let local = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
     let c = range.first + local;
-    let lane = lid % CLUSTER_LANES;
+    let lane = lid % LANES;
     // A sleeping body's clusters are skipped (their corrections are read only by its own
     // particles, which skip gathering).
     let valid = local < range.count && !asleep(c);
@@ -88,7 +88,7 @@ fn solve_clusters_lanes(
         let end = pinfo[c + 1u].w;
         com = crest[c].com_mass.xyz;
         origin = p[lists[start]].xyz;
-        for (var s = start + lane; s < end; s = s + CLUSTER_LANES) {
+        for (var s = start + lane; s < end; s = s + LANES) {
             let j = lists[s];
             let r = rest[j];
             let m = r.w;
@@ -101,13 +101,13 @@ fn solve_clusters_lanes(
             a2 = a2 + md * q.z;
         }
     }
-    cluster_part[lid] = array<vec4<f32>, 4>(vec4<f32>(mp, a0.x), vec4<f32>(mq, a0.y), vec4<f32>(a1, a0.z), vec4<f32>(a2, 0.0));
+    part[lid] = array<vec4<f32>, 4>(vec4<f32>(mp, a0.x), vec4<f32>(mq, a0.y), vec4<f32>(a1, a0.z), vec4<f32>(a2, 0.0));
     workgroupBarrier();
     if (!valid || lane != 0u) {
         return;
     }
-    for (var l = 1u; l < CLUSTER_LANES; l = l + 1u) {
-        let o = cluster_part[lid + l];
+    for (var l = 1u; l < LANES; l = l + 1u) {
+        let o = part[lid + l];
         mp = mp + o[0].xyz;
         mq = mq + o[1].xyz;
         a0 = a0 + vec3<f32>(o[0].w, o[1].w, o[2].w);

@@ -108,59 +108,13 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     return q;
 }
 
-// Σ over the clusters of particle j, every `lanes`-th from `lane`, of Δx + a p (xyz) and
-// Σ a (w; shape matching: Δx = a (R X + t) − a p). A sleeping body's particles gather
-// nothing (its clusters were skipped).
-fn gather_sum(j: u32, lane: u32, lanes: u32) -> vec4<f32> {
-    let info = pinfo[j];
-    let body = bodies[info.x];
-    let xr = rest[j].xyz;
-    let s0 = info.z;
-    let s1 = select(pinfo[j + 1u].z, s0, body.asleep != 0u);
-    var acc = vec4<f32>(0.0);
-    if (body.kind == 0u) {
-        for (var s = s0 + lane; s < s1; s = s + lanes) {
-            let o = lists[params.inv_offset + s] * CORR_STRIDE;
-            let q = corr[o];
-            let ta = corr[o + 1u];
-            // Rotate X by the unit quaternion q: X + 2w (q × X) + 2 q × (q × X).
-            let u = 2.0 * cross(q.xyz, xr);
-            let rx = xr + q.w * u + cross(q.xyz, u);
-            acc = acc + vec4<f32>(ta.w * rx + ta.xyz, ta.w);
-        }
-    } else {
-        for (var s = s0 + lane; s < s1; s = s + lanes) {
-            let o = lists[params.inv_offset + s] * CORR_STRIDE;
-            let c0 = corr[o];
-            let c1 = corr[o + 1u];
-            let c2 = corr[o + 2u];
-            let d = c0.xyz * xr.x + c1.xyz * xr.y + c2.xyz * xr.z
-                + vec3<f32>(c0.w, c1.w, c2.w);
-            acc = acc + vec4<f32>(d, 0.0);
-        }
-    }
-    return acc;
-}
-
-// Particle j moved by its summed corrections `acc`; then pins, graspers and colliders, or
-// (range.flag 1) into p2 for the contact pass.
-fn gather_finish(j: u32, acc: vec4<f32>) {
-    let pj = p[j].xyz;
-    let out = pj + (acc.xyz - acc.w * pj);
-    if (range.flag == 0u) {
-        p[j] = vec4<f32>(boundary(j, out), 0.0);
-    } else {
-        p2[j] = vec4<f32>(out, 0.0);
-    }
-}
-
-// GATHER_LANES threads share a particle: each applies every GATHER_LANES-th cluster
-// correction to the particle (shape matching: a quaternion rotation, 32 B read;
-// hyperelastic: an affine map, 48 B), the partial sums are combined in lane order and
-// lane 0 finishes. Four lanes measured fastest on an H100 (8: 0.161 → 0.136 ms per step
-// at 37,982 particles, 2.97 → 2.23 at 1M; 16 slower; BENCHMARKS.md).
-const GATHER_LANES: u32 = 4u;
-var<workgroup> gather_part: array<vec4<f32>, 128>;
+// LANES threads share a particle: each applies every LANES-th cluster correction to the
+// particle (shape matching: a quaternion rotation, 32 B read; hyperelastic: an affine
+// map, 48 B), the partial sums are combined in lane order and lane 0 finishes. Four
+// lanes measured fastest on an H100 (8: 0.161 → 0.136 ms per step at 37,982 particles,
+// 2.97 → 2.23 at 1M; 16 slower; BENCHMARKS.md).
+const LANES: u32 = 4u;
+var<workgroup> part: array<vec4<f32>, 128>;
 
 @compute @workgroup_size(128)
 fn gather(
@@ -168,23 +122,57 @@ fn gather(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let local = (wid.x + wid.y * nwg.x) * (128u / GATHER_LANES) + lid / GATHER_LANES;
+    let local = (wid.x + wid.y * nwg.x) * (128u / LANES) + lid / LANES;
     let j = range.first + local;
-    let lane = lid % GATHER_LANES;
+    let lane = lid % LANES;
     let valid = local < range.count;
+    // Σ over the clusters of Δx + a p (xyz) and Σ a (w).
     var acc = vec4<f32>(0.0);
+    var xr = vec3<f32>(0.0);
     if (valid) {
-        acc = gather_sum(j, lane, GATHER_LANES);
+        let info = pinfo[j];
+        let body = bodies[info.x];
+        xr = rest[j].xyz;
+        let s0 = info.z;
+        // A sleeping body's particles gather nothing (its clusters were skipped).
+        let s1 = select(pinfo[j + 1u].z, s0, body.asleep != 0u);
+        if (body.kind == 0u) {
+            for (var s = s0 + lane; s < s1; s = s + LANES) {
+                let o = lists[params.inv_offset + s] * CORR_STRIDE;
+                let q = corr[o];
+                let ta = corr[o + 1u];
+                // Rotate X by the unit quaternion q: X + 2w (q × X) + 2 q × (q × X).
+                let u = 2.0 * cross(q.xyz, xr);
+                let rx = xr + q.w * u + cross(q.xyz, u);
+                acc = acc + vec4<f32>(ta.w * rx + ta.xyz, ta.w);
+            }
+        } else {
+            for (var s = s0 + lane; s < s1; s = s + LANES) {
+                let o = lists[params.inv_offset + s] * CORR_STRIDE;
+                let c0 = corr[o];
+                let c1 = corr[o + 1u];
+                let c2 = corr[o + 2u];
+                let d = c0.xyz * xr.x + c1.xyz * xr.y + c2.xyz * xr.z
+                    + vec3<f32>(c0.w, c1.w, c2.w);
+                acc = acc + vec4<f32>(d, 0.0);
+            }
+        }
     }
-    gather_part[lid] = acc;
+    part[lid] = acc;
     workgroupBarrier();
     if (!valid || lane != 0u) {
         return;
     }
-    for (var l = 1u; l < GATHER_LANES; l = l + 1u) {
-        acc = acc + gather_part[lid + l];
+    for (var l = 1u; l < LANES; l = l + 1u) {
+        acc = acc + part[lid + l];
     }
-    gather_finish(j, acc);
+    let pj = p[j].xyz;
+    let out = pj + (acc.xyz - acc.w * pj);
+    if (range.flag == 0u) {
+        p[j] = vec4<f32>(boundary(j, out), 0.0);
+    } else {
+        p2[j] = vec4<f32>(out, 0.0);
+    }
 }
 
 @compute @workgroup_size(128)

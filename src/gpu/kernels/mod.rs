@@ -15,7 +15,6 @@ pub mod grid;
 pub mod hierarchy;
 pub mod integrate;
 pub mod knn;
-pub mod level;
 pub mod skin;
 
 use crate::core::TissueError;
@@ -110,10 +109,6 @@ pub struct Kernels {
     pub prolong: ComputePipeline,
     /// `hierarchy.wgsl`: multipliers handed to the finer level.
     pub transfer: ComputePipeline,
-    /// `level.wgsl`: all Jacobi iterations of a small coarse level in one workgroup.
-    pub solve_level: ComputePipeline,
-    /// Threads of `solve_level`'s one workgroup (the device's most, at most 1,024).
-    pub level_workgroup: u32,
     /// `forces.wgsl`: partial sums.
     pub force_partial: ComputePipeline,
     /// `forces.wgsl`: totals.
@@ -187,14 +182,6 @@ impl Kernels {
         let gather_m = module("tissue gather", gather::SOURCE);
         let hier_m = module("tissue hierarchy", hierarchy::SOURCE);
         let forces_m = module("tissue forces", forces::SOURCE);
-        let level_workgroup = limits
-            .max_compute_invocations_per_workgroup
-            .min(limits.max_compute_workgroup_size_x)
-            .min(1024);
-        let level_m = device.create_and_validate_shader_module(ShaderModuleDescriptor {
-            label: Some("tissue level"),
-            source: ShaderSource::Wgsl(Cow::Owned(level::source(level_workgroup))),
-        });
         let skin_m = module("tissue skin", skin::SOURCE);
         let pipe = |m: &bevy::render::render_resource::ShaderModule,
                     l: &bevy::render::render_resource::PipelineLayout,
@@ -233,8 +220,6 @@ impl Kernels {
             level_out: pipe(&hier_m, &with_scan, "level_out"),
             prolong: pipe(&hier_m, &with_scan, "prolong"),
             transfer: pipe(&hier_m, &with_scan, "transfer"),
-            solve_level: pipe(&level_m, &with_scan, "solve_level"),
-            level_workgroup,
             force_partial: pipe(&forces_m, &world_only, "force_partial"),
             force_total: pipe(&forces_m, &world_only, "force_total"),
             deform: pipe(&skin_m, &with_skin, "deform"),
