@@ -123,19 +123,20 @@ fn solve_clusters_lanes(
 fn solve_cluster(c: u32, mo: Moments) {
     let info = pinfo[c];
     let body = bodies[info.x];
-    let cr = crest[c];
-    var st = cstate[c];
     if (body.kind == 0u) {
-        // Shape matching (Müller et al. 2005), averaged with the cluster weight.
-        let alpha = body.k_iter * params.omega * cr.weight.x;
-        st.rot = extract_rotation(mo.apq, st.rot, params.rot_iters);
-        let r = quat_mat(st.rot);
+        // Shape matching (Müller et al. 2005), averaged with the cluster weight. Reads
+        // and writes only the fields it uses (the rest record is 192 B, the state 48 B).
+        let alpha = body.k_iter * params.omega * crest[c].weight.x;
+        let rot = extract_rotation(mo.apq, cstate[c].rot, params.rot_iters);
+        let r = quat_mat(rot);
         let o = c * CORR_STRIDE;
-        corr[o] = st.rot;
+        corr[o] = rot;
         corr[o + 1u] = vec4<f32>((mo.com - r * mo.rest_com) * alpha, alpha);
-        cstate[c] = st;
+        cstate[c].rot = rot;
         return;
     }
+    let cr = crest[c];
+    var st = cstate[c];
     // Fixed-corotated XPBD on F with split masses (core::constraints::solve_hyperelastic).
     let f = mo.apq * cr.aqq;
     let vol = cr.values_vol.w;

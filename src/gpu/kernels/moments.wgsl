@@ -11,8 +11,9 @@ struct Moments {
 fn cluster_moments(c: u32, use_p: bool) -> Moments {
     let start = pinfo[c].w;
     let end = pinfo[c + 1u].w;
-    let cr = crest[c];
-    let com = cr.com_mass.xyz;
+    // Only the record's first field (not the whole 192-byte ClusterRest).
+    let com_mass = crest[c].com_mass;
+    let com = com_mass.xyz;
     var origin: vec3<f32>;
     if (use_p) { origin = p[lists[start]].xyz; } else { origin = x[lists[start]].xyz; }
     var mp = vec3<f32>(0.0);
@@ -34,7 +35,7 @@ fn cluster_moments(c: u32, use_p: bool) -> Moments {
         a1 = a1 + md * q.y;
         a2 = a2 + md * q.z;
     }
-    let inv_m = 1.0 / cr.com_mass.w;
+    let inv_m = 1.0 / com_mass.w;
     let c_rel = mp * inv_m;
     let a = mat3x3<f32>(a0, a1, a2) - outer(c_rel, mq);
     return Moments(origin + c_rel, a, com + mq * inv_m);
