@@ -82,6 +82,11 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     if (info.y != NONE) {
         return pins[info.y].xyz;
     }
+    // No colliders: no grasper holds anything (predict's update_grab let go), and the
+    // grab and x reads below are skipped (a gather is memory-bound).
+    if (params.n_colliders == 0u) {
+        return q0;
+    }
     let held = grab_target(j);
     if (held.w >= 0.0) {
         let old = coldp[j];
