@@ -113,6 +113,14 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     return q;
 }
 
+// Shape matching's a (R X + t) (xyz) and a (w) for a correction stored as the unit
+// quaternion q of R and (a t, a): X rotated as X + 2w (q × X) + 2 q × (q × X).
+fn rigid_part(q: vec4<f32>, ta: vec4<f32>, xr: vec3<f32>) -> vec4<f32> {
+    let u = 2.0 * cross(q.xyz, xr);
+    let rx = xr + q.w * u + cross(q.xyz, u);
+    return vec4<f32>(ta.w * rx + ta.xyz, ta.w);
+}
+
 // LANES threads share a particle: each applies every LANES-th cluster correction to the
 // particle (shape matching: a quaternion rotation, 32 B read; hyperelastic: an affine
 // map, 48 B), the partial sums are combined in lane order and lane 0 finishes. Four
@@ -142,14 +150,26 @@ fn gather(
         // A sleeping body's particles gather nothing (its clusters were skipped).
         let s1 = select(pinfo[j + 1u].z, s0, body.asleep != 0u);
         if (body.kind == 0u) {
-            for (var s = s0 + lane; s < s1; s = s + LANES) {
+            // Two corrections at a time (both loads in flight before either is used),
+            // added in the same order as one at a time.
+            var s = s0 + lane;
+            loop {
+                if (s + LANES >= s1) {
+                    break;
+                }
+                let o0 = lists[params.inv_offset + s] * CORR_STRIDE;
+                let o1 = lists[params.inv_offset + s + LANES] * CORR_STRIDE;
+                let q0 = corr[o0];
+                let ta0 = corr[o0 + 1u];
+                let q1 = corr[o1];
+                let ta1 = corr[o1 + 1u];
+                acc = acc + rigid_part(q0, ta0, xr);
+                acc = acc + rigid_part(q1, ta1, xr);
+                s = s + 2u * LANES;
+            }
+            if (s < s1) {
                 let o = lists[params.inv_offset + s] * CORR_STRIDE;
-                let q = corr[o];
-                let ta = corr[o + 1u];
-                // Rotate X by the unit quaternion q: X + 2w (q × X) + 2 q × (q × X).
-                let u = 2.0 * cross(q.xyz, xr);
-                let rx = xr + q.w * u + cross(q.xyz, u);
-                acc = acc + vec4<f32>(ta.w * rx + ta.xyz, ta.w);
+                acc = acc + rigid_part(corr[o], corr[o + 1u], xr);
             }
         } else {
             for (var s = s0 + lane; s < s1; s = s + LANES) {

@@ -7,38 +7,73 @@ struct Moments {
     rest_com: vec3<f32>,     // rest centre as the f32 members average to, m
 };
 
-// `pos` is x or p (chosen by `use_p`).
+// Running sums of the moments over a cluster's members.
+struct MomentSums {
+    mp: vec3<f32>,           // Σ m (p − origin)
+    mq: vec3<f32>,           // Σ m q
+    a0: vec3<f32>,           // columns of Σ m (p − origin) qᵀ
+    a1: vec3<f32>,
+    a2: vec3<f32>,
+};
+
+// Adds member (position pj, rest record r = (X, m)) to the sums, in the CPU twin's order.
+fn add_member(t: MomentSums, pj: vec3<f32>, r: vec4<f32>, origin: vec3<f32>, com: vec3<f32>) -> MomentSums {
+    let m = r.w;
+    let md = (pj - origin) * m;
+    let q = r.xyz - com;
+    return MomentSums(t.mp + md, t.mq + q * m, t.a0 + md * q.x, t.a1 + md * q.y, t.a2 + md * q.z);
+}
+
+fn member_pos(j: u32, use_p: bool) -> vec3<f32> {
+    if (use_p) {
+        return p[j].xyz;
+    }
+    return x[j].xyz;
+}
+
+// `pos` is x or p (chosen by `use_p`). Members are read four at a time (all their loads
+// issued before any is used, so a thread waits for one round of memory latency per four
+// members instead of per member) and added in list order, as the CPU twin does.
 fn cluster_moments(c: u32, use_p: bool) -> Moments {
     let start = pinfo[c].w;
     let end = pinfo[c + 1u].w;
     // Only the record's first field (not the whole 192-byte ClusterRest).
     let com_mass = crest[c].com_mass;
     let com = com_mass.xyz;
-    var origin: vec3<f32>;
-    if (use_p) { origin = p[lists[start]].xyz; } else { origin = x[lists[start]].xyz; }
-    var mp = vec3<f32>(0.0);
-    var mq = vec3<f32>(0.0);
-    var a0 = vec3<f32>(0.0);
-    var a1 = vec3<f32>(0.0);
-    var a2 = vec3<f32>(0.0);
-    for (var s = start; s < end; s = s + 1u) {
+    let origin = member_pos(lists[start], use_p);
+    let z = vec3<f32>(0.0);
+    var t = MomentSums(z, z, z, z, z);
+    var s = start;
+    loop {
+        if (s + 4u > end) {
+            break;
+        }
+        let j0 = lists[s];
+        let j1 = lists[s + 1u];
+        let j2 = lists[s + 2u];
+        let j3 = lists[s + 3u];
+        let y0 = member_pos(j0, use_p);
+        let y1 = member_pos(j1, use_p);
+        let y2 = member_pos(j2, use_p);
+        let y3 = member_pos(j3, use_p);
+        let r0 = rest[j0];
+        let r1 = rest[j1];
+        let r2 = rest[j2];
+        let r3 = rest[j3];
+        t = add_member(t, y0, r0, origin, com);
+        t = add_member(t, y1, r1, origin, com);
+        t = add_member(t, y2, r2, origin, com);
+        t = add_member(t, y3, r3, origin, com);
+        s = s + 4u;
+    }
+    for (; s < end; s = s + 1u) {
         let j = lists[s];
-        var pj: vec3<f32>;
-        if (use_p) { pj = p[j].xyz; } else { pj = x[j].xyz; }
-        let r = rest[j];
-        let m = r.w;
-        let md = (pj - origin) * m;
-        let q = r.xyz - com;
-        mp = mp + md;
-        mq = mq + q * m;
-        a0 = a0 + md * q.x;
-        a1 = a1 + md * q.y;
-        a2 = a2 + md * q.z;
+        t = add_member(t, member_pos(j, use_p), rest[j], origin, com);
     }
     let inv_m = 1.0 / com_mass.w;
-    let c_rel = mp * inv_m;
-    let a = mat3x3<f32>(a0, a1, a2) - outer(c_rel, mq);
-    return Moments(origin + c_rel, a, com + mq * inv_m);
+    let c_rel = t.mp * inv_m;
+    let a = mat3x3<f32>(t.a0, t.a1, t.a2) - outer(c_rel, t.mq);
+    return Moments(origin + c_rel, a, com + t.mq * inv_m);
 }
 
 // Müller et al. 2016, warm-started from q (first-order update below 0.25 rad).
