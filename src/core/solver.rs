@@ -81,7 +81,7 @@ pub struct SolverSettings {
     /// default 20 was measured to reach tight residuals much sooner than 10 or 5 on a
     /// stiff 50,000-particle bar (BENCHMARKS.md, "Hierarchy": 6–20x faster than flat to
     /// 5e-4 and below). For loose solves use fewer: to a residual of 1e-3 the GPU's
-    /// coarse pass is cheaper with 3–5 (3.4–4.4x faster than flat) than with 20 (1.2x),
+    /// coarse pass is cheaper with 3–5 (2.9–4.4x faster than flat) than with 20 (1.0–1.2x),
     /// as a small level's dispatch costs about as much as a large one's.
     pub coarse_iterations: u32,
     /// The constraints of the coarse levels.
