@@ -93,22 +93,8 @@ fn solve_clusters_lanes(
             if (s + 3u * LANES >= end) {
                 break;
             }
-            let j0 = lists[s];
-            let j1 = lists[s + LANES];
-            let j2 = lists[s + 2u * LANES];
-            let j3 = lists[s + 3u * LANES];
-            let y0 = p[j0].xyz;
-            let y1 = p[j1].xyz;
-            let y2 = p[j2].xyz;
-            let y3 = p[j3].xyz;
-            let r0 = rest[j0];
-            let r1 = rest[j1];
-            let r2 = rest[j2];
-            let r3 = rest[j3];
-            t = add_member(t, y0, r0, origin, com);
-            t = add_member(t, y1, r1, origin, com);
-            t = add_member(t, y2, r2, origin, com);
-            t = add_member(t, y3, r3, origin, com);
+            let j = vec4<u32>(lists[s], lists[s + LANES], lists[s + 2u * LANES], lists[s + 3u * LANES]);
+            t = add_four(t, j, true, origin, com);
             s = s + 4u * LANES;
         }
         for (; s < end; s = s + LANES) {

@@ -31,6 +31,23 @@ fn member_pos(j: u32, use_p: bool) -> vec3<f32> {
     return x[j].xyz;
 }
 
+// Adds members j.x, j.y, j.z, j.w in that order, all their loads issued before any is
+// used (one round of memory latency for four members).
+fn add_four(t: MomentSums, j: vec4<u32>, use_p: bool, origin: vec3<f32>, com: vec3<f32>) -> MomentSums {
+    let y0 = member_pos(j.x, use_p);
+    let y1 = member_pos(j.y, use_p);
+    let y2 = member_pos(j.z, use_p);
+    let y3 = member_pos(j.w, use_p);
+    let r0 = rest[j.x];
+    let r1 = rest[j.y];
+    let r2 = rest[j.z];
+    let r3 = rest[j.w];
+    var u = add_member(t, y0, r0, origin, com);
+    u = add_member(u, y1, r1, origin, com);
+    u = add_member(u, y2, r2, origin, com);
+    return add_member(u, y3, r3, origin, com);
+}
+
 // `pos` is x or p (chosen by `use_p`). Members are read four at a time (all their loads
 // issued before any is used, so a thread waits for one round of memory latency per four
 // members instead of per member) and added in list order, as the CPU twin does.
@@ -48,22 +65,8 @@ fn cluster_moments(c: u32, use_p: bool) -> Moments {
         if (s + 4u > end) {
             break;
         }
-        let j0 = lists[s];
-        let j1 = lists[s + 1u];
-        let j2 = lists[s + 2u];
-        let j3 = lists[s + 3u];
-        let y0 = member_pos(j0, use_p);
-        let y1 = member_pos(j1, use_p);
-        let y2 = member_pos(j2, use_p);
-        let y3 = member_pos(j3, use_p);
-        let r0 = rest[j0];
-        let r1 = rest[j1];
-        let r2 = rest[j2];
-        let r3 = rest[j3];
-        t = add_member(t, y0, r0, origin, com);
-        t = add_member(t, y1, r1, origin, com);
-        t = add_member(t, y2, r2, origin, com);
-        t = add_member(t, y3, r3, origin, com);
+        let j = vec4<u32>(lists[s], lists[s + 1u], lists[s + 2u], lists[s + 3u]);
+        t = add_four(t, j, use_p, origin, com);
         s = s + 4u;
     }
     for (; s < end; s = s + 1u) {
