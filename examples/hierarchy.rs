@@ -94,16 +94,8 @@ const STIFF: Material = Material::Hyperelastic {
     poisson_ratio: 0.3,
 };
 
-/// A scene: the model and its deformed start.
-/// `--levels` (0: automatic), set once in `main`.
-static LEVELS: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
-
-fn scene(name: &str, n: u32, hierarchy: bool) -> (Model, State) {
-    let levels = LEVELS.get().copied().filter(|&l| l > 0);
-    let h = hierarchy.then(|| HierarchyDesc {
-        levels,
-        ..Default::default()
-    });
+/// A scene: the model (flat, or with hierarchy `h`) and its deformed start.
+fn scene(name: &str, n: u32, h: Option<HierarchyDesc>) -> (Model, State) {
     let mut model = Model::new();
     if name == "bar" {
         let half = Vec3::new(0.15, 0.03, 0.03);
@@ -173,8 +165,15 @@ fn coarse_work(model: &Model, s: &SolverSettings) -> f64 {
         .sum()
 }
 
-fn cpu_curve(name: &'static str, n: u32, hier: bool, iters: u32, coarse: u32) -> Curve {
-    let (model, mut state) = scene(name, n, hier);
+fn cpu_curve(
+    name: &'static str,
+    n: u32,
+    h: Option<HierarchyDesc>,
+    iters: u32,
+    coarse: u32,
+) -> Curve {
+    let hier = h.is_some();
+    let (model, mut state) = scene(name, n, h);
     let s = settings(iters, coarse);
     let mut solver = Solver::new(&model, s.clone()).expect("solver");
     eprintln!(
@@ -212,11 +211,12 @@ fn gpu_curve(
     g: &Headless,
     name: &'static str,
     n: u32,
-    hier: bool,
+    h: Option<HierarchyDesc>,
     iters: u32,
     coarse: u32,
 ) -> Curve {
-    let (model, state) = scene(name, n, hier);
+    let hier = h.is_some();
+    let (model, state) = scene(name, n, h);
     let nn = model.particle_count();
     let mut counts: Vec<u32> = vec![1, 2, 3, 4, 6, 8, 11, 16, 23, 32, 45, 64, 90, 128, 181, 256];
     counts.extend([362, 512, 724, 1024]);
@@ -332,7 +332,6 @@ fn reach(c: &Curve, target: f32) -> Option<Point> {
 
 fn main() {
     let a = args();
-    let _ = LEVELS.set(a.levels);
     std::fs::create_dir_all(&a.out).expect("output folder");
     let gpu = if a.gpu {
         match headless() {
@@ -355,12 +354,17 @@ fn main() {
     let mut curves = Vec::new();
     for &(name, n) in &scenes {
         eprintln!("{name}, {n} particles:");
-        for hier in [false, true] {
+        // `--levels 0` leaves the level count to the body's size.
+        let hd = HierarchyDesc {
+            levels: (a.levels > 0).then_some(a.levels),
+            ..Default::default()
+        };
+        for h in [None, Some(hd)] {
             if a.cpu {
-                curves.push(cpu_curve(name, n, hier, a.iters, a.coarse));
+                curves.push(cpu_curve(name, n, h, a.iters, a.coarse));
             }
             if let Some(g) = &gpu {
-                curves.push(gpu_curve(g, name, n, hier, a.iters, a.coarse));
+                curves.push(gpu_curve(g, name, n, h, a.iters, a.coarse));
             }
         }
     }

@@ -98,9 +98,8 @@ pub enum TissueHierarchy {
     /// at residual 1e-3 and 6.3–9.8x at 5e-4 and below with the default 20 coarse
     /// iterations (2.9–4.4x at 1e-3 with 3–5 of them, `TissueSettings::coarse_iterations`);
     /// a 38k liver at 1 MPa 1.9–2.6x on the CPU, and on the GPU flat Jacobi diverged where
-    /// the hierarchy held). Off
-    /// otherwise: at real-time iteration counts the coarse pass costs more than it gains
-    /// on soft or small bodies.
+    /// the hierarchy held). Off otherwise: at real-time iteration counts the coarse pass
+    /// costs more than it gains on soft or small bodies.
     #[default]
     Auto,
     /// Flat: level 0 only.

@@ -107,22 +107,12 @@ fn solve_clusters_lanes(
     if (!valid || lane != 0u) {
         return;
     }
-    var mp = t.mp;
-    var mq = t.mq;
-    var a0 = t.a0;
-    var a1 = t.a1;
-    var a2 = t.a2;
     for (var l = 1u; l < LANES; l = l + 1u) {
         let o = part[lid + l];
-        mp = mp + o[0].xyz;
-        mq = mq + o[1].xyz;
-        a0 = a0 + vec3<f32>(o[0].w, o[1].w, o[2].w);
-        a1 = a1 + o[2].xyz;
-        a2 = a2 + o[3].xyz;
+        let other = MomentSums(o[0].xyz, o[1].xyz, vec3<f32>(o[0].w, o[1].w, o[2].w), o[2].xyz, o[3].xyz);
+        t = add_sums(t, other);
     }
-    let inv_m = 1.0 / crest[c].com_mass.w;
-    let c_rel = mp * inv_m;
-    let mo = Moments(origin + c_rel, mat3x3<f32>(a0, a1, a2) - outer(c_rel, mq), com + mq * inv_m);
+    let mo = moments_of(t, origin, crest[c].com_mass);
     solve_cluster(c, mo);
 }
 

@@ -24,6 +24,20 @@ fn add_member(t: MomentSums, pj: vec3<f32>, r: vec4<f32>, origin: vec3<f32>, com
     return MomentSums(t.mp + md, t.mq + q * m, t.a0 + md * q.x, t.a1 + md * q.y, t.a2 + md * q.z);
 }
 
+// Two partial sums added (a's then b's terms, the order the lane reduction needs).
+fn add_sums(a: MomentSums, b: MomentSums) -> MomentSums {
+    return MomentSums(a.mp + b.mp, a.mq + b.mq, a.a0 + b.a0, a.a1 + b.a1, a.a2 + b.a2);
+}
+
+// The moments from the member sums: centre of mass, A_pq about it, and the rest centre
+// (`com_mass`: the cluster's rest centre and total mass).
+fn moments_of(t: MomentSums, origin: vec3<f32>, com_mass: vec4<f32>) -> Moments {
+    let inv_m = 1.0 / com_mass.w;
+    let c_rel = t.mp * inv_m;
+    let a = mat3x3<f32>(t.a0, t.a1, t.a2) - outer(c_rel, t.mq);
+    return Moments(origin + c_rel, a, com_mass.xyz + t.mq * inv_m);
+}
+
 fn member_pos(j: u32, use_p: bool) -> vec3<f32> {
     if (use_p) {
         return p[j].xyz;
@@ -73,10 +87,7 @@ fn cluster_moments(c: u32, use_p: bool) -> Moments {
         let j = lists[s];
         t = add_member(t, member_pos(j, use_p), rest[j], origin, com);
     }
-    let inv_m = 1.0 / com_mass.w;
-    let c_rel = t.mp * inv_m;
-    let a = mat3x3<f32>(t.a0, t.a1, t.a2) - outer(c_rel, t.mq);
-    return Moments(origin + c_rel, a, com + t.mq * inv_m);
+    return moments_of(t, origin, com_mass);
 }
 
 // Müller et al. 2016, warm-started from q (first-order update below 0.25 rad).
