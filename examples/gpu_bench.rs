@@ -15,7 +15,11 @@
 //! cargo run --release --example gpu_bench            # the full set (a real GPU)
 //! cargo run --release --example gpu_bench -- --scale # 38k to 4M particles
 //! cargo run --release --example gpu_bench -- --quick # small sizes (lavapipe: seconds)
+//! cargo run --release --example gpu_bench -- --scenes 38k,1000 # some of the full set
 //! ```
+//!
+//! `--scenes` picks from the full set by name: `38k`, `1000` (bodies × 512), `he` (the
+//! hyperelastic liver), `1m`; all four by default.
 #[path = "support/bench.rs"]
 mod bench;
 
@@ -262,40 +266,57 @@ fn main() {
             rows.push(bench(&g, &name, &model, steps.min(50), repeats.min(3)));
         }
     } else {
+        let all = ["38k", "1000", "he", "1m"].map(String::from);
+        let scenes = args.text("--scenes").map_or(all.to_vec(), |s| {
+            s.split(',').map(|x| x.trim().to_lowercase()).collect()
+        });
+        if let Some(bad) = scenes.iter().find(|s| !all.contains(s)) {
+            eprintln!("gpu_bench: unknown scene `{bad}` (expected some of {all:?})");
+            std::process::exit(2);
+        }
+        let on = |name: &str| scenes.iter().any(|s| s == name);
         let t = Instant::now();
         let l38 = liver(Resolution::Particles(37982), 32, sm);
         eprintln!("liver 37982 built in {:.1} s", t.elapsed().as_secs_f64());
         let s38 = l38.bodies[0].spacing;
-        rows.push(bench(
-            &g,
-            "liver 37982, shape matching",
-            &l38,
-            steps,
-            repeats,
-        ));
-        rows.push(bench(
-            &g,
-            "1000 bodies x 512, shape matching",
-            &many(1000, 512, 32, sm),
-            steps,
-            repeats,
-        ));
-        rows.push(bench(
-            &g,
-            "liver 13824, hyperelastic",
-            &liver(Resolution::Particles(13824), 32, he),
-            steps,
-            repeats,
-        ));
-        let t = Instant::now();
-        // Same shape, spacing scaled to ~1M particles (no count search).
-        let big = liver(
-            Resolution::Spacing(s38 * (37982.0f32 / 1.0e6).cbrt()),
-            32,
-            sm,
-        );
-        eprintln!("1M model built in {:.1} s", t.elapsed().as_secs_f64());
-        rows.push(bench(&g, "liver 1M, shape matching", &big, 50, 3));
+        if on("38k") {
+            rows.push(bench(
+                &g,
+                "liver 37982, shape matching",
+                &l38,
+                steps,
+                repeats,
+            ));
+        }
+        if on("1000") {
+            rows.push(bench(
+                &g,
+                "1000 bodies x 512, shape matching",
+                &many(1000, 512, 32, sm),
+                steps,
+                repeats,
+            ));
+        }
+        if on("he") {
+            rows.push(bench(
+                &g,
+                "liver 13824, hyperelastic",
+                &liver(Resolution::Particles(13824), 32, he),
+                steps,
+                repeats,
+            ));
+        }
+        if on("1m") {
+            let t = Instant::now();
+            // Same shape, spacing scaled to ~1M particles (no count search).
+            let big = liver(
+                Resolution::Spacing(s38 * (37982.0f32 / 1.0e6).cbrt()),
+                32,
+                sm,
+            );
+            eprintln!("1M model built in {:.1} s", t.elapsed().as_secs_f64());
+            rows.push(bench(&g, "liver 1M, shape matching", &big, 50, 3));
+        }
     }
     for r in &rows {
         println!(
