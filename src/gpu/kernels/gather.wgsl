@@ -153,19 +153,32 @@ fn gather(
             // Two corrections at a time (both loads in flight before either is used),
             // added in the same order as one at a time.
             var s = s0 + lane;
+            // The next two indices are loaded with the current two corrections.
+            let base = params.inv_offset;
+            var n0 = 0u;
+            var n1 = 0u;
+            if (s + LANES < s1) {
+                n0 = lists[base + s];
+                n1 = lists[base + s + LANES];
+            }
             loop {
                 if (s + LANES >= s1) {
                     break;
                 }
-                let o0 = lists[params.inv_offset + s] * CORR_STRIDE;
-                let o1 = lists[params.inv_offset + s + LANES] * CORR_STRIDE;
+                let o0 = n0 * CORR_STRIDE;
+                let o1 = n1 * CORR_STRIDE;
+                let sn = s + 2u * LANES;
+                if (sn + LANES < s1) {
+                    n0 = lists[base + sn];
+                    n1 = lists[base + sn + LANES];
+                }
                 let q0 = corr[o0];
                 let ta0 = corr[o0 + 1u];
                 let q1 = corr[o1];
                 let ta1 = corr[o1 + 1u];
                 acc = acc + rigid_part(q0, ta0, xr);
                 acc = acc + rigid_part(q1, ta1, xr);
-                s = s + 2u * LANES;
+                s = sn;
             }
             if (s < s1) {
                 let o = lists[params.inv_offset + s] * CORR_STRIDE;

@@ -75,13 +75,23 @@ fn cluster_moments(c: u32, use_p: bool) -> Moments {
     let z = vec3<f32>(0.0);
     var t = MomentSums(z, z, z, z, z);
     var s = start;
+    // The next four indices are loaded while the current four members' positions are,
+    // so a round of four costs one memory round trip instead of two.
+    var jn = vec4<u32>(0u);
+    if (s + 4u <= end) {
+        jn = vec4<u32>(lists[s], lists[s + 1u], lists[s + 2u], lists[s + 3u]);
+    }
     loop {
         if (s + 4u > end) {
             break;
         }
-        let j = vec4<u32>(lists[s], lists[s + 1u], lists[s + 2u], lists[s + 3u]);
+        let j = jn;
+        let sn = s + 4u;
+        if (sn + 4u <= end) {
+            jn = vec4<u32>(lists[sn], lists[sn + 1u], lists[sn + 2u], lists[sn + 3u]);
+        }
         t = add_four(t, j, use_p, origin, com);
-        s = s + 4u;
+        s = sn;
     }
     for (; s < end; s = s + 1u) {
         let j = lists[s];
