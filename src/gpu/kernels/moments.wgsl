@@ -75,23 +75,29 @@ fn cluster_moments(c: u32, use_p: bool) -> Moments {
     let z = vec3<f32>(0.0);
     var t = MomentSums(z, z, z, z, z);
     var s = start;
-    // The next four indices are loaded while the current four members' positions are,
-    // so a round of four costs one memory round trip instead of two.
+    // The indices of the next two rounds of four are loaded while the current four
+    // members' positions are, so the index loads leave the chain of memory round trips
+    // (one ahead: no gain at 37,982 on an H100; two ahead: clusters 0.148 → 0.141 ms).
     var jn = vec4<u32>(0u);
+    var jm = vec4<u32>(0u);
     if (s + 4u <= end) {
         jn = vec4<u32>(lists[s], lists[s + 1u], lists[s + 2u], lists[s + 3u]);
+    }
+    if (s + 8u <= end) {
+        jm = vec4<u32>(lists[s + 4u], lists[s + 5u], lists[s + 6u], lists[s + 7u]);
     }
     loop {
         if (s + 4u > end) {
             break;
         }
         let j = jn;
-        let sn = s + 4u;
-        if (sn + 4u <= end) {
-            jn = vec4<u32>(lists[sn], lists[sn + 1u], lists[sn + 2u], lists[sn + 3u]);
+        jn = jm;
+        let sm = s + 8u;
+        if (sm + 4u <= end) {
+            jm = vec4<u32>(lists[sm], lists[sm + 1u], lists[sm + 2u], lists[sm + 3u]);
         }
         t = add_four(t, j, use_p, origin, com);
-        s = sn;
+        s = s + 4u;
     }
     for (; s < end; s = s + 1u) {
         let j = lists[s];
