@@ -96,7 +96,8 @@ pub enum TissueHierarchy {
     /// [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles (a stiff 50,000-particle bar
     /// reached the same residual 3.7–19x sooner on the CPU and, on an H100, 1.2x sooner
     /// at residual 1e-3 and 6.3–9.8x at 5e-4 and below with the default 20 coarse
-    /// iterations (2.9–4.4x at 1e-3 with 3–5 of them, `TissueSettings::coarse_iterations`);
+    /// iterations (2.9–4.4x at 1e-3 with 3–5 of them, and 3.2x / 3.3x at 1e-3 / 5e-4
+    /// with 4, `TissueSettings::coarse_iterations`);
     /// a 38k liver at 1 MPa 1.9–2.6x on the CPU, and on the GPU flat Jacobi diverged where
     /// the hierarchy held). Off otherwise: at real-time iteration counts the coarse pass
     /// costs more than it gains on soft or small bodies.
