@@ -252,10 +252,17 @@ fn knn_on_the_gpu_equals_the_cpu() {
         )
         .unwrap();
     let mut state = State::new(&model);
-    // A lattice (many exact ties) and the same points jittered.
-    for jitter in [0.0f32, 0.3] {
+    // A lattice (many exact ties), the same points jittered, and then squashed to a
+    // quarter of their size (the grid's cells keep the body's spacing, so each holds
+    // ~60 particles: more candidates than a search round takes at once).
+    for (jitter, squash) in [(0.0f32, false), (0.3, false), (0.0, true)] {
         let mut rng = 12345u32;
         let spacing = model.bodies[0].spacing;
+        if squash {
+            for p in &mut state.x {
+                *p *= 0.25;
+            }
+        }
         for p in &mut state.x {
             let mut r = || {
                 rng ^= rng << 13;
@@ -277,7 +284,35 @@ fn knn_on_the_gpu_equals_the_cpu() {
             let got = read_u32(&g.device, &g.queue, world.knn_lists(), n as u64 * k as u64);
             let want = knn::knn_all(&state.x, k as usize, 0).unwrap();
             let wrong = got.iter().zip(&want).filter(|(a, b)| a != b).count();
-            assert_eq!(wrong, 0, "jitter {jitter}, K = {k}: {wrong} entries differ");
+            assert_eq!(
+                wrong, 0,
+                "jitter {jitter}, squashed {squash}, K = {k}: {wrong} entries differ"
+            );
+            // Again after the points moved by up to half a spacing: the search starts
+            // from the lists above (their distances now bound the K-th best) and must
+            // still equal the CPU's.
+            let moved: Vec<Vec3> = state
+                .x
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    let a = i as f32 * 0.618;
+                    *p + Vec3::new(a.sin(), (1.7 * a).cos(), (2.3 * a).sin()) * 0.3 * spacing
+                })
+                .collect();
+            let x4: Vec<[f32; 4]> = moved.iter().map(|p| p.extend(0.0).to_array()).collect();
+            g.queue
+                .write_buffer(world.positions(), 0, bytemuck::cast_slice(&x4));
+            let mut enc = g.device.create_command_encoder(&Default::default());
+            world.record_knn_all(&mut enc, &g.kernels, &mut NoTiming);
+            g.queue.submit([enc.finish()]);
+            let got = read_u32(&g.device, &g.queue, world.knn_lists(), n as u64 * k as u64);
+            let want = knn::knn_all(&moved, k as usize, 0).unwrap();
+            let wrong = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+            assert_eq!(
+                wrong, 0,
+                "moved, jitter {jitter}, squashed {squash}, K = {k}: {wrong} entries differ"
+            );
         }
     }
 }
@@ -319,6 +354,24 @@ fn contact_candidates_equal_the_cpu() {
         pairs > 100,
         "the bodies must touch ({pairs} candidate pairs)"
     );
+    // Two searches later (every `knn_every` = 10 steps, each starting from the lists
+    // before it) the lists still equal the CPU's for the positions searched: those at
+    // the start of step 20.
+    assert_eq!(settings().knn_every, 10);
+    let x = run_gpu(g, &mut world, &[], 19);
+    run_gpu(g, &mut world, &[], 1);
+    cpu.refresh_contacts(&model, &x);
+    let (start, list) = cpu.contact_lists();
+    let got = read_u32(&g.device, &g.queue, world.contact_lists(), (n * k) as u64);
+    for i in 0..n {
+        let want = &list[start[i] as usize..start[i + 1] as usize];
+        let row: Vec<u32> = got[i * k..(i + 1) * k]
+            .iter()
+            .copied()
+            .filter(|&j| j != u32::MAX)
+            .collect();
+        assert_eq!(row, want, "particle {i}, search at step 20");
+    }
 }
 
 #[test]

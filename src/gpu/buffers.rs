@@ -74,9 +74,14 @@ pub struct GpuParams {
     pub n_bodies: u32,
     /// Grid cell edge of the all-particle search, m.
     pub knn_cell: f32,
-    /// Padding.
-    pub pad: u32,
+    /// Entries per particle of the neighbour search's candidate store (`spare`): the
+    /// larger of the two searches' K, plus [`SPARE_EXTRA`].
+    pub spare_stride: u32,
 }
+
+/// Candidates beyond K that a warm neighbour search may set aside before it falls back to
+/// inserting while it scans (`knn.wgsl`).
+pub const SPARE_EXTRA: u32 = 16;
 
 /// Per-body constants (`Body` in WGSL).
 #[repr(C)]

@@ -140,10 +140,11 @@ struct Buffers {
     bounds: Buffer,
     hier: Buffer,
     grab: Buffer,
+    spare: Buffer,
 }
 
 impl Buffers {
-    fn in_order(&self) -> [&Buffer; 32] {
+    fn in_order(&self) -> [&Buffer; 33] {
         [
             &self.params,
             &self.colliders,
@@ -177,6 +178,7 @@ impl Buffers {
             &self.bounds,
             &self.hier,
             &self.grab,
+            &self.spare,
         ]
     }
 }
@@ -233,6 +235,20 @@ pub struct GpuWorld {
 
 /// Largest number of skin dispatches (runs of bodies sharing a vertex slab) per frame.
 pub const MAX_SKIN_RUNS: usize = 64;
+
+/// A buffer of `entries` neighbour-list entries, all NONE (no previous search: the
+/// first search of each particle starts without a bound).
+fn unknown_lists(device: &RenderDevice, label: &str, entries: u64, usage: BufferUsages) -> Buffer {
+    let buffer = device.create_buffer(&BufferDescriptor {
+        label: Some(label),
+        size: (entries * 4).max(16),
+        usage,
+        mapped_at_creation: true,
+    });
+    buffer.slice(..).get_mapped_range_mut().slice(..).fill(0xff);
+    buffer.unmap();
+    buffer
+}
 
 fn groups(n: u32, per: u32) -> u32 {
     n.div_ceil(per).max(1)
@@ -294,7 +310,21 @@ impl GpuWorld {
         settings: SolverSettings,
         knn_k: u32,
     ) -> Result<Self, TissueError> {
-        Self::check_limits(&device.limits(), model, &settings)?;
+        let limits = device.limits();
+        Self::check_limits(&limits, model, &settings)?;
+        // The neighbour search's candidate store (`spare`), which also depends on `knn_k`.
+        let k = knn_k.max(settings.contact_neighbours).min(MAX_GPU_K);
+        let spare = model.particle_count() as u64 * (k + SPARE_EXTRA) as u64 * 4;
+        let limit = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        if spare > limit {
+            return Err(TissueError::GpuLimit {
+                what: "neighbour search candidate store",
+                needed: spare,
+                limit,
+            });
+        }
         Self::new_unchecked(device, kernels, model, state, settings, knn_k)
     }
 
@@ -322,11 +352,15 @@ impl GpuWorld {
             .sum::<u64>();
         let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
         let max_bind = limits.max_storage_buffer_binding_size;
-        let checks: [(&'static str, u64); 5] = [
+        let checks: [(&'static str, u64); 6] = [
             ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
             ("cluster corrections", n * CORR_BYTES),
             ("cluster lists", lists * 4),
             ("contact lists", n * contact_k.max(1) * 4),
+            (
+                "neighbour search candidate store",
+                n * (contact_k + SPARE_EXTRA as u64) * 4,
+            ),
             ("render vertices", nv * 32),
         ];
         for (what, bytes) in checks {
@@ -384,6 +418,7 @@ impl GpuWorld {
             .min(n.saturating_sub(1))
             .min(MAX_GPU_K);
         let contacts_on = settings.particle_contacts && model.bodies.len() > 1 && contact_k > 0;
+        let spare_stride = knn_k.max(contact_k) + SPARE_EXTRA;
         let (cell, knn_cell, table) = grid_params(n as usize, packed.max_spacing);
         let level_counts = scan_levels(table + 1);
         let mut levels = Vec::new();
@@ -469,11 +504,7 @@ impl GpuWorld {
             corr: zeroed("tissue corr", total * CORR_BYTES, st),
             pins: init("tissue pins", bytemuck::cast_slice(&pins), st),
             coldp: zeroed("tissue coldp", total * 16, st),
-            contacts: init(
-                "tissue contacts",
-                bytemuck::cast_slice(&vec![NONE; (n * contact_k.max(1)) as usize]),
-                st,
-            ),
+            contacts: unknown_lists(device, "tissue contacts", n64 * contact_k.max(1) as u64, st),
             scan: zeroed("tissue scan", scan_len as u64 * 4, st),
             cursor: zeroed("tissue cursor", table as u64 * 4, st),
             sorted: zeroed("tissue sorted", n64 * 16, st),
@@ -493,11 +524,12 @@ impl GpuWorld {
                 (model.bodies.len() * size_of::<GpuDrawBody>()) as u64,
                 st,
             ),
-            knn_out: zeroed("tissue knn", n64 * knn_k.max(1) as u64 * 4, st),
+            knn_out: unknown_lists(device, "tissue knn", n64 * knn_k.max(1) as u64, st),
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
             bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 32, st),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
             grab: init("tissue grab", bytemuck::cast_slice(&grab), st),
+            spare: zeroed("tissue knn spare", n64 * spare_stride as u64 * 4, st),
         };
         let entries: Vec<BindGroupEntry> = b
             .in_order()
@@ -626,7 +658,7 @@ impl GpuWorld {
             knn_k,
             n_bodies: model.bodies.len() as u32,
             knn_cell,
-            pad: 0,
+            spare_stride,
         };
         Ok(Self {
             settings,
@@ -731,6 +763,16 @@ impl GpuWorld {
     /// Contact candidate lists (`contact_neighbours()` per particle, `u32::MAX` padded).
     pub fn contact_lists(&self) -> &Buffer {
         &self.b.contacts
+    }
+
+    /// Forgets the previous neighbour searches (all-particle and contact lists set to
+    /// NONE), so that the next searches start without a bound. Each search starts from
+    /// its particle's previous list, whose distances bound the K-th best from above; the
+    /// result is the same either way, only the time differs (benchmarks time both).
+    pub fn forget_neighbours(&self, queue: &RenderQueue) {
+        for b in [&self.b.knn_out, &self.b.contacts] {
+            queue.write_buffer(b, 0, &vec![0xff; b.size() as usize]);
+        }
     }
 
     /// Output of [`GpuWorld::record_knn_all`] (`knn_k` per particle).

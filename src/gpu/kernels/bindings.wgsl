@@ -36,6 +36,7 @@ const MAX_COLLIDERS: u32 = 128u;
 @group(0) @binding(29) var<storage, read_write> bounds: array<vec4<f32>>;
 @group(0) @binding(30) var<storage, read> hier: array<u32>;
 @group(0) @binding(31) var<storage, read_write> grab: array<vec4<f32>>;
+@group(0) @binding(32) var<storage, read_write> spare: array<u32>;
 
 const GRASPER: u32 = 4u;
 

@@ -25,7 +25,7 @@ struct Params {
     knn_k: u32,              // K of the unfiltered search (knn_out stride)
     n_bodies: u32,
     knn_cell: f32,           // grid cell edge of the all-particle search, m
-    _pad1: u32,
+    spare_stride: u32,       // entries per particle in `spare` (neighbour search)
 };
 
 // Per body, per frame: world → entity-local affine map for drawing, and where the

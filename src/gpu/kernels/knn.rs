@@ -56,6 +56,7 @@ pub fn source(slots: u32) -> String {
     let last = n - 1;
     TEMPLATE
         .replace("LIST_SLOTS_VALUE", &slots.to_string())
+        .replace("SPARE_EXTRA", &format!("{}u", crate::gpu::buffers::SPARE_EXTRA))
         .replace("//LIST_DECL\n", &decl)
         .replace("//LIST_INSERT\n", &insert)
         .replace("//LIST_OUT\n", &out)

@@ -29,7 +29,7 @@ use std::borrow::Cow;
 /// Bindings of the world group that the kernels only read.
 const READ_ONLY: &[u32] = &[6, 7, 8, 9, 10, 13, 22, 23, 24, 25, 26, 30];
 /// Bindings of the world group (0 and 1 are uniforms, the rest storage buffers).
-pub const WORLD_BINDINGS: u32 = 32;
+pub const WORLD_BINDINGS: u32 = 33;
 /// Storage buffers a kernel binds at most (world group plus the vertex slab).
 pub const STORAGE_BUFFERS_NEEDED: u32 = WORLD_BINDINGS - 2 + 1;
 
