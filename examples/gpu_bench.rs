@@ -133,10 +133,7 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
     // the best case; the steps above search on moving positions).
     let mut cold = Vec::new();
     for _ in 0..repeats {
-        world.forget_neighbours(&g.queue);
-        // The lists' upload finishes before the timed search starts.
-        g.queue.submit([]);
-        bench::sync(g, &world);
+        world.forget_neighbours();
         let mut enc = g.device.create_command_encoder(&Default::default());
         world.record_knn_all(&mut enc, &g.kernels, &mut NoTiming);
         let t = Instant::now();

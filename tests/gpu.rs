@@ -273,11 +273,10 @@ fn knn_on_the_gpu_equals_the_cpu() {
             *p += Vec3::new(r(), r(), r()) * jitter * spacing;
         }
         for k in [1u32, 16, 32, 64] {
-            let world =
+            let mut world =
                 GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), k).unwrap();
             let mut enc = g.device.create_command_encoder(&Default::default());
             world.record_knn_all(&mut enc, &g.kernels, &mut NoTiming);
-            let mut world = world;
             world.write_params(&g.queue);
             g.queue.submit([enc.finish()]);
             let n = world.particle_count();

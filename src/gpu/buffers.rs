@@ -81,7 +81,7 @@ pub struct GpuParams {
 
 /// Candidates beyond K that a warm neighbour search may set aside before it falls back to
 /// inserting while it scans (`knn.wgsl`).
-pub const SPARE_EXTRA: u32 = 16;
+pub const SPARE_EXTRA: u32 = 48;
 
 /// Per-body constants (`Body` in WGSL).
 #[repr(C)]

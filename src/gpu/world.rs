@@ -228,6 +228,10 @@ pub struct GpuWorld {
     contact_k: u32,
     knn_k: u32,
     contacts_on: bool,
+    /// Whether the all-particle (contact) lists hold a previous search, so that the next
+    /// one runs the warm variant.
+    knn_warm: bool,
+    contacts_warm: bool,
     params: GpuParams,
     /// Which bodies sleep (the `asleep` word of their `Body` record).
     asleep: Vec<bool>,
@@ -680,6 +684,8 @@ impl GpuWorld {
             contact_k,
             knn_k,
             contacts_on,
+            knn_warm: false,
+            contacts_warm: false,
             params,
             asleep: vec![false; packed.bodies.len()],
         })
@@ -765,14 +771,13 @@ impl GpuWorld {
         &self.b.contacts
     }
 
-    /// Forgets the previous neighbour searches (all-particle and contact lists set to
-    /// NONE), so that the next searches start without a bound. Each search starts from
-    /// its particle's previous list, whose distances bound the K-th best from above; the
-    /// result is the same either way, only the time differs (benchmarks time both).
-    pub fn forget_neighbours(&self, queue: &RenderQueue) {
-        for b in [&self.b.knn_out, &self.b.contacts] {
-            queue.write_buffer(b, 0, &vec![0xff; b.size() as usize]);
-        }
+    /// Forgets the previous neighbour searches, so that the next ones run the cold
+    /// variant. A search after the first starts from each particle's previous list,
+    /// whose distances bound the K-th best from above; the result is the same either way,
+    /// only the time differs (benchmarks time both).
+    pub fn forget_neighbours(&mut self) {
+        self.knn_warm = false;
+        self.contacts_warm = false;
     }
 
     /// Output of [`GpuWorld::record_knn_all`] (`knn_k` per particle).
@@ -910,7 +915,7 @@ impl GpuWorld {
     /// Records the exact K nearest neighbours of every particle (K = `knn_k` given at
     /// creation) into [`GpuWorld::knn_lists`], grid included.
     pub fn record_knn_all(
-        &self,
+        &mut self,
         encoder: &mut CommandEncoder,
         k: &Kernels,
         rec: &mut dyn PassRecorder,
@@ -918,7 +923,8 @@ impl GpuWorld {
         let mut r = Recording::new(encoder, rec);
         self.record_grid(&mut r, k, true);
         let g = groups(self.n, WORKGROUP);
-        let knn = &k.knn_all[Kernels::knn_slots(self.knn_k)];
+        let knn = &k.knn_all[self.knn_warm as usize][Kernels::knn_slots(self.knn_k)];
+        self.knn_warm = true;
         r.dispatch(&self.world_group, "tissue/knn", knn, None, (g, 1));
     }
 
@@ -940,7 +946,9 @@ impl GpuWorld {
         for _ in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
                 self.record_grid(&mut r, k, false);
-                let knn = &k.knn_contacts[Kernels::knn_slots(self.contact_k)];
+                let knn =
+                    &k.knn_contacts[self.contacts_warm as usize][Kernels::knn_slots(self.contact_k)];
+                self.contacts_warm = true;
                 r.dispatch(w, "tissue/knn", knn, None, (g, 1));
             }
             let nc = self.n_colliders;

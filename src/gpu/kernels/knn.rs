@@ -20,8 +20,10 @@ pub const SLOT_COUNTS: [u32; 2] = [32, 64];
 
 /// The module's WGSL for a candidate list of `slots` entries (K ≤ `slots`): the
 /// template with the list's declaration, insertion and output written out slot by slot,
-/// so that every access has a constant index and the list stays in registers.
-pub fn source(slots: u32) -> String {
+/// so that every access has a constant index and the list stays in registers. `warm`:
+/// the variant for searches after the first, which starts from each particle's previous
+/// list (see `knn.wgsl`).
+pub fn source(slots: u32, warm: bool) -> String {
     let n = slots as usize;
     let mut decl = String::new();
     let mut insert = String::new();
@@ -55,6 +57,7 @@ pub fn source(slots: u32) -> String {
     );
     let last = n - 1;
     TEMPLATE
+        .replace("WARM_VALUE", if warm { "true" } else { "false" })
         .replace("LIST_SLOTS_VALUE", &slots.to_string())
         .replace("SPARE_EXTRA", &format!("{}u", crate::gpu::buffers::SPARE_EXTRA))
         .replace("//LIST_DECL\n", &decl)
@@ -70,9 +73,16 @@ mod tests {
 
     #[test]
     fn every_placeholder_is_filled() {
-        for slots in SLOT_COUNTS {
-            let s = source(slots);
-            for token in ["LIST_SLOTS_VALUE", "//LIST_", "LAST_D", "LAST_J"] {
+        for (slots, warm) in [(32, false), (32, true), (64, false), (64, true)] {
+            let s = source(slots, warm);
+            for token in [
+                "LIST_SLOTS_VALUE",
+                "WARM_VALUE",
+                "SPARE_EXTRA",
+                "//LIST_",
+                "LAST_D",
+                "LAST_J",
+            ] {
                 assert!(
                     !s.contains(token),
                     "{token} left in the {slots}-slot source"

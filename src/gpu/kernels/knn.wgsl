@@ -18,6 +18,8 @@
 // memory) or in workgroup memory was slower on an H100 (BENCHMARKS.md, "GPU").
 
 const LIST_SLOTS: u32 = LIST_SLOTS_VALUEu;
+// The search after the first (see `knn_query`); `knn.rs` compiles both variants.
+const WARM: bool = WARM_VALUE;
 const MAX_RING: i32 = 64;
 const FAR: f32 = 3.4028235e38;
 
@@ -43,22 +45,29 @@ fn knn_query(i: u32, mode: u32) {
     }
     let pad = LIST_SLOTS - k;
 //LIST_DECL
-    // Warm start: this particle's row from the previous search holds K distinct other
-    // particles (of other bodies in mode 1), so the largest of their distances now bounds
-    // the K-th best from above, and farther candidates need not be inserted nor their
-    // cells visited. A row not yet written (NONE) gives no bound. The result is the same.
     var stride = params.knn_k;
     if (mode == 1u) {
         stride = params.contact_k;
     }
-    let warm = previous_bound(i, mode, i * stride, k, q);
+    // Warm (the variant for searches after the first): this particle's row from the
+    // previous search holds K distinct other particles (of other bodies in mode 1), so
+    // the largest of their distances now bounds the K-th best from above, and farther
+    // candidates need not be inserted nor their cells visited. A row not written yet
+    // (NONE) gives no bound. The result is the same.
+    var warm = FAR;
+    if (WARM) {
+        warm = previous_bound(i, mode, i * stride, k, q);
+    }
     let bound2 = min(max2, warm);
     // With a bound, the scan only sets aside the candidates within it (about K) in
-    // `spare`, and they are inserted afterwards: inserting while scanning made every
-    // thread of a warp wait for any one thread's insertion (about 200 instructions) at
-    // almost every candidate. Over K + SPARE_EXTRA of them (a loose bound): scan again,
-    // inserting.
-    var collect = warm < FAR;
+    // `spare`, and they are inserted afterwards: inserting while scanning makes every
+    // thread of a warp wait for any one thread's insertion (about 200 instructions),
+    // which happens at almost every candidate. Over K + SPARE_EXTRA of them (a loose
+    // bound, the body moved much since the last search): the scan stops there and starts
+    // again, inserting. (Inserting whenever K + SPARE_EXTRA had gathered, and restarting
+    // with the K-th best of those as the bound, were both slower on an H100:
+    // BENCHMARKS.md.)
+    var collect = WARM && warm < FAR;
     var count = 0u;
     let spare_at = i * params.spare_stride;
     let spare_cap = k + SPARE_EXTRA;
@@ -110,9 +119,11 @@ fn knn_query(i: u32, mode: u32) {
                             let d2 = dist2(q, e.xyz);
                             if (d2 > bound2) { continue; }
                             if (collect) {
-                                if (count < spare_cap) {
-                                    spare[spare_at + count] = j;
+                                if (count == spare_cap) {
+                                    count = count + 1u;
+                                    break; // too many: stop scanning (see above)
                                 }
+                                spare[spare_at + count] = j;
                                 count = count + 1u;
                                 continue;
                             }
@@ -122,11 +133,14 @@ fn knn_query(i: u32, mode: u32) {
                             }
 //LIST_INSERT
                         }
+                        if (count > spare_cap) { break; }
                         dx = dx + 1;
                     }
+                    if (count > spare_cap) { break; }
                 }
+                if (count > spare_cap) { break; }
             }
-            if (f32(r) * cell >= reach + cell) {
+            if (count > spare_cap || f32(r) * cell >= reach + cell) {
                 break;
             }
             let known = min(bound2, LAST_D);
@@ -147,6 +161,7 @@ fn knn_query(i: u32, mode: u32) {
         }
         if (count > spare_cap) {
             collect = false;
+            count = 0u;
             continue;
         }
         // The set-aside candidates, four at a time (their loads in flight together).

@@ -86,11 +86,12 @@ pub struct Kernels {
     pub scan_add: ComputePipeline,
     /// `grid.wgsl`: scatter.
     pub grid_scatter: ComputePipeline,
-    /// `knn.wgsl`: K nearest of all particles, one pipeline per list size
-    /// ([`knn::SLOT_COUNTS`]; pick with [`Kernels::knn_slots`]).
-    pub knn_all: [ComputePipeline; 2],
-    /// `knn.wgsl`: contact candidates, per list size like `knn_all`.
-    pub knn_contacts: [ComputePipeline; 2],
+    /// `knn.wgsl`: K nearest of all particles, one pipeline per variant (cold: the first
+    /// search; warm: later ones, starting from the previous lists) and list size
+    /// ([`knn::SLOT_COUNTS`]; pick with `[warm as usize][Kernels::knn_slots(k)]`).
+    pub knn_all: [[ComputePipeline; 2]; 2],
+    /// `knn.wgsl`: contact candidates, per variant and list size like `knn_all`.
+    pub knn_contacts: [[ComputePipeline; 2]; 2],
     /// `cluster.wgsl`: Jacobi pass A, a thread per cluster.
     pub clusters: ComputePipeline,
     /// `cluster.wgsl`: Jacobi pass A, 8 threads per cluster (small ranges).
@@ -172,10 +173,12 @@ impl Kernels {
         };
         let integrate_m = module("tissue integrate", integrate::SOURCE);
         let grid_m = module("tissue grid", grid::SOURCE);
-        let knn_m = knn::SLOT_COUNTS.map(|slots| {
-            device.create_and_validate_shader_module(ShaderModuleDescriptor {
-                label: Some("tissue knn"),
-                source: ShaderSource::Wgsl(Cow::Owned(knn::source(slots))),
+        let knn_m = [false, true].map(|warm| {
+            knn::SLOT_COUNTS.map(|slots| {
+                device.create_and_validate_shader_module(ShaderModuleDescriptor {
+                    label: Some("tissue knn"),
+                    source: ShaderSource::Wgsl(Cow::Owned(knn::source(slots, warm))),
+                })
             })
         });
         let cluster_m = module("tissue cluster", cluster::SOURCE);
@@ -207,10 +210,12 @@ impl Kernels {
             scan_block: pipe(&grid_m, &with_scan, "scan_block"),
             scan_add: pipe(&grid_m, &with_scan, "scan_add"),
             grid_scatter: pipe(&grid_m, &with_scan, "grid_scatter"),
-            knn_all: knn_m.each_ref().map(|m| pipe(m, &world_only, "knn_all")),
+            knn_all: knn_m
+                .each_ref()
+                .map(|v| v.each_ref().map(|m| pipe(m, &world_only, "knn_all"))),
             knn_contacts: knn_m
                 .each_ref()
-                .map(|m| pipe(m, &world_only, "knn_contacts")),
+                .map(|v| v.each_ref().map(|m| pipe(m, &world_only, "knn_contacts"))),
             clusters: pipe(&cluster_m, &with_scan, "solve_clusters"),
             clusters_lanes: pipe(&cluster_m, &with_scan, "solve_clusters_lanes"),
             gather: pipe(&gather_m, &with_scan, "gather"),
