@@ -47,12 +47,19 @@ fn solve_clusters(
 ) {
     let local = (wid.x + wid.y * nwg.x) * 128u + lid;
     let c = range.first + local;
-    // A sleeping body's clusters are skipped (their corrections are read only by its own
-    // particles, which skip gathering).
-    if (local >= range.count || asleep(c)) {
+    if (local >= range.count) {
         return;
     }
-    solve_cluster(c, cluster_moments(c, true));
+    // A sleeping body's clusters are skipped (their corrections are read only by its own
+    // particles, which skip gathering). The moments' first loads are issued before the
+    // sleep flag is known, so that its two dependent loads (particle record, then body)
+    // overlap them instead of preceding them.
+    let body = pinfo[c].x;
+    let ms = moments_start(c);
+    if (bodies[body].asleep != 0u) {
+        return;
+    }
+    solve_cluster(c, moments_from(ms, true));
 }
 
 // The same for small ranges (the hierarchy's coarse levels, small worlds): LANES threads

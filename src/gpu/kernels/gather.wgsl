@@ -144,23 +144,26 @@ fn gather(
     var xr = vec3<f32>(0.0);
     if (valid) {
         let info = pinfo[j];
-        let body = bodies[info.x];
-        xr = rest[j].xyz;
         let s0 = info.z;
+        let s1r = pinfo[j + 1u].z;
+        xr = rest[j].xyz;
+        // The first two correction indices are loaded before the body record is used,
+        // so that the two loads overlap instead of following each other.
+        var s = s0 + lane;
+        let base = params.inv_offset;
+        var n0 = 0u;
+        var n1 = 0u;
+        if (s + LANES < s1r) {
+            n0 = lists[base + s];
+            n1 = lists[base + s + LANES];
+        }
+        let body = bodies[info.x];
         // A sleeping body's particles gather nothing (its clusters were skipped).
-        let s1 = select(pinfo[j + 1u].z, s0, body.asleep != 0u);
+        let s1 = select(s1r, s0, body.asleep != 0u);
         if (body.kind == 0u) {
             // Two corrections at a time (both loads in flight before either is used),
-            // added in the same order as one at a time.
-            var s = s0 + lane;
-            // The next two indices are loaded with the current two corrections.
-            let base = params.inv_offset;
-            var n0 = 0u;
-            var n1 = 0u;
-            if (s + LANES < s1) {
-                n0 = lists[base + s];
-                n1 = lists[base + s + LANES];
-            }
+            // added in the same order as one at a time. The next two indices are loaded
+            // with the current two corrections.
             loop {
                 if (s + LANES >= s1) {
                     break;
@@ -181,12 +184,12 @@ fn gather(
                 s = sn;
             }
             if (s < s1) {
-                let o = lists[params.inv_offset + s] * CORR_STRIDE;
+                let o = lists[base + s] * CORR_STRIDE;
                 acc = acc + rigid_part(corr[o], corr[o + 1u], xr);
             }
         } else {
-            for (var s = s0 + lane; s < s1; s = s + LANES) {
-                let o = lists[params.inv_offset + s] * CORR_STRIDE;
+            for (; s < s1; s = s + LANES) {
+                let o = lists[base + s] * CORR_STRIDE;
                 let c0 = corr[o];
                 let c1 = corr[o + 1u];
                 let c2 = corr[o + 2u];

@@ -62,30 +62,53 @@ fn add_four(t: MomentSums, j: vec4<u32>, use_p: bool, origin: vec3<f32>, com: ve
     return add_member(u, y3, r3, origin, com);
 }
 
+// The first loads of a cluster's moments: its member range, rest centre and mass, and
+// the indices of its first members (the first two rounds of four and the origin member).
+struct MemberScan {
+    start: u32,
+    end: u32,
+    com_mass: vec4<f32>,     // only the rest record's first field (not all 192 bytes)
+    first: u32,
+    jn: vec4<u32>,
+    jm: vec4<u32>,
+};
+
+// Issues the loads of a MemberScan. Nothing here waits on them, so a caller can issue
+// other loads (the body's sleep flag) before it uses any.
+fn moments_start(c: u32) -> MemberScan {
+    let start = pinfo[c].w;
+    let end = pinfo[c + 1u].w;
+    var jn = vec4<u32>(0u);
+    var jm = vec4<u32>(0u);
+    if (start + 4u <= end) {
+        jn = vec4<u32>(lists[start], lists[start + 1u], lists[start + 2u], lists[start + 3u]);
+    }
+    if (start + 8u <= end) {
+        jm = vec4<u32>(lists[start + 4u], lists[start + 5u], lists[start + 6u], lists[start + 7u]);
+    }
+    return MemberScan(start, end, crest[c].com_mass, lists[start], jn, jm);
+}
+
+fn cluster_moments(c: u32, use_p: bool) -> Moments {
+    return moments_from(moments_start(c), use_p);
+}
+
 // `pos` is x or p (chosen by `use_p`). Members are read four at a time (all their loads
 // issued before any is used, so a thread waits for one round of memory latency per four
 // members instead of per member) and added in list order, as the CPU twin does.
-fn cluster_moments(c: u32, use_p: bool) -> Moments {
-    let start = pinfo[c].w;
-    let end = pinfo[c + 1u].w;
-    // Only the record's first field (not the whole 192-byte ClusterRest).
-    let com_mass = crest[c].com_mass;
+fn moments_from(ms: MemberScan, use_p: bool) -> Moments {
+    let end = ms.end;
+    let com_mass = ms.com_mass;
     let com = com_mass.xyz;
-    let origin = member_pos(lists[start], use_p);
+    let origin = member_pos(ms.first, use_p);
     let z = vec3<f32>(0.0);
     var t = MomentSums(z, z, z, z, z);
-    var s = start;
+    var s = ms.start;
     // The indices of the next two rounds of four are loaded while the current four
     // members' positions are, so the index loads leave the chain of memory round trips
     // (one ahead: no gain at 37,982 on an H100; two ahead: clusters 0.148 → 0.141 ms).
-    var jn = vec4<u32>(0u);
-    var jm = vec4<u32>(0u);
-    if (s + 4u <= end) {
-        jn = vec4<u32>(lists[s], lists[s + 1u], lists[s + 2u], lists[s + 3u]);
-    }
-    if (s + 8u <= end) {
-        jm = vec4<u32>(lists[s + 4u], lists[s + 5u], lists[s + 6u], lists[s + 7u]);
-    }
+    var jn = ms.jn;
+    var jm = ms.jm;
     loop {
         if (s + 4u > end) {
             break;
