@@ -374,6 +374,63 @@ fn contact_candidates_equal_the_cpu() {
 }
 
 #[test]
+fn small_shape_matching_bodies_in_a_workgroup_each_match_the_cpu() {
+    // Three 300-particle balls dropped side by side onto the ground (contacts on, the
+    // balls apart: stacked balls make the comparison with the CPU chaotic): every body
+    // fits `body.wgsl` (a workgroup per body, one dispatch per iteration).
+    let Some(g) = gpu() else { return };
+    let mut model = Model::new();
+    let mesh = procedural::icosphere(0.03, 2);
+    for (i, at) in [
+        Vec3::new(-0.1, 0.04, 0.0),
+        Vec3::new(0.0, 0.06, 0.0),
+        Vec3::new(0.1, 0.08, 0.01),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let m = Material::ShapeMatching {
+            stiffness: 0.6 + 0.1 * i as f32,
+        };
+        model.add_body(&mesh, &body(m, at, 300, vec![])).unwrap();
+    }
+    let colliders = [Collider::ground(0.0)];
+    let (cpu, _) = run_cpu(&model, &colliders, 200);
+    let mut runs = Vec::new();
+    for on in [false, true] {
+        let mut world = GpuWorld::new(
+            &g.device,
+            &g.kernels,
+            &model,
+            &State::new(&model),
+            settings(),
+            0,
+        )
+        .unwrap();
+        assert!(world.contact_neighbours() > 0, "contacts must be on");
+        assert!(
+            world.body_kernel(),
+            "the bodies fit body.wgsl on this adapter ({})",
+            g.adapter
+        );
+        world.set_body_kernel(&g.queue, on);
+        let x = run_gpu(g, &mut world, &colliders, 200);
+        let label = if on {
+            "a workgroup per body"
+        } else {
+            "cluster and gather kernels"
+        };
+        assert_close_after_200_steps(label, &model, &x, &cpu.x);
+        runs.push(x);
+    }
+    // The two GPU paths differ only in the order of the gather's sums.
+    let d = max_dist(&runs[0], &runs[1]);
+    let size = model.bodies[0].size;
+    eprintln!("workgroup per body against the cluster and gather kernels: {d:.3e} m");
+    assert!(d < 1e-4 * size, "the two GPU paths differ by {d} m");
+}
+
+#[test]
 fn batched_bodies_equal_each_alone() {
     let Some(g) = gpu() else { return };
     let a = body(

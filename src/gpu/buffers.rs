@@ -106,8 +106,11 @@ pub struct GpuBody {
     pub spacing: f32,
     /// Particle radius, m.
     pub radius: f32,
+    /// 1 where level 0 of the body is solved by `body.wgsl` (a workgroup per body), which
+    /// the cluster and gather kernels then skip; written by [`crate::gpu::GpuWorld`].
+    pub in_workgroup: u32,
     /// Padding.
-    pub pad1: [f32; 3],
+    pub pad1: [f32; 2],
 }
 
 /// Per-cluster rest data (`ClusterRest` in WGSL; matrices as three padded columns).
@@ -411,7 +414,8 @@ impl Packed {
                     lambda,
                     spacing: b.spacing,
                     radius: b.radius,
-                    pad1: [0.0; 3],
+                    in_workgroup: 0,
+                    pad1: [0.0; 2],
                 }
             })
             .collect();

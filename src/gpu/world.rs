@@ -10,7 +10,7 @@
 //! render graph (the plugin) and standalone (tests, benchmarks) alike.
 
 use super::buffers::*;
-use super::kernels::Kernels;
+use super::kernels::{self, Kernels};
 use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::Model;
@@ -209,6 +209,11 @@ pub struct GpuWorld {
     /// ones with a thread per cluster ([`LANE_CLUSTERS_BELOW`] by default; the two give
     /// the same result up to the order of the member sums).
     pub lane_clusters_below: u32,
+    /// Whether `body.wgsl` solves level 0 of the bodies it fits ([`GpuWorld::set_body_kernel`]).
+    body_kernel: bool,
+    /// Per body: shape matching, at most [`kernels::body::BODY_MAX`] particles, no
+    /// hierarchy levels in the world, and an adapter whose workgroups are large enough.
+    body_fits: Vec<bool>,
     b: Buffers,
     surface: Buffer,
     levels: Vec<(u32, u32)>,
@@ -414,6 +419,21 @@ impl GpuWorld {
             });
         }
         let packed = Packed::new(model, &settings);
+        // Bodies whose level 0 `body.wgsl` solves (a workgroup each).
+        let body_fits: Vec<bool> = packed
+            .bodies
+            .iter()
+            .map(|b| {
+                kernels.body.is_some()
+                    && packed.levels.is_empty()
+                    && b.kind == 0
+                    && b.count <= kernels::body::BODY_MAX
+            })
+            .collect();
+        let mut gpu_bodies = packed.bodies.clone();
+        for (b, fits) in gpu_bodies.iter_mut().zip(&body_fits) {
+            b.in_workgroup = *fits as u32;
+        }
         let nv = packed.vertex_count() as u32;
         // Particles of all levels (the coarse levels' follow level 0's).
         let total = packed.total_particles() as u64;
@@ -503,7 +523,7 @@ impl GpuWorld {
             pinfo: init("tissue pinfo", bytemuck::cast_slice(&packed.pinfo), st),
             lists: init("tissue lists", bytemuck::cast_slice(&packed.lists), st),
             crest: init("tissue crest", bytemuck::cast_slice(&packed.crest), st),
-            bodies: init("tissue bodies", bytemuck::cast_slice(&packed.bodies), st),
+            bodies: init("tissue bodies", bytemuck::cast_slice(&gpu_bodies), st),
             cstate: init("tissue cstate", bytemuck::cast_slice(&cstate), st),
             corr: zeroed("tissue corr", total * CORR_BYTES, st),
             pins: init("tissue pins", bytemuck::cast_slice(&pins), st),
@@ -669,6 +689,8 @@ impl GpuWorld {
             step: state.step,
             ranges,
             lane_clusters_below: LANE_CLUSTERS_BELOW,
+            body_kernel: true,
+            body_fits,
             b,
             surface,
             levels,
@@ -703,6 +725,29 @@ impl GpuWorld {
                 queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&(want as u32)));
             }
         }
+    }
+
+    /// Whether level 0 of the small shape-matching bodies (at most
+    /// [`kernels::body::BODY_MAX`] particles, in a world without hierarchy levels) is
+    /// solved by `body.wgsl`, a workgroup per body that keeps the body in workgroup
+    /// memory and runs both passes of a Jacobi iteration in one dispatch (on by default),
+    /// or by the cluster and gather kernels. The two agree up to the order of the gather's
+    /// sums (the workgroup kernel adds them in the CPU twin's order). A body's result does
+    /// not depend on which other bodies share the world.
+    pub fn set_body_kernel(&mut self, queue: &RenderQueue, on: bool) {
+        self.body_kernel = on;
+        for (b, fits) in self.body_fits.iter().enumerate() {
+            if *fits {
+                let offset =
+                    (b * size_of::<GpuBody>() + std::mem::offset_of!(GpuBody, in_workgroup)) as u64;
+                queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&(on as u32)));
+            }
+        }
+    }
+
+    /// Whether `body.wgsl` solves some body ([`GpuWorld::set_body_kernel`]).
+    pub fn body_kernel(&self) -> bool {
+        self.body_kernel && self.body_fits.iter().any(|f| *f)
     }
 
     /// Whether every body sleeps (a frame then records no step).
@@ -946,8 +991,8 @@ impl GpuWorld {
         for _ in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
                 self.record_grid(&mut r, k, false);
-                let knn =
-                    &k.knn_contacts[self.contacts_warm as usize][Kernels::knn_slots(self.contact_k)];
+                let knn = &k.knn_contacts[self.contacts_warm as usize]
+                    [Kernels::knn_slots(self.contact_k)];
                 self.contacts_warm = true;
                 r.dispatch(w, "tissue/knn", knn, None, (g, 1));
             }
@@ -961,9 +1006,19 @@ impl GpuWorld {
                 if s.coarse_iterations > 0 && !self.coarse.is_empty() {
                     self.record_levels(&mut r, k);
                 }
+                // `body.wgsl` for the bodies it solves, the cluster and gather kernels for
+                // the others (each skips the other's bodies).
+                let body = k.body.as_ref().filter(|_| self.body_kernel());
+                let all_in_body = body.is_some() && self.body_fits.iter().all(|f| *f);
+                let nb = self.ranges.len() as u32;
                 for _ in 0..s.iterations {
-                    r.dispatch(w, "tissue/clusters", cp, lv0, cg);
-                    r.dispatch(w, "tissue/gather", &k.gather, lv0, lg);
+                    if let Some(bk) = body {
+                        r.dispatch(w, "tissue/bodies", bk, lv0, grid_2d(nb));
+                    }
+                    if !all_in_body {
+                        r.dispatch(w, "tissue/clusters", cp, lv0, cg);
+                        r.dispatch(w, "tissue/gather", &k.gather, lv0, lg);
+                    }
                     if self.contacts_on {
                         r.dispatch(w, "tissue/contacts", &k.contact, None, (g, 1));
                     }

@@ -58,6 +58,12 @@ fn asleep(i: u32) -> bool {
     return bodies[pinfo[i].x].asleep != 0u;
 }
 
+// Whether the cluster and gather kernels leave particle (or cluster) i alone: its body
+// sleeps, or body.wgsl solves it.
+fn passed_over(b: Body) -> bool {
+    return b.asleep != 0u || b.in_wg != 0u;
+}
+
 fn inv_mass(i: u32) -> f32 {
     if (pinfo[i].y != NONE) {
         return 0.0;

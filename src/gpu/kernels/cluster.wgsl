@@ -56,7 +56,7 @@ fn solve_clusters(
     // overlap them instead of preceding them.
     let body = pinfo[c].x;
     let ms = moments_start(c);
-    if (bodies[body].asleep != 0u) {
+    if (passed_over(bodies[body])) {
         return;
     }
     solve_cluster(c, moments_from(ms, true));
@@ -82,7 +82,7 @@ fn solve_clusters_lanes(
     let lane = lid % LANES;
     // A sleeping body's clusters are skipped (their corrections are read only by its own
     // particles, which skip gathering).
-    let valid = local < range.count && !asleep(c);
+    let valid = local < range.count && !passed_over(bodies[pinfo[c].x]);
     let z = vec3<f32>(0.0);
     var t = MomentSums(z, z, z, z, z);
     var origin = vec3<f32>(0.0);

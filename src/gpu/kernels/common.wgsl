@@ -50,7 +50,8 @@ struct Body {
     lambda: f32,             // Pa
     spacing: f32,            // m
     radius: f32,             // m
-    _pad1: f32,
+    in_wg: u32,              // 1: level 0 solved by body.wgsl (the cluster and gather
+                             // kernels skip the body)
     _pad2: f32,
     _pad3: f32,
 };

@@ -142,6 +142,7 @@ fn gather(
     // Σ over the clusters of Δx + a p (xyz) and Σ a (w).
     var acc = vec4<f32>(0.0);
     var xr = vec3<f32>(0.0);
+    var mine = true;
     if (valid) {
         let info = pinfo[j];
         let s0 = info.z;
@@ -159,7 +160,9 @@ fn gather(
         }
         let body = bodies[info.x];
         // A sleeping body's particles gather nothing (its clusters were skipped).
-        let s1 = select(s1r, s0, body.asleep != 0u);
+        let s1 = select(s1r, s0, passed_over(body));
+        // body.wgsl wrote this particle already.
+        mine = body.in_wg == 0u;
         if (body.kind == 0u) {
             // Two corrections at a time (both loads in flight before either is used),
             // added in the same order as one at a time. The next two indices are loaded
@@ -201,7 +204,7 @@ fn gather(
     }
     part[lid] = acc;
     workgroupBarrier();
-    if (!valid || lane != 0u) {
+    if (!valid || !mine || lane != 0u) {
         return;
     }
     for (var l = 1u; l < LANES; l = l + 1u) {

@@ -59,7 +59,10 @@ pub fn source(slots: u32, warm: bool) -> String {
     TEMPLATE
         .replace("WARM_VALUE", if warm { "true" } else { "false" })
         .replace("LIST_SLOTS_VALUE", &slots.to_string())
-        .replace("SPARE_EXTRA", &format!("{}u", crate::gpu::buffers::SPARE_EXTRA))
+        .replace(
+            "SPARE_EXTRA",
+            &format!("{}u", crate::gpu::buffers::SPARE_EXTRA),
+        )
         .replace("//LIST_DECL\n", &decl)
         .replace("//LIST_INSERT\n", &insert)
         .replace("//LIST_OUT\n", &out)

@@ -8,6 +8,7 @@
 //! dynamic offset; the skinning also the mesh allocator's vertex slab). Shaders are embedded in
 //! the binary (`include_str!`), so a user of the crate copies no files.
 
+pub mod body;
 pub mod cluster;
 pub mod forces;
 pub mod gather;
@@ -100,6 +101,9 @@ pub struct Kernels {
     pub gather: ComputePipeline,
     /// `gather.wgsl`: Jacobi pass C.
     pub contact: ComputePipeline,
+    /// `body.wgsl`: passes A and B of small shape-matching bodies, a workgroup each;
+    /// `None` where the adapter's workgroups are too small for it.
+    pub body: Option<ComputePipeline>,
     /// `hierarchy.wgsl`: positions at the start of the coarse pass.
     pub level_snapshot: ComputePipeline,
     /// `hierarchy.wgsl`: level-0 positions into a coarse level.
@@ -183,6 +187,10 @@ impl Kernels {
         });
         let cluster_m = module("tissue cluster", cluster::SOURCE);
         let gather_m = module("tissue gather", gather::SOURCE);
+        let body_fits = limits.max_compute_workgroup_storage_size >= body::WORKGROUP_BYTES
+            && limits.max_compute_invocations_per_workgroup >= body::THREADS
+            && limits.max_compute_workgroup_size_x >= body::THREADS;
+        let body_m = body_fits.then(|| module("tissue body", body::SOURCE));
         let hier_m = module("tissue hierarchy", hierarchy::SOURCE);
         let forces_m = module("tissue forces", forces::SOURCE);
         let skin_m = module("tissue skin", skin::SOURCE);
@@ -220,6 +228,7 @@ impl Kernels {
             clusters_lanes: pipe(&cluster_m, &with_scan, "solve_clusters_lanes"),
             gather: pipe(&gather_m, &with_scan, "gather"),
             contact: pipe(&gather_m, &world_only, "contact"),
+            body: body_m.map(|m| pipe(&m, &with_scan, "body_iteration")),
             level_snapshot: pipe(&hier_m, &world_only, "level_snapshot"),
             level_in: pipe(&hier_m, &with_scan, "level_in"),
             level_out: pipe(&hier_m, &with_scan, "level_out"),

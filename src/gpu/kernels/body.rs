@@ -1,0 +1,29 @@
+//! One Jacobi iteration of every small shape-matching body, a workgroup per body, its
+//! positions, rest records and corrections in workgroup memory (passes A and B in one
+//! dispatch).
+//!
+//! Source: `body.wgsl` (with `common.wgsl`, `bindings.wgsl`, `range.wgsl`, `moments.wgsl`
+//! and `gather.wgsl` prepended: the moments, the rotation, the correction and the
+//! boundary are theirs).
+
+/// WGSL source of this kernel's module.
+pub const SOURCE: &str = concat!(
+    include_str!("common.wgsl"),
+    include_str!("bindings.wgsl"),
+    include_str!("range.wgsl"),
+    include_str!("moments.wgsl"),
+    include_str!("gather.wgsl"),
+    include_str!("body.wgsl")
+);
+
+/// Entry points of the module.
+pub const ENTRY_POINTS: &[&str] = &["body_iteration"];
+
+/// Largest body (particles) the kernel takes (`BODY_MAX` in `body.wgsl`).
+pub const BODY_MAX: u32 = 512;
+
+/// Workgroup memory the kernel needs (four `vec4` arrays of [`BODY_MAX`]), bytes.
+pub const WORKGROUP_BYTES: u32 = 4 * BODY_MAX * 16;
+
+/// Threads per workgroup (`BODY_WG` in `body.wgsl`).
+pub const THREADS: u32 = 512;
