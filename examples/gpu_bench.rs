@@ -89,13 +89,34 @@ fn record(
     rec: &mut dyn PassRecorder,
 ) -> bevy::render::render_resource::CommandEncoder {
     let mut enc = g.device.create_command_encoder(&Default::default());
-    for _ in 0..steps {
-        if knn_every > 0 && world.step.is_multiple_of(knn_every as u64) {
-            world.record_knn_all(&mut enc, &g.kernels, rec);
-        }
-        world.record_steps(&mut enc, &g.kernels, 1, rec);
-    }
+    record_into(g, world, &mut enc, steps, knn_every, rec);
     enc
+}
+
+/// Records `steps` steps into `enc`: the all-particle search every `knn_every`-th step,
+/// the steps between two searches in one `record_steps` (as the plugin records a frame's
+/// steps: the finish of one step and the predict of the next share a dispatch).
+fn record_into(
+    g: &Headless,
+    world: &mut GpuWorld,
+    enc: &mut bevy::render::render_resource::CommandEncoder,
+    steps: u32,
+    knn_every: u32,
+    rec: &mut dyn PassRecorder,
+) {
+    let mut left = steps;
+    while left > 0 {
+        let mut run = left;
+        if knn_every > 0 {
+            let phase = (world.step % knn_every as u64) as u32;
+            if phase == 0 {
+                world.record_knn_all(enc, &g.kernels, rec);
+            }
+            run = run.min(knn_every - phase);
+        }
+        world.record_steps(enc, &g.kernels, run, rec);
+        left -= run;
+    }
 }
 
 fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -> Row {
@@ -160,12 +181,7 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
     if let Some(mut prof) = GpuProfiler::new(&g.device, &g.queue, 4) {
         let mut enc = g.device.create_command_encoder(&Default::default());
         prof.mark(&mut enc);
-        for _ in 0..steps {
-            if world.step.is_multiple_of(10) {
-                world.record_knn_all(&mut enc, &g.kernels, &mut NoTiming);
-            }
-            world.record_steps(&mut enc, &g.kernels, 1, &mut NoTiming);
-        }
+        record_into(g, &mut world, &mut enc, steps, 10, &mut NoTiming);
         prof.mark(&mut enc);
         prof.resolve(&mut enc);
         g.queue.submit([enc.finish()]);

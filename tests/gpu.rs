@@ -71,6 +71,19 @@ fn hanging(material: Material) -> (Model, Vec<Collider>) {
     (model, vec![Collider::ground(0.175), sphere])
 }
 
+/// A GPU world of `model` at rest, with the test settings and no all-particle search.
+fn fresh_world(g: &Headless, model: &Model) -> GpuWorld {
+    GpuWorld::new(
+        &g.device,
+        &g.kernels,
+        model,
+        &State::new(model),
+        settings(),
+        0,
+    )
+    .unwrap()
+}
+
 /// Runs `steps` steps on the GPU (in chunks, one submission each).
 fn run_gpu(g: &Headless, world: &mut GpuWorld, colliders: &[Collider], steps: u32) -> Vec<Vec3> {
     world.set_colliders(&g.queue, colliders).unwrap();
@@ -331,24 +344,10 @@ fn contact_candidates_equal_the_cpu() {
     let state = State::new(&model);
     let mut cpu = Solver::new(&model, settings()).unwrap();
     cpu.refresh_contacts(&model, &state.x);
-    let (start, list) = cpu.contact_lists();
     let mut world = GpuWorld::new(&g.device, &g.kernels, &model, &state, settings(), 0).unwrap();
-    let k = world.contact_neighbours() as usize;
-    assert_eq!(k, 16);
+    assert_eq!(world.contact_neighbours(), 16);
     run_gpu(g, &mut world, &[], 1);
-    let n = model.particle_count();
-    let got = read_u32(&g.device, &g.queue, world.contact_lists(), (n * k) as u64);
-    let mut pairs = 0;
-    for i in 0..n {
-        let want = &list[start[i] as usize..start[i + 1] as usize];
-        let row: Vec<u32> = got[i * k..(i + 1) * k]
-            .iter()
-            .copied()
-            .filter(|&j| j != u32::MAX)
-            .collect();
-        assert_eq!(row, want, "particle {i}");
-        pairs += want.len();
-    }
+    let pairs = assert_contact_lists(g, &world, &cpu, "first search");
     assert!(
         pairs > 100,
         "the bodies must touch ({pairs} candidate pairs)"
@@ -360,8 +359,17 @@ fn contact_candidates_equal_the_cpu() {
     let x = run_gpu(g, &mut world, &[], 19);
     run_gpu(g, &mut world, &[], 1);
     cpu.refresh_contacts(&model, &x);
+    assert_contact_lists(g, &world, &cpu, "search at step 20");
+}
+
+/// The GPU's contact lists equal `cpu`'s (its last `refresh_contacts`); returns the
+/// number of candidate pairs.
+fn assert_contact_lists(g: &Headless, world: &GpuWorld, cpu: &Solver, label: &str) -> usize {
     let (start, list) = cpu.contact_lists();
+    let n = world.particle_count() as usize;
+    let k = world.contact_neighbours() as usize;
     let got = read_u32(&g.device, &g.queue, world.contact_lists(), (n * k) as u64);
+    let mut pairs = 0;
     for i in 0..n {
         let want = &list[start[i] as usize..start[i + 1] as usize];
         let row: Vec<u32> = got[i * k..(i + 1) * k]
@@ -369,8 +377,10 @@ fn contact_candidates_equal_the_cpu() {
             .copied()
             .filter(|&j| j != u32::MAX)
             .collect();
-        assert_eq!(row, want, "particle {i}, search at step 20");
+        assert_eq!(row, want, "{label}, particle {i}");
+        pairs += want.len();
     }
+    pairs
 }
 
 #[test]
@@ -398,15 +408,7 @@ fn small_shape_matching_bodies_in_a_workgroup_each_match_the_cpu() {
     let (cpu, _) = run_cpu(&model, &colliders, 200);
     let mut runs = Vec::new();
     for on in [false, true] {
-        let mut world = GpuWorld::new(
-            &g.device,
-            &g.kernels,
-            &model,
-            &State::new(&model),
-            settings(),
-            0,
-        )
-        .unwrap();
+        let mut world = fresh_world(g, &model);
         assert!(world.contact_neighbours() > 0, "contacts must be on");
         assert!(
             world.body_kernel(),
@@ -453,23 +455,14 @@ fn batched_bodies_equal_each_alone() {
     let alone = |d: &BodyDesc| {
         let mut m = Model::new();
         m.add_body(&mesh, d).unwrap();
-        let mut w =
-            GpuWorld::new(&g.device, &g.kernels, &m, &State::new(&m), settings(), 0).unwrap();
+        let mut w = fresh_world(g, &m);
         run_gpu(g, &mut w, &colliders, 120)
     };
     let (xa, xb) = (alone(&a), alone(&b));
     let mut both = Model::new();
     both.add_body(&mesh, &a).unwrap();
     both.add_body(&mesh, &b).unwrap();
-    let mut w = GpuWorld::new(
-        &g.device,
-        &g.kernels,
-        &both,
-        &State::new(&both),
-        settings(),
-        0,
-    )
-    .unwrap();
+    let mut w = fresh_world(g, &both);
     let x = run_gpu(g, &mut w, &colliders, 120);
     let (na, _) = (xa.len(), xb.len());
     let da = max_dist(&x[..na], &xa);
@@ -482,15 +475,7 @@ fn batched_bodies_equal_each_alone() {
 fn drawn_surface_equals_cpu_skinning() {
     let Some(g) = gpu() else { return };
     let (model, colliders) = hanging(Material::default());
-    let mut world = GpuWorld::new(
-        &g.device,
-        &g.kernels,
-        &model,
-        &State::new(&model),
-        settings(),
-        0,
-    )
-    .unwrap();
+    let mut world = fresh_world(g, &model);
     let x = run_gpu(g, &mut world, &colliders, 60);
     world.set_draw(&g.queue, &world.surface_draw());
     let runs: Vec<(u32, u32)> = world
@@ -582,15 +567,7 @@ fn a_diverging_body_is_held_and_flagged_and_does_not_poison_the_others() {
             &body(Material::default(), Vec3::new(0.5, 0.1, 0.0), 300, vec![]),
         )
         .unwrap();
-    let mut w1 = GpuWorld::new(
-        &g.device,
-        &g.kernels,
-        &alone,
-        &State::new(&alone),
-        settings(),
-        0,
-    )
-    .unwrap();
+    let mut w1 = fresh_world(g, &alone);
     let x1 = run_gpu(g, &mut w1, &[Collider::ground(0.0)], 30);
     let n0 = model.bodies[0].count as usize;
     assert_eq!(max_dist(&x[n0..], &x1), 0.0);
@@ -611,15 +588,7 @@ fn gpu_steps_are_deterministic_run_to_run() {
         .add_body(&sphere, &body(m, Vec3::new(0.01, 0.11, 0.0), 300, vec![]))
         .unwrap();
     let run = || {
-        let mut w = GpuWorld::new(
-            &g.device,
-            &g.kernels,
-            &model,
-            &State::new(&model),
-            settings(),
-            0,
-        )
-        .unwrap();
+        let mut w = fresh_world(g, &model);
         run_gpu(g, &mut w, &[Collider::ground(0.0)], 60)
     };
     let (a, b) = (run(), run());

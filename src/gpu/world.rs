@@ -988,7 +988,7 @@ impl GpuWorld {
         let mut r = Recording::new(encoder, rec);
         let w = &self.world_group;
         let s = &self.settings;
-        for _ in 0..steps {
+        for step in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
                 self.record_grid(&mut r, k, false);
                 let knn = &k.knn_contacts[self.contacts_warm as usize]
@@ -1001,8 +1001,13 @@ impl GpuWorld {
                 r.dispatch(w, "tissue/forces", &k.force_clear, None, (1, 1));
             }
             let lv0 = Some((&self.level_group, 0u32));
-            for _ in 0..s.substeps {
-                r.dispatch(w, "tissue/predict", &k.predict, None, (g, 1));
+            for sub in 0..s.substeps {
+                // The first substep of the recording predicts; the others were predicted
+                // by the finish before them (inputs such as colliders, pins and sleep
+                // only change between recordings).
+                if step == 0 && sub == 0 {
+                    r.dispatch(w, "tissue/predict", &k.predict, None, (g, 1));
+                }
                 if s.coarse_iterations > 0 && !self.coarse.is_empty() {
                     self.record_levels(&mut r, k);
                 }
@@ -1028,7 +1033,11 @@ impl GpuWorld {
                     r.dispatch(w, "tissue/forces", &k.force_partial, None, fg);
                     r.dispatch(w, "tissue/forces", &k.force_total, None, (1, 1));
                 }
-                r.dispatch(w, "tissue/finish", &k.finish, None, (g, 1));
+                if step + 1 == steps && sub + 1 == s.substeps {
+                    r.dispatch(w, "tissue/finish", &k.finish, None, (g, 1));
+                } else {
+                    r.dispatch(w, "tissue/finish", &k.finish_predict, None, (g, 1));
+                }
             }
             self.step += 1;
         }

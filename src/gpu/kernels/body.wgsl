@@ -26,27 +26,20 @@ fn add_four_local(t: MomentSums, j: vec4<u32>, origin: vec3<f32>, com: vec3<f32>
     return add_member(u, sp[j.w].xyz, sr[j.w], origin, com);
 }
 
-// Cluster c's moments (members in list order, as cluster_moments) from workgroup memory;
-// `first` is the body's first particle.
+// Cluster c's moments (members in list order, as moments_from) from workgroup memory,
+// its first loads issued by moments_start; `first` is the body's first particle.
 fn local_moments(c: u32, first: u32) -> Moments {
-    let start = pinfo[c].w;
-    let end = pinfo[c + 1u].w;
-    let com_mass = crest[c].com_mass;
-    let com = com_mass.xyz;
-    let origin = sp[lists[start] - first].xyz;
+    let ms = moments_start(c);
+    let end = ms.end;
+    let com = ms.com_mass.xyz;
+    let origin = sp[ms.first - first].xyz;
     let z = vec3<f32>(0.0);
     var t = MomentSums(z, z, z, z, z);
-    var s = start;
+    var s = ms.start;
     let f4 = vec4<u32>(first);
     // The indices of the next two rounds of four are loaded while this round is added.
-    var jn = vec4<u32>(0u);
-    var jm = vec4<u32>(0u);
-    if (s + 4u <= end) {
-        jn = vec4<u32>(lists[s], lists[s + 1u], lists[s + 2u], lists[s + 3u]);
-    }
-    if (s + 8u <= end) {
-        jm = vec4<u32>(lists[s + 4u], lists[s + 5u], lists[s + 6u], lists[s + 7u]);
-    }
+    var jn = ms.jn;
+    var jm = ms.jm;
     loop {
         if (s + 4u > end) {
             break;
@@ -55,7 +48,7 @@ fn local_moments(c: u32, first: u32) -> Moments {
         jn = jm;
         let sm = s + 8u;
         if (sm + 4u <= end) {
-            jm = vec4<u32>(lists[sm], lists[sm + 1u], lists[sm + 2u], lists[sm + 3u]);
+            jm = lists4(sm);
         }
         t = add_four_local(t, j, origin, com);
         s = s + 4u;
@@ -64,7 +57,7 @@ fn local_moments(c: u32, first: u32) -> Moments {
         let j = lists[s] - first;
         t = add_member(t, sp[j].xyz, sr[j], origin, com);
     }
-    return moments_of(t, origin, com_mass);
+    return moments_of(t, origin, ms.com_mass);
 }
 
 @compute @workgroup_size(512)
@@ -116,7 +109,7 @@ fn body_iteration(
             // Four indices at a time, the next four loaded while these are added.
             var on = vec4<u32>(0u);
             if (n >= 4u) {
-                on = vec4<u32>(lists[base], lists[base + 1u], lists[base + 2u], lists[base + 3u]);
+                on = lists4(base);
             }
             var s = 0u;
             loop {
@@ -126,7 +119,7 @@ fn body_iteration(
                 let o = on - f4;
                 let sn = base + s + 4u;
                 if (s + 8u <= n) {
-                    on = vec4<u32>(lists[sn], lists[sn + 1u], lists[sn + 2u], lists[sn + 3u]);
+                    on = lists4(sn);
                 }
                 acc = acc + rigid_part(sq[o.x], st[o.x], xr);
                 acc = acc + rigid_part(sq[o.y], st[o.y], xr);

@@ -10,4 +10,4 @@ pub const SOURCE: &str = concat!(
 );
 
 /// Entry points of the module.
-pub const ENTRY_POINTS: &[&str] = &["predict", "finish"];
+pub const ENTRY_POINTS: &[&str] = &["predict", "finish", "finish_predict"];

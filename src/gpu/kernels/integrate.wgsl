@@ -31,10 +31,29 @@ fn update_grab(i: u32) {
 
 @compute @workgroup_size(128)
 fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.n) {
-        return;
+    if (gid.x < params.n) {
+        predict_one(gid.x);
     }
+}
+
+@compute @workgroup_size(128)
+fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x < params.n) {
+        finish_one(gid.x);
+    }
+}
+
+// A substep's finish and the next substep's predict in one dispatch (both per particle),
+// between two substeps of one recording (world.rs): one dispatch fewer per substep.
+@compute @workgroup_size(128)
+fn finish_predict(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x < params.n) {
+        finish_one(gid.x);
+        predict_one(gid.x);
+    }
+}
+
+fn predict_one(i: u32) {
     if (asleep(i)) {
         p[i] = x[i];
         return;
@@ -58,12 +77,7 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     coldp[i] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
 }
 
-@compute @workgroup_size(128)
-fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.n) {
-        return;
-    }
+fn finish_one(i: u32) {
     if (asleep(i)) {
         v[i] = vec4<f32>(0.0);
         return;

@@ -73,6 +73,8 @@ pub struct Kernels {
     pub predict: ComputePipeline,
     /// `integrate.wgsl`: finish.
     pub finish: ComputePipeline,
+    /// `integrate.wgsl`: a substep's finish and the next one's predict.
+    pub finish_predict: ComputePipeline,
     /// `grid.wgsl`: zero the counts.
     pub grid_clear: ComputePipeline,
     /// `forces.wgsl`: each body's bounding box.
@@ -211,6 +213,7 @@ impl Kernels {
         Ok(Self {
             predict: pipe(&integrate_m, &world_only, "predict"),
             finish: pipe(&integrate_m, &world_only, "finish"),
+            finish_predict: pipe(&integrate_m, &world_only, "finish_predict"),
             grid_clear: pipe(&grid_m, &with_scan, "grid_clear"),
             force_clear: pipe(&forces_m, &world_only, "force_clear"),
             body_bounds: pipe(&forces_m, &world_only, "body_bounds"),

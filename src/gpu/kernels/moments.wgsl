@@ -73,6 +73,11 @@ struct MemberScan {
     jm: vec4<u32>,
 };
 
+// Entries s..s+3 of `lists`.
+fn lists4(s: u32) -> vec4<u32> {
+    return vec4<u32>(lists[s], lists[s + 1u], lists[s + 2u], lists[s + 3u]);
+}
+
 // Issues the loads of a MemberScan. Nothing here waits on them, so a caller can issue
 // other loads (the body's sleep flag) before it uses any.
 fn moments_start(c: u32) -> MemberScan {
@@ -81,10 +86,10 @@ fn moments_start(c: u32) -> MemberScan {
     var jn = vec4<u32>(0u);
     var jm = vec4<u32>(0u);
     if (start + 4u <= end) {
-        jn = vec4<u32>(lists[start], lists[start + 1u], lists[start + 2u], lists[start + 3u]);
+        jn = lists4(start);
     }
     if (start + 8u <= end) {
-        jm = vec4<u32>(lists[start + 4u], lists[start + 5u], lists[start + 6u], lists[start + 7u]);
+        jm = lists4(start + 4u);
     }
     return MemberScan(start, end, crest[c].com_mass, lists[start], jn, jm);
 }
@@ -117,7 +122,7 @@ fn moments_from(ms: MemberScan, use_p: bool) -> Moments {
         jn = jm;
         let sm = s + 8u;
         if (sm + 4u <= end) {
-            jm = vec4<u32>(lists[sm], lists[sm + 1u], lists[sm + 2u], lists[sm + 3u]);
+            jm = lists4(sm);
         }
         t = add_four(t, j, use_p, origin, com);
         s = s + 4u;
