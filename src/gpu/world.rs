@@ -974,7 +974,9 @@ impl GpuWorld {
     }
 
     /// Records `steps` time steps (one compute pass, unless the recorder times passes).
-    /// Call [`GpuWorld::write_params`] before submitting.
+    /// Call [`GpuWorld::write_params`] before submitting. Within a recording a substep's
+    /// finish also predicts the next substep (one dispatch fewer each), so colliders,
+    /// pin targets and sleep flags set before the call hold for all its steps.
     pub fn record_steps(
         &mut self,
         encoder: &mut CommandEncoder,
