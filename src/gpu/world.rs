@@ -259,6 +259,26 @@ fn unknown_lists(device: &RenderDevice, label: &str, entries: u64, usage: Buffer
     buffer
 }
 
+/// A [`TissueError::GpuLimit`] where a buffer of `bytes` cannot be bound on a device
+/// with `limits`.
+fn check_binding(
+    limits: &bevy::render::render_resource::WgpuLimits,
+    what: &'static str,
+    bytes: u64,
+) -> Result<(), TissueError> {
+    let limit = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
+    if bytes > limit {
+        return Err(TissueError::GpuLimit {
+            what,
+            needed: bytes,
+            limit,
+        });
+    }
+    Ok(())
+}
+
 fn groups(n: u32, per: u32) -> u32 {
     n.div_ceil(per).max(1)
 }
@@ -321,19 +341,13 @@ impl GpuWorld {
     ) -> Result<Self, TissueError> {
         let limits = device.limits();
         Self::check_limits(&limits, model, &settings)?;
-        // The neighbour search's candidate store (`spare`), which also depends on `knn_k`.
+        // The neighbour search's candidate store (`spare`) also depends on `knn_k`.
         let k = knn_k.max(settings.contact_neighbours).min(MAX_GPU_K);
-        let spare = model.particle_count() as u64 * (k + SPARE_EXTRA) as u64 * 4;
-        let limit = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
-        if spare > limit {
-            return Err(TissueError::GpuLimit {
-                what: "neighbour search candidate store",
-                needed: spare,
-                limit,
-            });
-        }
+        check_binding(
+            &limits,
+            "neighbour search candidate store",
+            model.particle_count() as u64 * (k + SPARE_EXTRA) as u64 * 4,
+        )?;
         Self::new_unchecked(device, kernels, model, state, settings, knn_k)
     }
 
@@ -360,7 +374,6 @@ impl GpuWorld {
             .map(|m| (m.cluster_members.len() + m.inv_clusters.len()) as u64)
             .sum::<u64>();
         let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
-        let max_bind = limits.max_storage_buffer_binding_size;
         let checks: [(&'static str, u64); 6] = [
             ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
             ("cluster corrections", n * CORR_BYTES),
@@ -373,14 +386,7 @@ impl GpuWorld {
             ("render vertices", nv * 32),
         ];
         for (what, bytes) in checks {
-            let limit = max_bind.min(limits.max_buffer_size);
-            if bytes > limit {
-                return Err(TissueError::GpuLimit {
-                    what,
-                    needed: bytes,
-                    limit,
-                });
-            }
+            check_binding(limits, what, bytes)?;
         }
         let max_groups = limits.max_compute_workgroups_per_dimension as u64;
         let needed = n.div_ceil(WORKGROUP as u64);
@@ -987,6 +993,11 @@ impl GpuWorld {
         let g = groups(self.n, WORKGROUP);
         let lg = lane_groups(self.n);
         let (cp, cg) = cluster_kernel(k, self.n, self.lane_clusters_below);
+        // `body.wgsl` for the bodies it solves, the cluster and gather kernels for the
+        // others (each skips the other's bodies).
+        let body = k.body.as_ref().filter(|_| self.body_kernel());
+        let all_in_body = body.is_some() && self.body_fits.iter().all(|f| *f);
+        let nb = self.ranges.len() as u32;
         let mut r = Recording::new(encoder, rec);
         let w = &self.world_group;
         let s = &self.settings;
@@ -1013,11 +1024,6 @@ impl GpuWorld {
                 if s.coarse_iterations > 0 && !self.coarse.is_empty() {
                     self.record_levels(&mut r, k);
                 }
-                // `body.wgsl` for the bodies it solves, the cluster and gather kernels for
-                // the others (each skips the other's bodies).
-                let body = k.body.as_ref().filter(|_| self.body_kernel());
-                let all_in_body = body.is_some() && self.body_fits.iter().all(|f| *f);
-                let nb = self.ranges.len() as u32;
                 for _ in 0..s.iterations {
                     if let Some(bk) = body {
                         r.dispatch(w, "tissue/bodies", bk, lv0, grid_2d(nb));

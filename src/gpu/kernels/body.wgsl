@@ -131,13 +131,7 @@ fn body_iteration(
                 let o = lists[base + s] - first;
                 acc = acc + rigid_part(sq[o], st[o], xr);
             }
-            let pj = sp[t].xyz;
-            let out = pj + (acc.xyz - acc.w * pj);
-            if (range.flag == 0u) {
-                p[j] = vec4<f32>(boundary(j, out), 0.0);
-            } else {
-                p2[j] = vec4<f32>(out, 0.0);
-            }
+            store_gathered(j, sp[t].xyz, acc);
         }
     }
 }

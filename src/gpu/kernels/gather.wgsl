@@ -210,7 +210,13 @@ fn gather(
     for (var l = 1u; l < LANES; l = l + 1u) {
         acc = acc + part[lid + l];
     }
-    let pj = p[j].xyz;
+    store_gathered(j, p[j].xyz, acc);
+}
+
+// Particle j at pj moved by its gathered corrections `acc` (Σ a (R X + t), Σ a): to p
+// after its pins and colliders, or to p2 when the contact pass follows (`range.flag`).
+// Shared by the gather and body.wgsl.
+fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>) {
     let out = pj + (acc.xyz - acc.w * pj);
     if (range.flag == 0u) {
         p[j] = vec4<f32>(boundary(j, out), 0.0);
