@@ -19,8 +19,10 @@
 //! cargo run --release --example gpu_bench -- --scenes 38k,1000 # some of the full set
 //! ```
 //!
-//! `--scenes` picks from the full set by name: `38k`, `1000` (bodies × 512), `he` (the
-//! hyperelastic liver), `1m`; all four by default.
+//! `--scenes` picks from the full set by name: `38k`, `1000` (bodies × 512, 0.15 m apart:
+//! the contact broad phase finds no body near another), `he` (the hyperelastic liver),
+//! `1m`; all four by default. `1000c` (the 1,000 bodies 0.1 m apart, every one touching
+//! its neighbours: the contact search and pass run for all) only when named.
 #[path = "support/bench.rs"]
 mod bench;
 
@@ -50,7 +52,7 @@ fn liver(resolution: Resolution, k: u32, material: Material) -> Model {
     model
 }
 
-fn many(bodies: u32, particles: u32, k: u32, material: Material) -> Model {
+fn many(bodies: u32, particles: u32, k: u32, material: Material, apart: f32) -> Model {
     let mut one = Model::new();
     let desc = BodyDesc {
         resolution: Resolution::Particles(particles),
@@ -65,7 +67,7 @@ fn many(bodies: u32, particles: u32, k: u32, material: Material) -> Model {
     for i in 0..bodies {
         let mut b = one.clone();
         let (x, y, z) = (i % side, (i / side) % side, i / (side * side));
-        b.bodies[0].translation = Vec3::new(x as f32, y as f32 + 1.0, z as f32) * 0.15;
+        b.bodies[0].translation = Vec3::new(x as f32, y as f32 + 1.0, z as f32) * apart;
         model.append(&b);
     }
     model
@@ -261,7 +263,7 @@ fn main() {
         rows.push(bench(
             &g,
             "20 bodies x 512, hyperelastic",
-            &many(20, 512, 32, he),
+            &many(20, 512, 32, he, 0.15),
             steps,
             repeats,
         ));
@@ -299,8 +301,10 @@ fn main() {
             rows.push(bench(&g, &name, &model, steps.min(50), repeats.min(3)));
         }
     } else {
-        let all = ["38k", "1000", "he", "1m"].map(String::from);
-        let scenes = args.text("--scenes").map_or(all.to_vec(), |s| {
+        let all = ["38k", "1000", "1000c", "he", "1m"].map(String::from);
+        // All but the contact variant of the 1,000 bodies by default.
+        let default: Vec<String> = all.iter().filter(|s| *s != "1000c").cloned().collect();
+        let scenes = args.text("--scenes").map_or(default, |s| {
             s.split(',').map(|x| x.trim().to_lowercase()).collect()
         });
         if let Some(bad) = scenes.iter().find(|s| !all.contains(s)) {
@@ -325,7 +329,18 @@ fn main() {
             rows.push(bench(
                 &g,
                 "1000 bodies x 512, shape matching",
-                &many(1000, 512, 32, sm),
+                &many(1000, 512, 32, sm, 0.15),
+                steps,
+                repeats,
+            ));
+        }
+        if on("1000c") {
+            // The same bodies 0.1 m apart: each 0.1 m sphere touches its neighbours, so
+            // the contact broad phase skips none (only run when asked for).
+            rows.push(bench(
+                &g,
+                "1000 bodies x 512 in contact, shape matching",
+                &many(1000, 512, 32, sm, 0.1),
                 steps,
                 repeats,
             ));

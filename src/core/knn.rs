@@ -221,6 +221,46 @@ impl Grid {
     }
 }
 
+/// How far apart two bodies' particle bounding boxes must be (m) for no contact
+/// candidate between them: the largest contact reach, `4 × max_radius` (a particle of a
+/// body with radius `r` searches within `2 (r + max_radius)`), plus a margin for f32
+/// rounding. The broad phase below and its GPU twin (`broad.wgsl`) use it.
+pub fn contact_reach_bound(max_radius: f32) -> f32 {
+    4.0 * max_radius * 1.001 + 1.0e-6
+}
+
+/// Broad phase of the particle contacts: per body, whether its bounding box `boxes[b]`
+/// (min, max; m), grown by `reach` (m) on every side, overlaps another body's box. A body
+/// that is near no other has no contact candidates, and no other body's particle has one
+/// of its particles as candidate, so its contact search, its contact pass and its copy
+/// through the contact buffer are skipped, with the same result. O(bodies²) box tests.
+/// GPU twin: `near_bodies` in `broad.wgsl`.
+pub fn near_bodies(boxes: &[(Vec3, Vec3)], reach: f32) -> Vec<bool> {
+    boxes
+        .iter()
+        .enumerate()
+        .map(|(b, &(lo, hi))| {
+            let (lo, hi) = (lo - Vec3::splat(reach), hi + Vec3::splat(reach));
+            boxes
+                .iter()
+                .enumerate()
+                .any(|(c, &(l, h))| c != b && lo.cmple(h).all() && l.cmple(hi).all())
+        })
+        .collect()
+}
+
+/// Each body's bounding box of `x` (bodies as `(first, count)` particle ranges).
+pub fn body_boxes(x: &[Vec3], ranges: impl Iterator<Item = (u32, u32)>) -> Vec<(Vec3, Vec3)> {
+    ranges
+        .map(|(first, count)| {
+            x[first as usize..(first + count) as usize].iter().fold(
+                (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+                |(lo, hi), &p| (lo.min(p), hi.max(p)),
+            )
+        })
+        .collect()
+}
+
 /// Inserts `cand` into the sorted list `out` (at most `k` long), ordered by
 /// `(distance², index)`.
 #[inline]

@@ -677,12 +677,18 @@ impl Solver {
         // distance (candidates for the next `knn_every` steps).
         let grid = super::knn::Grid::build(x, 2.0);
         let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
+        // Broad phase: a body near no other searches nothing (its lists stay empty).
+        let boxes = super::knn::body_boxes(x, model.bodies.iter().map(|b| (b.first, b.count)));
+        let near = super::knn::near_bodies(&boxes, super::knn::contact_reach_bound(max_r));
         let mut lists = vec![u32::MAX; n * k];
         par::for_chunks_mut(&mut lists, k, self.settings.threads, |start, chunk| {
             let mut buf = Vec::with_capacity(k + 1);
             for (r, row) in chunk.chunks_exact_mut(k).enumerate() {
                 let i = start + r;
                 let bi = model.particle_body[i];
+                if !near[bi as usize] {
+                    continue;
+                }
                 let reach = 2.0 * (model.bodies[bi as usize].radius + max_r);
                 grid.knn_filtered(
                     x[i],

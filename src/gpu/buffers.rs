@@ -77,6 +77,10 @@ pub struct GpuParams {
     /// Entries per particle of the neighbour search's candidate store (`spare`): the
     /// larger of the two searches' K, plus [`SPARE_EXTRA`].
     pub spare_stride: u32,
+    /// Jacobi iterations per substep (`body.wgsl`'s `body_substep` runs them all).
+    pub iterations: u32,
+    /// Padding to the WGSL struct's 16-byte multiple.
+    pub pad: [u32; 3],
 }
 
 /// Candidates beyond K that a warm neighbour search may set aside before it falls back to

@@ -48,6 +48,8 @@ impl PassRecorder for NoTiming {}
 struct Recording<'e, 'r> {
     encoder: &'e mut CommandEncoder,
     pass: Option<ComputePass<'static>>,
+    /// Whether `pass` is a timed pass of one dispatch.
+    timed: bool,
     rec: &'r mut dyn PassRecorder,
 }
 
@@ -56,7 +58,66 @@ impl<'e, 'r> Recording<'e, 'r> {
         Self {
             encoder,
             pass: None,
+            timed: false,
             rec,
+        }
+    }
+
+    /// Opens the pass for a dispatch named `name`: its own pass when the recorder times
+    /// it (`timed`: closed after the dispatch), else the shared one.
+    fn open(&mut self, name: &'static str) {
+        let ts = self.rec.timestamps(name);
+        if let Some((qs, i)) = ts.as_ref() {
+            self.pass = None;
+            self.pass = Some(
+                self.encoder
+                    .begin_compute_pass(&ComputePassDescriptor {
+                        label: Some(name),
+                        timestamp_writes: Some(ComputePassTimestampWrites {
+                            query_set: qs,
+                            beginning_of_pass_write_index: Some(*i),
+                            end_of_pass_write_index: Some(*i + 1),
+                        }),
+                    })
+                    .forget_lifetime(),
+            );
+            self.timed = true;
+        } else if self.pass.is_none() {
+            self.pass = Some(
+                self.encoder
+                    .begin_compute_pass(&ComputePassDescriptor {
+                        label: Some("tissue"),
+                        timestamp_writes: None,
+                    })
+                    .forget_lifetime(),
+            );
+        }
+    }
+
+    /// Records one dispatch: `go` issues it on the prepared pass.
+    fn record(
+        &mut self,
+        world: &BindGroup,
+        name: &'static str,
+        pipeline: &ComputePipeline,
+        group1: Option<(&BindGroup, u32)>,
+        go: impl FnOnce(&mut ComputePass<'static>),
+    ) {
+        self.open(name);
+        let Some(pass) = self.pass.as_mut() else {
+            return;
+        };
+        self.rec.begin(pass, name);
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, world, &[]);
+        if let Some((g, off)) = group1 {
+            pass.set_bind_group(1, g, &[off]);
+        }
+        go(pass);
+        self.rec.end(pass);
+        if self.timed {
+            self.pass = None;
+            self.timed = false;
         }
     }
 
@@ -68,41 +129,9 @@ impl<'e, 'r> Recording<'e, 'r> {
         group1: Option<(&BindGroup, u32)>,
         workgroups: (u32, u32),
     ) {
-        let ts = self.rec.timestamps(name);
-        let mut own;
-        let pass: &mut ComputePass<'static> = if ts.is_some() {
-            let timestamp_writes = ts.as_ref().map(|(qs, i)| ComputePassTimestampWrites {
-                query_set: qs,
-                beginning_of_pass_write_index: Some(*i),
-                end_of_pass_write_index: Some(*i + 1),
-            });
-            self.pass = None;
-            own = self
-                .encoder
-                .begin_compute_pass(&ComputePassDescriptor {
-                    label: Some(name),
-                    timestamp_writes,
-                })
-                .forget_lifetime();
-            &mut own
-        } else {
-            let enc = &mut *self.encoder;
-            self.pass.get_or_insert_with(|| {
-                enc.begin_compute_pass(&ComputePassDescriptor {
-                    label: Some("tissue"),
-                    timestamp_writes: None,
-                })
-                .forget_lifetime()
-            })
-        };
-        self.rec.begin(pass, name);
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, world, &[]);
-        if let Some((g, off)) = group1 {
-            pass.set_bind_group(1, g, &[off]);
-        }
-        pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
-        self.rec.end(pass);
+        self.record(world, name, pipeline, group1, |pass| {
+            pass.dispatch_workgroups(workgroups.0, workgroups.1, 1)
+        });
     }
 }
 
@@ -556,7 +585,9 @@ impl GpuWorld {
             ),
             knn_out: unknown_lists(device, "tissue knn", n64 * knn_k.max(1) as u64, st),
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
-            bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 32, st),
+            // Per body min and max, then per body the contact broad phase's flag.
+            // Per body min and max, then per body the contact broad phase's flag.
+            bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 48, st),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
             grab: init("tissue grab", bytemuck::cast_slice(&grab), st),
             spare: zeroed("tissue knn spare", n64 * spare_stride as u64 * 4, st),
@@ -689,6 +720,8 @@ impl GpuWorld {
             n_bodies: model.bodies.len() as u32,
             knn_cell,
             spare_stride,
+            iterations: settings.iterations,
+            pad: [0; 3],
         };
         Ok(Self {
             settings,
@@ -855,7 +888,9 @@ impl GpuWorld {
 
     /// Per-body bounding boxes of the particles (two vec4 per body: min, max; m, world
     /// frame; the min's w is the body's divergence flag, the max's w its fastest
-    /// particle's speed in m/s), written by [`GpuWorld::record_bounds`].
+    /// particle's speed in m/s), written by [`GpuWorld::record_bounds`] (and at each
+    /// contact refresh); after them, one vec4 per body whose x is the contact broad
+    /// phase's flag (1: near another body at the last refresh).
     pub fn bounds(&self) -> &Buffer {
         &self.b.bounds
     }
@@ -995,7 +1030,11 @@ impl GpuWorld {
         let (cp, cg) = cluster_kernel(k, self.n, self.lane_clusters_below);
         // `body.wgsl` for the bodies it solves, the cluster and gather kernels for the
         // others (each skips the other's bodies).
-        let body = k.body.as_ref().filter(|_| self.body_kernel());
+        let body = k
+            .body
+            .as_ref()
+            .filter(|_| self.body_kernel())
+            .map(|b| (&b.substep, &b.iteration));
         let all_in_body = body.is_some() && self.body_fits.iter().all(|f| *f);
         let nb = self.ranges.len() as u32;
         let mut r = Recording::new(encoder, rec);
@@ -1003,6 +1042,12 @@ impl GpuWorld {
         let s = &self.settings;
         for step in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
+                // Broad phase first: bodies near no other skip the search and the
+                // contact pass until the next refresh.
+                let bg = (nb.min(65_535), nb.div_ceil(65_535));
+                r.dispatch(w, "tissue/broad", &k.body_bounds, None, bg);
+                r.dispatch(w, "tissue/broad", &k.near_bodies, None, bg);
+
                 self.record_grid(&mut r, k, false);
                 let knn = &k.knn_contacts[self.contacts_warm as usize]
                     [Kernels::knn_slots(self.contact_k)];
@@ -1024,9 +1069,15 @@ impl GpuWorld {
                 if s.coarse_iterations > 0 && !self.coarse.is_empty() {
                     self.record_levels(&mut r, k);
                 }
+                // `body.wgsl`: all iterations of the bodies near no other at once (they
+                // meet nothing between two iterations), then one dispatch per iteration
+                // for those with contact candidates (only with particle contacts on).
+                if let Some((all, _)) = body {
+                    r.dispatch(w, "tissue/bodies", all, lv0, grid_2d(nb));
+                }
                 for _ in 0..s.iterations {
-                    if let Some(bk) = body {
-                        r.dispatch(w, "tissue/bodies", bk, lv0, grid_2d(nb));
+                    if let (Some((_, one)), true) = (body, self.contacts_on) {
+                        r.dispatch(w, "tissue/bodies", one, lv0, grid_2d(nb));
                     }
                     if !all_in_body {
                         r.dispatch(w, "tissue/clusters", cp, lv0, cg);

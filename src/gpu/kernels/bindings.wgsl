@@ -58,6 +58,12 @@ fn asleep(i: u32) -> bool {
     return bodies[pinfo[i].x].asleep != 0u;
 }
 
+// Whether body b was near another at the last contact refresh (broad.wgsl; the flags
+// follow the 2 n_bodies boxes in `bounds`): only then can its particles have contacts.
+fn near_body(b: u32) -> bool {
+    return bounds[2u * params.n_bodies + b].x != 0.0;
+}
+
 // Whether the cluster and gather kernels leave particle (or cluster) i alone: its body
 // sleeps, or body.wgsl solves it.
 fn passed_over(b: Body) -> bool {

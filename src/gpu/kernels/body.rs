@@ -1,6 +1,8 @@
-//! One Jacobi iteration of every small shape-matching body, a workgroup per body, its
+//! Jacobi iterations of every small shape-matching body, a workgroup per body, its
 //! positions, rest records and corrections in workgroup memory (passes A and B in one
-//! dispatch).
+//! dispatch): all iterations of a substep at once for the bodies near no other
+//! (`body_substep`), one per dispatch for those with contact candidates
+//! (`body_iteration`, the contact pass between).
 //!
 //! Source: `body.wgsl` (with `common.wgsl`, `bindings.wgsl`, `range.wgsl`, `moments.wgsl`
 //! and `gather.wgsl` prepended: the moments, the rotation, the correction and the
@@ -17,7 +19,7 @@ pub const SOURCE: &str = concat!(
 );
 
 /// Entry points of the module.
-pub const ENTRY_POINTS: &[&str] = &["body_iteration"];
+pub const ENTRY_POINTS: &[&str] = &["body_substep", "body_iteration"];
 
 /// Largest body (particles) the kernel takes (`BODY_MAX` in `body.wgsl`).
 pub const BODY_MAX: u32 = 512;

@@ -1,8 +1,12 @@
-// One Jacobi iteration (passes A and B) of every small shape-matching body, a workgroup
-// per body: the body's predicted positions and rest records are read once into
-// workgroup memory, every cluster is solved from there (its members' reads are
-// workgroup-memory hits instead of L2 round trips), the corrections stay in workgroup
-// memory, and every particle gathers them. One dispatch per iteration instead of two.
+// Jacobi iterations (passes A and B) of every small shape-matching body, a workgroup per
+// body: the body's predicted positions and rest records are read once into workgroup
+// memory, every cluster is solved from there (its members' reads are workgroup-memory
+// hits instead of L2 round trips), the corrections stay in workgroup memory, and every
+// particle gathers them. A body near no other (broad.wgsl; or any body without particle
+// contacts) runs all iterations of a substep in one dispatch (`body_substep`: nothing
+// outside the body acts on it between two iterations, so its positions and cluster
+// rotations stay in the workgroup); a body with contact candidates runs one iteration
+// per dispatch (`body_iteration`), the contact pass between two.
 // The arithmetic is the cluster and gather kernels' (the gather adds a particle's
 // corrections in inverse-list order, as the CPU twin does, instead of in four lanes).
 // CPU twin: core::solver (Jacobi passes A and B) with
@@ -17,6 +21,7 @@ var<workgroup> sp: array<vec4<f32>, BODY_MAX>;   // the body's predicted positio
 var<workgroup> sr: array<vec4<f32>, BODY_MAX>;   // its rest records (X, m)
 var<workgroup> sq: array<vec4<f32>, BODY_MAX>;   // per cluster: rotation (quaternion)
 var<workgroup> st: array<vec4<f32>, BODY_MAX>;   // per cluster: (a t, a)
+var<workgroup> wg_flag: u32;                      // body_substep: whether it solves the body
 
 // Members j.x..j.w (local indices) added in that order.
 fn add_four_local(t: MomentSums, j: vec4<u32>, origin: vec3<f32>, com: vec3<f32>) -> MomentSums {
@@ -26,20 +31,52 @@ fn add_four_local(t: MomentSums, j: vec4<u32>, origin: vec3<f32>, com: vec3<f32>
     return add_member(u, sp[j.w].xyz, sr[j.w], origin, com);
 }
 
-// Cluster c's moments (members in list order, as moments_from) from workgroup memory,
-// its first loads issued by moments_start; `first` is the body's first particle.
-fn local_moments(c: u32, first: u32) -> Moments {
-    let ms = moments_start(c);
-    let end = ms.end;
-    let com = ms.com_mass.xyz;
-    let origin = sp[ms.first - first].xyz;
+// What a particle's passes A and B read besides positions and corrections: the same in
+// every iteration, so `body_substep` loads it once per substep.
+struct LocalConst {
+    start: u32,              // its cluster's members: lists[start..end]
+    end: u32,
+    s0: u32,                 // the clusters that contain it: lists[s0..s1]
+    s1: u32,
+    com_mass: vec4<f32>,     // its cluster's rest centre (m) and mass (kg)
+    alpha: f32,              // the cluster's Jacobi stiffness k_iter ω / s_c
+    origin: u32,             // the cluster's first member (body-local)
+};
+
+fn local_const(body: Body, t: u32) -> LocalConst {
+    let c = body.first + t;
+    let i0 = pinfo[c];
+    let i1 = pinfo[c + 1u];
+    return LocalConst(
+        i0.w,
+        i1.w,
+        params.inv_offset + i0.z,
+        params.inv_offset + i1.z,
+        crest[c].com_mass,
+        body.k_iter * params.omega * crest[c].weight.x,
+        lists[i0.w] - body.first,
+    );
+}
+
+// Cluster moments (members in list order, as moments_from) from workgroup memory;
+// `first` is the body's first particle.
+fn local_moments(k: LocalConst, first: u32) -> Moments {
+    let end = k.end;
+    let com = k.com_mass.xyz;
+    let origin = sp[k.origin].xyz;
     let z = vec3<f32>(0.0);
     var t = MomentSums(z, z, z, z, z);
-    var s = ms.start;
+    var s = k.start;
     let f4 = vec4<u32>(first);
     // The indices of the next two rounds of four are loaded while this round is added.
-    var jn = ms.jn;
-    var jm = ms.jm;
+    var jn = vec4<u32>(0u);
+    var jm = vec4<u32>(0u);
+    if (s + 4u <= end) {
+        jn = lists4(s);
+    }
+    if (s + 8u <= end) {
+        jm = lists4(s + 4u);
+    }
     loop {
         if (s + 4u > end) {
             break;
@@ -57,9 +94,72 @@ fn local_moments(c: u32, first: u32) -> Moments {
         let j = lists[s] - first;
         t = add_member(t, sp[j].xyz, sr[j], origin, com);
     }
-    return moments_of(t, origin, ms.com_mass);
+    return moments_of(t, origin, k.com_mass);
 }
 
+// Pass A for cluster first + t: its rotation (warm-started from `rot`) and correction
+// to workgroup memory; returns the rotation.
+fn solve_local_cluster(k: LocalConst, first: u32, t: u32, rot: vec4<f32>) -> vec4<f32> {
+    let mo = local_moments(k, first);
+    let q = extract_rotation(mo.apq, rot, params.rot_iters);
+    let r = quat_mat(q);
+    sq[t] = q;
+    st[t] = vec4<f32>((mo.com - r * mo.rest_com) * k.alpha, k.alpha);
+    return q;
+}
+
+// Pass B for particle first + t: Σ over the clusters that contain it of a (R X + t)
+// (xyz) and a (w), in inverse-list order (the CPU's).
+fn gather_local(k: LocalConst, first: u32, t: u32) -> vec4<f32> {
+    let xr = sr[t].xyz;
+    var acc = vec4<f32>(0.0);
+    let base = k.s0;
+    let n = k.s1 - k.s0;
+    let f4 = vec4<u32>(first);
+    // Four indices at a time, the next four loaded while these are added.
+    var on = vec4<u32>(0u);
+    if (n >= 4u) {
+        on = lists4(base);
+    }
+    var s = 0u;
+    loop {
+        if (s + 4u > n) {
+            break;
+        }
+        let o = on - f4;
+        let sn = base + s + 4u;
+        if (s + 8u <= n) {
+            on = lists4(sn);
+        }
+        acc = acc + rigid_part(sq[o.x], st[o.x], xr);
+        acc = acc + rigid_part(sq[o.y], st[o.y], xr);
+        acc = acc + rigid_part(sq[o.z], st[o.z], xr);
+        acc = acc + rigid_part(sq[o.w], st[o.w], xr);
+        s = s + 4u;
+    }
+    for (; s < n; s = s + 1u) {
+        let o = lists[base + s] - first;
+        acc = acc + rigid_part(sq[o], st[o], xr);
+    }
+    return acc;
+}
+
+// Loads body b's positions and rest records into workgroup memory.
+fn load_body(body: Body, lid: u32) {
+    let count = min(body.count, BODY_MAX);
+    for (var t = lid; t < count; t = t + BODY_WG) {
+        sp[t] = p[body.first + t];
+        sr[t] = rest[body.first + t];
+    }
+}
+
+// Whether a body with particle contacts has candidates now (broad.wgsl): then its
+// iterations are dispatched one at a time, the contact pass between.
+fn in_contact(b: u32) -> bool {
+    return range.flag != 0u && near_body(b);
+}
+
+// One iteration of the bodies near another (the others ran `body_substep`).
 @compute @workgroup_size(512)
 fn body_iteration(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -71,26 +171,19 @@ fn body_iteration(
         return;
     }
     let body = bodies[b];
-    // A sleeping body, or one the cluster and gather kernels solve, is left alone (every
-    // thread still meets the barriers).
-    let awake = body.asleep == 0u && body.in_wg != 0u;
-    let first = body.first;
+    // A sleeping body, one the cluster and gather kernels solve, or one body_substep
+    // solved, is left alone (every thread still meets the barriers).
+    let awake = body.asleep == 0u && body.in_wg != 0u && in_contact(b);
     let count = min(body.count, BODY_MAX);
-    for (var t = lid; t < count; t = t + BODY_WG) {
-        sp[t] = p[first + t];
-        sr[t] = rest[first + t];
+    if (awake) {
+        load_body(body, lid);
     }
     workgroupBarrier();
     // Pass A: every cluster (one per particle) from the same positions.
     for (var t = lid; t < count; t = t + BODY_WG) {
         if (awake) {
-            let c = first + t;
-            let mo = local_moments(c, first);
-            let alpha = body.k_iter * params.omega * crest[c].weight.x;
-            let rot = extract_rotation(mo.apq, cstate[c].rot, params.rot_iters);
-            let r = quat_mat(rot);
-            sq[t] = rot;
-            st[t] = vec4<f32>((mo.com - r * mo.rest_com) * alpha, alpha);
+            let c = body.first + t;
+            let rot = solve_local_cluster(local_const(body, t), body.first, t, cstate[c].rot);
             cstate[c].rot = rot;
         }
     }
@@ -98,40 +191,62 @@ fn body_iteration(
     // Pass B: every particle adds the corrections of the clusters that contain it.
     for (var t = lid; t < count; t = t + BODY_WG) {
         if (awake) {
-            let j = first + t;
-            let s0 = pinfo[j].z;
-            let s1 = pinfo[j + 1u].z;
-            let xr = sr[t].xyz;
-            var acc = vec4<f32>(0.0);
-            let base = params.inv_offset + s0;
-            let n = s1 - s0;
-            let f4 = vec4<u32>(first);
-            // Four indices at a time, the next four loaded while these are added.
-            var on = vec4<u32>(0u);
-            if (n >= 4u) {
-                on = lists4(base);
-            }
-            var s = 0u;
-            loop {
-                if (s + 4u > n) {
-                    break;
-                }
-                let o = on - f4;
-                let sn = base + s + 4u;
-                if (s + 8u <= n) {
-                    on = lists4(sn);
-                }
-                acc = acc + rigid_part(sq[o.x], st[o.x], xr);
-                acc = acc + rigid_part(sq[o.y], st[o.y], xr);
-                acc = acc + rigid_part(sq[o.z], st[o.z], xr);
-                acc = acc + rigid_part(sq[o.w], st[o.w], xr);
-                s = s + 4u;
-            }
-            for (; s < n; s = s + 1u) {
-                let o = lists[base + s] - first;
-                acc = acc + rigid_part(sq[o], st[o], xr);
-            }
-            store_gathered(j, sp[t].xyz, acc);
+            let acc = gather_local(local_const(body, t), body.first, t);
+            store_gathered(body.first + t, sp[t].xyz, acc, b);
         }
+    }
+}
+
+// All `params.iterations` iterations of a substep for every awake body it solves that is
+// near no other (or, without particle contacts, every one): positions and rotations stay
+// in the workgroup between iterations, each particle's pins and colliders applied after
+// every iteration as `store_gathered` does; p and the rotations written at the end. The
+// same arithmetic as `body_iteration` dispatched `iterations` times.
+@compute @workgroup_size(512)
+fn body_substep(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let b = wid.x + wid.y * nwg.x;
+    if (b >= params.n_bodies) {
+        return;
+    }
+    let body = bodies[b];
+    if (lid == 0u) {
+        wg_flag = u32(body.asleep == 0u && body.in_wg != 0u && !in_contact(b));
+    }
+    if (workgroupUniformLoad(&wg_flag) == 0u) {
+        return;
+    }
+    load_body(body, lid);
+    // BODY_WG = BODY_MAX: thread t owns cluster and particle t.
+    let t = lid;
+    let mine = t < min(body.count, BODY_MAX);
+    let c = body.first + t;
+    var rot = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    var k: LocalConst;
+    if (mine) {
+        rot = cstate[c].rot;
+        k = local_const(body, t);
+    }
+    workgroupBarrier();
+    for (var it = 0u; it < params.iterations; it = it + 1u) {
+        if (mine) {
+            rot = solve_local_cluster(k, body.first, t, rot);
+        }
+        workgroupBarrier();
+        if (mine) {
+            let acc = gather_local(k, body.first, t);
+            let pj = sp[t].xyz;
+            // Pass B reads only its own position, so it may be replaced at once.
+            sp[t] = vec4<f32>(boundary(c, pj + (acc.xyz - acc.w * pj)), 0.0);
+        }
+        // The next pass A reads the new positions and overwrites the corrections.
+        workgroupBarrier();
+    }
+    if (mine) {
+        p[c] = sp[t];
+        cstate[c].rot = rot;
     }
 }

@@ -26,6 +26,7 @@ struct Params {
     n_bodies: u32,
     knn_cell: f32,           // grid cell edge of the all-particle search, m
     spare_stride: u32,       // entries per particle in `spare` (neighbour search)
+    iterations: u32,         // Jacobi iterations per substep (body.wgsl's body_substep)
 };
 
 // Per body, per frame: world → entity-local affine map for drawing, and where the

@@ -210,30 +210,25 @@ fn gather(
     for (var l = 1u; l < LANES; l = l + 1u) {
         acc = acc + part[lid + l];
     }
-    store_gathered(j, p[j].xyz, acc);
+    store_gathered(j, p[j].xyz, acc, pinfo[j].x);
 }
 
 // Particle j at pj moved by its gathered corrections `acc` (Σ a (R X + t), Σ a): to p
 // after its pins and colliders, or to p2 when the contact pass follows (`range.flag`).
 // Shared by the gather and body.wgsl.
-fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>) {
+fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
     let out = pj + (acc.xyz - acc.w * pj);
-    if (range.flag == 0u) {
+    if (range.flag == 0u || !near_body(body)) {
         p[j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
         p2[j] = vec4<f32>(out, 0.0);
     }
 }
 
-@compute @workgroup_size(128)
-fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let j = gid.x;
-    if (j >= params.n) {
-        return;
-    }
+// The contact pass of particle j (a body near another: the gather left it in p2).
+fn contact_particle(j: u32, bj: u32) {
     let pj = p2[j].xyz;
     var q = pj;
-    let bj = pinfo[j].x;
     let wj = inv_mass(j);
     var sum = vec3<f32>(0.0);
     var cnt = 0u;
@@ -262,4 +257,17 @@ fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
         q = q + sum / f32(cnt);
     }
     p[j] = vec4<f32>(boundary(j, q), 0.0);
+}
+
+@compute @workgroup_size(128)
+fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    let bj = pinfo[j].x;
+    // A body near no other has no contacts: the gather wrote its particles to p.
+    if (near_body(bj)) {
+        contact_particle(j, bj);
+    }
 }

@@ -238,7 +238,16 @@ fn knn_all(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 @compute @workgroup_size(128)
 fn knn_contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x < params.n) {
-        knn_query(gid.x, 1u);
+    let i = gid.x;
+    if (i >= params.n) {
+        return;
     }
+    // Broad phase (broad.wgsl): a body near no other has no candidates.
+    if (!near_body(pinfo[i].x)) {
+        for (var s = 0u; s < params.contact_k; s = s + 1u) {
+            contacts[i * params.contact_k + s] = NONE;
+        }
+        return;
+    }
+    knn_query(i, 1u);
 }

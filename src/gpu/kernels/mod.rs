@@ -9,6 +9,7 @@
 //! the binary (`include_str!`), so a user of the crate copies no files.
 
 pub mod body;
+pub mod broad;
 pub mod cluster;
 pub mod forces;
 pub mod gather;
@@ -60,6 +61,14 @@ fn storage(binding: u32, read_only: bool) -> BindGroupLayoutEntry {
     }
 }
 
+/// The two entry points of `body.wgsl`.
+pub struct BodyKernels {
+    /// All iterations of a substep for the bodies near no other.
+    pub substep: ComputePipeline,
+    /// One iteration for the bodies with contact candidates.
+    pub iteration: ComputePipeline,
+}
+
 /// All compiled pipelines and bind group layouts (one per device, shared by every world).
 pub struct Kernels {
     /// Group 0 of every kernel.
@@ -79,6 +88,8 @@ pub struct Kernels {
     pub grid_clear: ComputePipeline,
     /// `forces.wgsl`: each body's bounding box.
     pub body_bounds: ComputePipeline,
+    /// `broad.wgsl`: which bodies are near another (contact broad phase).
+    pub near_bodies: ComputePipeline,
     /// `forces.wgsl`: zero the totals.
     pub force_clear: ComputePipeline,
     /// `grid.wgsl`: cell counts.
@@ -105,7 +116,7 @@ pub struct Kernels {
     pub contact: ComputePipeline,
     /// `body.wgsl`: passes A and B of small shape-matching bodies, a workgroup each;
     /// `None` where the adapter's workgroups are too small for it.
-    pub body: Option<ComputePipeline>,
+    pub body: Option<BodyKernels>,
     /// `hierarchy.wgsl`: positions at the start of the coarse pass.
     pub level_snapshot: ComputePipeline,
     /// `hierarchy.wgsl`: level-0 positions into a coarse level.
@@ -195,6 +206,7 @@ impl Kernels {
         let body_m = body_fits.then(|| module("tissue body", body::SOURCE));
         let hier_m = module("tissue hierarchy", hierarchy::SOURCE);
         let forces_m = module("tissue forces", forces::SOURCE);
+        let broad_m = module("tissue broad phase", broad::SOURCE);
         let skin_m = module("tissue skin", skin::SOURCE);
         let pipe = |m: &bevy::render::render_resource::ShaderModule,
                     l: &bevy::render::render_resource::PipelineLayout,
@@ -217,6 +229,7 @@ impl Kernels {
             grid_clear: pipe(&grid_m, &with_scan, "grid_clear"),
             force_clear: pipe(&forces_m, &world_only, "force_clear"),
             body_bounds: pipe(&forces_m, &world_only, "body_bounds"),
+            near_bodies: pipe(&broad_m, &world_only, "near_bodies"),
             grid_count: pipe(&grid_m, &with_scan, "grid_count"),
             scan_block: pipe(&grid_m, &with_scan, "scan_block"),
             scan_add: pipe(&grid_m, &with_scan, "scan_add"),
@@ -231,7 +244,10 @@ impl Kernels {
             clusters_lanes: pipe(&cluster_m, &with_scan, "solve_clusters_lanes"),
             gather: pipe(&gather_m, &with_scan, "gather"),
             contact: pipe(&gather_m, &world_only, "contact"),
-            body: body_m.map(|m| pipe(&m, &with_scan, "body_iteration")),
+            body: body_m.map(|m| BodyKernels {
+                substep: pipe(&m, &with_scan, "body_substep"),
+                iteration: pipe(&m, &with_scan, "body_iteration"),
+            }),
             level_snapshot: pipe(&hier_m, &world_only, "level_snapshot"),
             level_in: pipe(&hier_m, &with_scan, "level_in"),
             level_out: pipe(&hier_m, &with_scan, "level_out"),

@@ -1,0 +1,15 @@
+//! Broad phase of the particle contacts: which bodies are near another (their bounding
+//! boxes within the contact reach), so that the contact search and pass skip the others.
+//!
+//! Source: `broad.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
+//! CPU twin: [`crate::core::knn::near_bodies`].
+
+/// WGSL source of this kernel's module.
+pub const SOURCE: &str = concat!(
+    include_str!("common.wgsl"),
+    include_str!("bindings.wgsl"),
+    include_str!("broad.wgsl")
+);
+
+/// Entry points of the module.
+pub const ENTRY_POINTS: &[&str] = &["near_bodies"];
