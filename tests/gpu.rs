@@ -386,24 +386,53 @@ fn assert_contact_lists(g: &Headless, world: &GpuWorld, cpu: &Solver, label: &st
 #[test]
 fn small_shape_matching_bodies_in_a_workgroup_each_match_the_cpu() {
     // Three 300-particle balls dropped side by side onto the ground (contacts on, the
-    // balls apart: stacked balls make the comparison with the CPU chaotic): every body
-    // fits `body.wgsl` (a workgroup per body, one dispatch per iteration).
+    // balls apart: stacked balls make the comparison with the CPU chaotic), and a fourth
+    // like the first beside it, within the contact reach but not touching (they fall
+    // alike): the contact broad phase finds the first and the fourth near each other,
+    // so they run one iteration per dispatch with the contact pass between, and the
+    // other two all iterations of a substep in one dispatch. Every body fits `body.wgsl`.
     let Some(g) = gpu() else { return };
-    let mut model = Model::new();
     let mesh = procedural::icosphere(0.03, 2);
-    for (i, at) in [
-        Vec3::new(-0.1, 0.04, 0.0),
-        Vec3::new(0.0, 0.06, 0.0),
-        Vec3::new(0.1, 0.08, 0.01),
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        let m = Material::ShapeMatching {
-            stiffness: 0.6 + 0.1 * i as f32,
-        };
-        model.add_body(&mesh, &body(m, at, 300, vec![])).unwrap();
-    }
+    let stiffness = [0.6, 0.7, 0.8, 0.6];
+    let build = |beside: f32| {
+        let mut model = Model::new();
+        for (i, at) in [
+            Vec3::new(-0.1, 0.04, 0.0),
+            Vec3::new(0.0, 0.06, 0.0),
+            Vec3::new(0.1, 0.08, 0.01),
+            Vec3::new(-0.1 - beside, 0.04, 0.0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let m = Material::ShapeMatching {
+                stiffness: stiffness[i],
+            };
+            model.add_body(&mesh, &body(m, at, 300, vec![])).unwrap();
+        }
+        model
+    };
+    // The gap between the first and the fourth ball's particles: 3 particle radii (the
+    // contact distance is 2, the reach 4).
+    let gap = |model: &Model| {
+        let x = model.placed_rest();
+        let (a, d) = (&model.bodies[0], &model.bodies[3]);
+        let mut min = f32::MAX;
+        for i in a.first..a.first + a.count {
+            for j in d.first..d.first + d.count {
+                min = min.min(x[i as usize].distance(x[j as usize]));
+            }
+        }
+        min
+    };
+    let trial = build(0.07);
+    let r = trial.bodies[0].radius;
+    let model = build(0.07 + 3.0 * r - gap(&trial));
+    let d = gap(&model);
+    assert!(
+        d > 2.2 * r && d < 3.8 * r,
+        "the fourth ball must be within the reach without touching: gap {d} m, radius {r} m"
+    );
     let colliders = [Collider::ground(0.0)];
     let (cpu, _) = run_cpu(&model, &colliders, 200);
     let mut runs = Vec::new();
@@ -423,6 +452,13 @@ fn small_shape_matching_bodies_in_a_workgroup_each_match_the_cpu() {
             "cluster and gather kernels"
         };
         assert_close_after_200_steps(label, &model, &x, &cpu.x);
+        // The broad phase's flags (after the two boxes per body in `bounds`).
+        let nb = model.bodies.len();
+        let words = read_u32(&g.device, &g.queue, world.bounds(), (3 * nb * 4) as u64);
+        let near: Vec<bool> = (0..nb)
+            .map(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
+            .collect();
+        assert_eq!(near, [true, false, false, true], "{label}: near flags");
         runs.push(x);
     }
     // The two GPU paths differ only in the order of the gather's sums.

@@ -74,3 +74,121 @@ fn query_off_points_and_k_too_large() {
     assert!(knn_all(&pts, 500, 1).is_none(), "K = n must be refused");
     assert!(knn_brute_force(&pts, 500).is_none());
 }
+
+/// The contact broad phase (`near_bodies`) is conservative: every pair of particles of
+/// two bodies within the largest contact reach marks both bodies near, and it is exact
+/// for its boxes (a body is near another only if its grown box overlaps that box).
+#[test]
+fn contact_broad_phase_is_conservative_and_exact_for_boxes() {
+    use bevy_tissue::core::knn::{body_boxes, contact_reach_bound, near_bodies};
+    let mut rng = Rng(0x2545f4914f6cdd1d);
+    let max_r = 0.01;
+    let reach = contact_reach_bound(max_r);
+    let (mut some_near, mut some_apart) = (false, false);
+    for trial in 0..20 {
+        // 12 clouds of 30 points, centres spread so that some are near and some apart.
+        let mut x = Vec::new();
+        let mut ranges = Vec::new();
+        for _ in 0..12 {
+            let c = rng.vec3() * 0.3;
+            ranges.push((x.len() as u32, 30u32));
+            for _ in 0..30 {
+                x.push(c + rng.vec3() * 0.05);
+            }
+        }
+        let boxes = body_boxes(&x, ranges.iter().copied());
+        let near = near_bodies(&boxes, reach);
+        for (a, &(fa, ca)) in ranges.iter().enumerate() {
+            for (b, &(fb, cb)) in ranges.iter().enumerate() {
+                if a == b {
+                    continue;
+                }
+                let close = (fa..fa + ca).any(|i| {
+                    (fb..fb + cb).any(|j| x[i as usize].distance(x[j as usize]) <= 4.0 * max_r)
+                });
+                if close {
+                    assert!(
+                        near[a] && near[b],
+                        "trial {trial}: bodies {a}, {b} within reach"
+                    );
+                }
+            }
+            let overlaps = (0..ranges.len()).any(|b| {
+                b != a
+                    && (0..3).all(|k| {
+                        boxes[a].0[k] - reach <= boxes[b].1[k]
+                            && boxes[b].0[k] <= boxes[a].1[k] + reach
+                    })
+            });
+            assert_eq!(near[a], overlaps, "trial {trial}, body {a}");
+        }
+        some_near |= near.iter().any(|n| *n);
+        some_apart |= near.iter().any(|n| !n);
+    }
+    assert!(
+        some_near && some_apart,
+        "the trials must have near and isolated bodies"
+    );
+}
+
+/// The solver's contact candidates with the broad phase equal a search of every
+/// particle (the k nearest of other bodies within its reach) without it.
+#[test]
+fn contact_lists_with_the_broad_phase_equal_a_full_search() {
+    use bevy_tissue::core::model::{BodyDesc, Material, Model};
+    use bevy_tissue::core::procedural;
+    use bevy_tissue::core::sampling::Resolution;
+    use bevy_tissue::core::solver::{Solver, SolverSettings, State};
+    let mut model = Model::new();
+    let sphere = procedural::icosphere(0.03, 2);
+    // Three touching balls and two apart.
+    for at in [
+        Vec3::ZERO,
+        Vec3::new(0.058, 0.0, 0.0),
+        Vec3::new(0.0, 0.058, 0.0),
+        Vec3::new(0.3, 0.0, 0.0),
+        Vec3::new(0.0, 0.0, 0.4),
+    ] {
+        let desc = BodyDesc {
+            resolution: Resolution::Particles(250),
+            material: Material::default(),
+            translation: at,
+            ..Default::default()
+        };
+        model.add_body(&sphere, &desc).unwrap();
+    }
+    let state = State::new(&model);
+    let settings = SolverSettings::default();
+    let k = settings.contact_neighbours as usize;
+    let mut solver = Solver::new(&model, settings).unwrap();
+    solver.refresh_contacts(&model, &state.x);
+    let (start, list) = solver.contact_lists();
+    let grid = Grid::build(&state.x, 2.0);
+    let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
+    let mut buf = Vec::new();
+    let mut with = vec![0usize; model.bodies.len()];
+    for (i, &q) in state.x.iter().enumerate() {
+        let bi = model.particle_body[i];
+        let reach = 2.0 * (model.bodies[bi as usize].radius + max_r);
+        grid.knn_filtered(
+            q,
+            k,
+            reach,
+            |j| model.particle_body[j as usize] != bi,
+            &mut buf,
+        );
+        let want: Vec<u32> = buf.iter().map(|&(_, j)| j).collect();
+        assert_eq!(
+            &list[start[i] as usize..start[i + 1] as usize],
+            &want[..],
+            "particle {i}"
+        );
+        with[bi as usize] += !want.is_empty() as usize;
+    }
+    // The scene has what it claims: candidates on the first three balls, none on the
+    // last two.
+    assert!(
+        with[..3].iter().all(|&c| c > 0) && with[3..] == [0, 0],
+        "{with:?}"
+    );
+}
