@@ -129,6 +129,17 @@ fn contact_broad_phase_is_conservative_and_exact_for_boxes() {
         some_near && some_apart,
         "the trials must have near and isolated bodies"
     );
+    // Beyond the pair-test limit every body counts as near (conservative).
+    use bevy_tissue::core::knn::BROAD_MAX_BODIES;
+    let apart: Vec<(Vec3, Vec3)> = (0..=BROAD_MAX_BODIES)
+        .map(|i| (Vec3::splat(i as f32), Vec3::splat(i as f32 + 0.1)))
+        .collect();
+    assert!(near_bodies(&apart, reach).iter().all(|n| *n));
+    assert!(
+        near_bodies(&apart[..BROAD_MAX_BODIES], reach)
+            .iter()
+            .all(|n| !n)
+    );
 }
 
 /// The solver's contact candidates with the broad phase equal a search of every

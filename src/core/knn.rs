@@ -229,13 +229,21 @@ pub fn contact_reach_bound(max_radius: f32) -> f32 {
     4.0 * max_radius * 1.001 + 1.0e-6
 }
 
+/// Bodies beyond which the contact broad phase ([`near_bodies`]) counts every body as
+/// near another instead of testing all pairs (`BROAD_MAX_BODIES` in `broad.wgsl`).
+pub const BROAD_MAX_BODIES: usize = 2048;
+
 /// Broad phase of the particle contacts: per body, whether its bounding box `boxes[b]`
 /// (min, max; m), grown by `reach` (m) on every side, overlaps another body's box. A body
 /// that is near no other has no contact candidates, and no other body's particle has one
 /// of its particles as candidate, so its contact search, its contact pass and its copy
-/// through the contact buffer are skipped, with the same result. O(bodies²) box tests.
-/// GPU twin: `near_bodies` in `broad.wgsl`.
+/// through the contact buffer are skipped, with the same result. O(bodies²) box tests, so
+/// above [`BROAD_MAX_BODIES`] bodies every body counts as near (no skipping, the same
+/// result). GPU twin: `near_bodies` in `broad.wgsl`.
 pub fn near_bodies(boxes: &[(Vec3, Vec3)], reach: f32) -> Vec<bool> {
+    if boxes.len() > BROAD_MAX_BODIES {
+        return vec![true; boxes.len()];
+    }
     boxes
         .iter()
         .enumerate()

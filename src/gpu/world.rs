@@ -2,8 +2,11 @@
 //! time steps and of the draw path into a command encoder.
 //!
 //! A step is the CPU Jacobi solver's step (`core::solver`, its twin) as dispatches:
-//! contact neighbours (grid + KNN, every `knn_every` steps), then per substep predict,
-//! `iterations` × (clusters, gather, contacts), collider forces, finish. Results are
+//! contact neighbours (every `knn_every` steps: the broad phase, which finds the bodies
+//! near another, then grid + KNN), then per substep predict, `iterations` × (clusters,
+//! gather, contacts), collider forces, finish. Small shape-matching bodies are solved a
+//! workgroup each (`body.wgsl`): all `iterations` at once for those near no other, one
+//! iteration per dispatch, the contact pass between, for the others. Results are
 //! deterministic: no float atomics, every sum in a fixed order.
 //!
 //! The world works on a bare `RenderDevice`/`RenderQueue`, so it runs inside Bevy's

@@ -170,10 +170,12 @@ fn body_iteration(
     if (b >= params.n_bodies) {
         return;
     }
+    // The flag's load is issued before the body record's, so that the two overlap.
+    let contact = in_contact(b);
     let body = bodies[b];
     // A sleeping body, one the cluster and gather kernels solve, or one body_substep
     // solved, is left alone (every thread still meets the barriers).
-    let awake = body.asleep == 0u && body.in_wg != 0u && in_contact(b);
+    let awake = contact && body.asleep == 0u && body.in_wg != 0u;
     let count = min(body.count, BODY_MAX);
     if (awake) {
         load_body(body, lid);

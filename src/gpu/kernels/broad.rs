@@ -13,3 +13,18 @@ pub const SOURCE: &str = concat!(
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["near_bodies"];
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn the_body_limit_matches_the_cpu_twin() {
+        let line = format!(
+            "const BROAD_MAX_BODIES: u32 = {}u;",
+            crate::core::knn::BROAD_MAX_BODIES
+        );
+        assert!(
+            super::SOURCE.contains(&line),
+            "broad.wgsl must declare `{line}`"
+        );
+    }
+}

@@ -10,6 +10,10 @@
 
 const BROAD_WG: u32 = 64u;
 
+// Above this many bodies every body counts as near (core::knn::BROAD_MAX_BODIES): the
+// pair tests grow with the square of the bodies.
+const BROAD_MAX_BODIES: u32 = 2048u;
+
 var<workgroup> near_hit: atomic<u32>;
 
 // One workgroup per body; its threads test every BROAD_WG-th other body.
@@ -20,13 +24,14 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
         return;
     }
     if (lid == 0u) {
-        atomicStore(&near_hit, 0u);
+        atomicStore(&near_hit, u32(params.n_bodies > BROAD_MAX_BODIES));
     }
     workgroupBarrier();
     let reach = 4.0 * params.max_radius * 1.001 + 1.0e-6;
     let lo = bounds[2u * b].xyz - vec3<f32>(reach);
     let hi = bounds[2u * b + 1u].xyz + vec3<f32>(reach);
-    for (var c = lid; c < params.n_bodies; c = c + BROAD_WG) {
+    let tested = select(params.n_bodies, 0u, params.n_bodies > BROAD_MAX_BODIES);
+    for (var c = lid; c < tested; c = c + BROAD_WG) {
         if (c != b) {
             let l = bounds[2u * c].xyz;
             let h = bounds[2u * c + 1u].xyz;
