@@ -626,8 +626,18 @@ pub struct GpuRange {
     /// Gather: 1 leaves contacts and the boundary to the contact pass (level 0 with
     /// particle contacts on).
     pub flag: u32,
+    /// Level 0 with contacts: the half of p2 (0 or 1) an iteration's pass B writes and
+    /// its contact pass reads (iterations alternate, so that `body.wgsl` can run one
+    /// iteration's contacts and the next one's passes in one dispatch).
+    pub half: u32,
+    /// `body_iteration`: 1 runs the previous iteration's contact pass for the body's
+    /// particles first (reading the other half of p2).
+    pub prev: u32,
+    /// Contact pass: 1 leaves the particles of `body.wgsl`'s bodies to the next
+    /// `body_iteration`.
+    pub skip: u32,
     /// Padding to the uniform offset alignment.
-    pub pad: [u32; 60],
+    pub pad: [u32; 57],
 }
 
 /// Grid parameters for `n` particles whose largest lattice spacing is `spacing` (m):

@@ -257,6 +257,8 @@ pub struct GpuWorld {
     /// particle range; then per coarse level its particle range, its prolongation
     /// records and its multiplier-transfer records (256 bytes each).
     level_group: BindGroup,
+    /// Record of level 0's first iteration record in `level_group` (eight of them).
+    iteration_records: u32,
     /// The hierarchy's coarse levels in the particle arrays.
     coarse: Vec<PackedLevel>,
     n: u32,
@@ -349,6 +351,9 @@ fn cluster_kernel(k: &Kernels, n: u32, lanes_below: u32) -> (&ComputePipeline, (
 }
 
 /// `g` workgroups as a 2-D grid within 65,535 per dimension.
+/// Bytes per range record in the level group (`GpuRange`).
+const REC: u32 = size_of::<GpuRange>() as u32;
+
 fn grid_2d(g: u32) -> (u32, u32) {
     if g <= 65_535 {
         (g, 1)
@@ -556,7 +561,14 @@ impl GpuWorld {
             x: init("tissue x", bytemuck::cast_slice(&x), st),
             v: init("tissue v", bytemuck::cast_slice(&v), st),
             p: init("tissue p", bytemuck::cast_slice(&x), st),
-            p2: init("tissue p2", bytemuck::cast_slice(&x), st),
+            // Two halves of level 0's particles (iterations alternate between them when
+            // particle contacts are on), and at least every level's (the hierarchy's
+            // snapshot).
+            p2: {
+                let mut p2 = x.clone();
+                p2.resize(p2.len().max(2 * n as usize), [0.0; 4]);
+                init("tissue p2", bytemuck::cast_slice(&p2), st)
+            },
             rest: init("tissue rest", bytemuck::cast_slice(&packed.rest), st),
             pinfo: init("tissue pinfo", bytemuck::cast_slice(&packed.pinfo), st),
             lists: init("tissue lists", bytemuck::cast_slice(&packed.lists), st),
@@ -651,7 +663,7 @@ impl GpuWorld {
             count,
             base,
             flag,
-            pad: [0; 60],
+            ..bytemuck::Zeroable::zeroed()
         };
         let mut lrecs = vec![range(0, n, 0, contacts_on as u32)];
         let coarsest = packed.levels.len().saturating_sub(1);
@@ -661,6 +673,17 @@ impl GpuWorld {
             lrecs.push(range(lv.first, lv.count, (l == coarsest) as u32, 0));
             lrecs.push(range(lv.rec_first, lv.rec_count, packed.records_base, 0));
             lrecs.push(range(lv.tr_first, lv.tr_count, packed.records_base, 0));
+        }
+        // Level 0's iteration records (after the coarse levels'): half | prev << 1 |
+        // skip << 2 (`GpuRange`; `record_steps` picks one per iteration).
+        let iteration_records = lrecs.len() as u32;
+        for v in 0..8u32 {
+            lrecs.push(GpuRange {
+                half: v & 1,
+                prev: (v >> 1) & 1,
+                skip: (v >> 2) & 1,
+                ..range(0, n, 0, contacts_on as u32)
+            });
         }
         let lrec_buf = init(
             "tissue level ranges",
@@ -675,7 +698,8 @@ impl GpuWorld {
                 resource: BindingResource::Buffer(BufferBinding {
                     buffer: &lrec_buf,
                     offset: 0,
-                    size: std::num::NonZeroU64::new(16),
+                    // The WGSL `Range` (28 bytes, rounded to 32).
+                    size: std::num::NonZeroU64::new(32),
                 }),
             }],
         );
@@ -741,6 +765,7 @@ impl GpuWorld {
             world_group,
             scan_group,
             level_group,
+            iteration_records,
             coarse: packed.levels.clone(),
             n,
             n_vertices: nv,
@@ -1078,16 +1103,27 @@ impl GpuWorld {
                 if let Some((all, _)) = body {
                     r.dispatch(w, "tissue/bodies", all, lv0, grid_2d(nb));
                 }
-                for _ in 0..s.iterations {
+                for it in 0..s.iterations {
+                    // Iterations alternate between the halves of p2. With `body.wgsl`, an
+                    // iteration's contact pass for its bodies runs at the start of the
+                    // next body_iteration (`prev`), so the contact dispatch leaves them
+                    // out (`skip`) but after the last iteration, and is not needed at all
+                    // before then when every body is `body.wgsl`'s.
+                    let folded = body.is_some() && self.contacts_on;
+                    let last = it + 1 == s.iterations;
+                    let v = (it % 2)
+                        | (((folded && it > 0) as u32) << 1)
+                        | (((folded && !last) as u32) << 2);
+                    let rec = Some((&self.level_group, (self.iteration_records + v) * REC));
                     if let (Some((_, one)), true) = (body, self.contacts_on) {
-                        r.dispatch(w, "tissue/bodies", one, lv0, grid_2d(nb));
+                        r.dispatch(w, "tissue/bodies", one, rec, grid_2d(nb));
                     }
                     if !all_in_body {
-                        r.dispatch(w, "tissue/clusters", cp, lv0, cg);
-                        r.dispatch(w, "tissue/gather", &k.gather, lv0, lg);
+                        r.dispatch(w, "tissue/clusters", cp, rec, cg);
+                        r.dispatch(w, "tissue/gather", &k.gather, rec, lg);
                     }
-                    if self.contacts_on {
-                        r.dispatch(w, "tissue/contacts", &k.contact, None, (g, 1));
+                    if self.contacts_on && (last || !(folded && all_in_body)) {
+                        r.dispatch(w, "tissue/contacts", &k.contact, rec, (g, 1));
                     }
                 }
                 if nc > 0 {
@@ -1111,7 +1147,6 @@ impl GpuWorld {
     /// its multipliers handed to the finer level.
     fn record_levels(&self, r: &mut Recording<'_, '_>, k: &Kernels) {
         let w = &self.world_group;
-        const REC: u32 = size_of::<GpuRange>() as u32;
         r.dispatch(
             w,
             "tissue/levels",

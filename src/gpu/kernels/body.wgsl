@@ -153,6 +153,19 @@ fn load_body(body: Body, lid: u32) {
     }
 }
 
+// The same for body b near another after an iteration whose contact pass left it (a
+// dispatch fewer per iteration): its positions are that pass's results for its particles,
+// from the other half of p2, where the previous body_iteration (or gather) left every
+// particle near another.
+fn load_body_after_contacts(body: Body, b: u32, lid: u32) {
+    let count = min(body.count, BODY_MAX);
+    for (var t = lid; t < count; t = t + BODY_WG) {
+        let j = body.first + t;
+        sp[t] = vec4<f32>(contact_position(j, b, 1u - range.half), 0.0);
+        sr[t] = rest[j];
+    }
+}
+
 // Whether a body with particle contacts has candidates now (broad.wgsl): then its
 // iterations are dispatched one at a time, the contact pass between.
 fn in_contact(b: u32) -> bool {
@@ -178,7 +191,11 @@ fn body_iteration(
     let awake = contact && body.asleep == 0u && body.in_wg != 0u;
     let count = min(body.count, BODY_MAX);
     if (awake) {
-        load_body(body, lid);
+        if (range.prev != 0u) {
+            load_body_after_contacts(body, b, lid);
+        } else {
+            load_body(body, lid);
+        }
     }
     workgroupBarrier();
     // Pass A: every cluster (one per particle) from the same positions.

@@ -221,13 +221,15 @@ fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
     if (range.flag == 0u || !near_body(body)) {
         p[j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
-        p2[j] = vec4<f32>(out, 0.0);
+        p2[range.half * params.n + j] = vec4<f32>(out, 0.0);
     }
 }
 
-// The contact pass of particle j (a body near another: the gather left it in p2).
-fn contact_particle(j: u32, bj: u32) {
-    let pj = p2[j].xyz;
+// The contact pass of particle j (a body near another: pass B left it in half `half` of
+// p2, its candidates too): its position after the contacts, pins and colliders.
+fn contact_position(j: u32, bj: u32, half: u32) -> vec3<f32> {
+    let h = half * params.n;
+    let pj = p2[h + j].xyz;
     var q = pj;
     let wj = inv_mass(j);
     var sum = vec3<f32>(0.0);
@@ -240,7 +242,7 @@ fn contact_particle(j: u32, bj: u32) {
         }
         let dist = bodies[pinfo[i].x].radius + bodies[bj].radius;
         let wi = inv_mass(i);
-        let delta = pj - p2[i].xyz;
+        let delta = pj - p2[h + i].xyz;
         let l2 = dot(delta, delta);
         let w = wj + wi;
         if (l2 >= dist * dist || l2 <= 1.0e-24 || w <= 0.0) {
@@ -256,9 +258,12 @@ fn contact_particle(j: u32, bj: u32) {
     if (cnt > 0u) {
         q = q + sum / f32(cnt);
     }
-    p[j] = vec4<f32>(boundary(j, q), 0.0);
+    return boundary(j, q);
 }
 
+// Pass C: every particle of a body near another (a body near no other has no contacts,
+// and pass B wrote its particles to p), except, with `range.skip`, those of body.wgsl's
+// bodies, whose next body_iteration runs their contacts first.
 @compute @workgroup_size(128)
 fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -266,8 +271,8 @@ fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let bj = pinfo[j].x;
-    // A body near no other has no contacts: the gather wrote its particles to p.
-    if (near_body(bj)) {
-        contact_particle(j, bj);
+    if (!near_body(bj) || (range.skip != 0u && bodies[bj].in_wg != 0u)) {
+        return;
     }
+    p[j] = vec4<f32>(contact_position(j, bj, range.half), 0.0);
 }

@@ -243,7 +243,7 @@ impl Kernels {
             clusters: pipe(&cluster_m, &with_scan, "solve_clusters"),
             clusters_lanes: pipe(&cluster_m, &with_scan, "solve_clusters_lanes"),
             gather: pipe(&gather_m, &with_scan, "gather"),
-            contact: pipe(&gather_m, &world_only, "contact"),
+            contact: pipe(&gather_m, &with_scan, "contact"),
             body: body_m.map(|m| BodyKernels {
                 substep: pipe(&m, &with_scan, "body_substep"),
                 iteration: pipe(&m, &with_scan, "body_iteration"),

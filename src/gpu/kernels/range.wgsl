@@ -8,6 +8,12 @@ struct Range {
     base: u32,      // prolong, transfer: start of the records in `hier`;
                     // level_in: 1 zeroes the level's multipliers (the coarsest level)
     flag: u32,      // gather: 1 leaves contacts and the boundary to the contact pass
+    half: u32,      // level 0 with contacts: the half of p2 (0, 1) this iteration's pass B
+                    // writes and its contact pass reads
+    prev: u32,      // body_iteration: 1 runs the previous iteration's contact pass for
+                    // its particles first (from the other half of p2)
+    skip: u32,      // contact: 1 leaves the particles of body.wgsl's bodies to the next
+                    // body_iteration
 };
 
 @group(1) @binding(0) var<uniform> range: Range;
