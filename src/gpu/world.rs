@@ -6,7 +6,9 @@
 //! near another, then grid + KNN), then per substep predict, `iterations` × (clusters,
 //! gather, contacts), collider forces, finish. Small shape-matching bodies are solved a
 //! workgroup each (`body.wgsl`): all `iterations` at once for those near no other, one
-//! iteration per dispatch, the contact pass between, for the others. Results are
+//! iteration per dispatch for the others, each starting with the contact pass of the
+//! iteration before for its body (the contact dispatch then only runs for the other
+//! bodies, and after the last iteration). Results are
 //! deterministic: no float atomics, every sum in a fixed order.
 //!
 //! The world works on a bare `RenderDevice`/`RenderQueue`, so it runs inside Bevy's

@@ -2,7 +2,8 @@
 //! positions, rest records and corrections in workgroup memory (passes A and B in one
 //! dispatch): all iterations of a substep at once for the bodies near no other
 //! (`body_substep`), one per dispatch for those with contact candidates
-//! (`body_iteration`, the contact pass between).
+//! (`body_iteration`, which starts with the previous iteration's contact pass for the
+//! body's particles).
 //!
 //! Source: `body.wgsl` (with `common.wgsl`, `bindings.wgsl`, `range.wgsl`, `moments.wgsl`
 //! and `gather.wgsl` prepended: the moments, the rotation, the correction and the

@@ -6,7 +6,8 @@
 // contacts) runs all iterations of a substep in one dispatch (`body_substep`: nothing
 // outside the body acts on it between two iterations, so its positions and cluster
 // rotations stay in the workgroup); a body with contact candidates runs one iteration
-// per dispatch (`body_iteration`), the contact pass between two.
+// per dispatch (`body_iteration`), which starts with the previous iteration's contact
+// pass for the body's particles (iterations alternate between two halves of p2).
 // The arithmetic is the cluster and gather kernels' (the gather adds a particle's
 // corrections in inverse-list order, as the CPU twin does, instead of in four lanes).
 // CPU twin: core::solver (Jacobi passes A and B) with
@@ -167,7 +168,7 @@ fn load_body_after_contacts(body: Body, b: u32, lid: u32) {
 }
 
 // Whether a body with particle contacts has candidates now (broad.wgsl): then its
-// iterations are dispatched one at a time, the contact pass between.
+// iterations are dispatched one at a time (body_iteration).
 fn in_contact(b: u32) -> bool {
     return range.flag != 0u && near_body(b);
 }
