@@ -79,8 +79,11 @@ pub struct GpuParams {
     pub spare_stride: u32,
     /// Jacobi iterations per substep (`body.wgsl`'s `body_substep` runs them all).
     pub iterations: u32,
+    /// The contact broad phase's reach, m: [`crate::core::knn::contact_reach_bound`] of
+    /// the largest particle radius.
+    pub contact_reach: f32,
     /// Padding to the WGSL struct's 16-byte multiple.
-    pub pad: [u32; 3],
+    pub pad: [u32; 2],
 }
 
 /// Candidates beyond K that a warm neighbour search may set aside before it falls back to

@@ -53,8 +53,6 @@ impl PassRecorder for NoTiming {}
 struct Recording<'e, 'r> {
     encoder: &'e mut CommandEncoder,
     pass: Option<ComputePass<'static>>,
-    /// Whether `pass` is a timed pass of one dispatch.
-    timed: bool,
     rec: &'r mut dyn PassRecorder,
 }
 
@@ -63,66 +61,7 @@ impl<'e, 'r> Recording<'e, 'r> {
         Self {
             encoder,
             pass: None,
-            timed: false,
             rec,
-        }
-    }
-
-    /// Opens the pass for a dispatch named `name`: its own pass when the recorder times
-    /// it (`timed`: closed after the dispatch), else the shared one.
-    fn open(&mut self, name: &'static str) {
-        let ts = self.rec.timestamps(name);
-        if let Some((qs, i)) = ts.as_ref() {
-            self.pass = None;
-            self.pass = Some(
-                self.encoder
-                    .begin_compute_pass(&ComputePassDescriptor {
-                        label: Some(name),
-                        timestamp_writes: Some(ComputePassTimestampWrites {
-                            query_set: qs,
-                            beginning_of_pass_write_index: Some(*i),
-                            end_of_pass_write_index: Some(*i + 1),
-                        }),
-                    })
-                    .forget_lifetime(),
-            );
-            self.timed = true;
-        } else if self.pass.is_none() {
-            self.pass = Some(
-                self.encoder
-                    .begin_compute_pass(&ComputePassDescriptor {
-                        label: Some("tissue"),
-                        timestamp_writes: None,
-                    })
-                    .forget_lifetime(),
-            );
-        }
-    }
-
-    /// Records one dispatch: `go` issues it on the prepared pass.
-    fn record(
-        &mut self,
-        world: &BindGroup,
-        name: &'static str,
-        pipeline: &ComputePipeline,
-        group1: Option<(&BindGroup, u32)>,
-        go: impl FnOnce(&mut ComputePass<'static>),
-    ) {
-        self.open(name);
-        let Some(pass) = self.pass.as_mut() else {
-            return;
-        };
-        self.rec.begin(pass, name);
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, world, &[]);
-        if let Some((g, off)) = group1 {
-            pass.set_bind_group(1, g, &[off]);
-        }
-        go(pass);
-        self.rec.end(pass);
-        if self.timed {
-            self.pass = None;
-            self.timed = false;
         }
     }
 
@@ -134,9 +73,41 @@ impl<'e, 'r> Recording<'e, 'r> {
         group1: Option<(&BindGroup, u32)>,
         workgroups: (u32, u32),
     ) {
-        self.record(world, name, pipeline, group1, |pass| {
-            pass.dispatch_workgroups(workgroups.0, workgroups.1, 1)
-        });
+        let ts = self.rec.timestamps(name);
+        let mut own;
+        let pass: &mut ComputePass<'static> = if ts.is_some() {
+            let timestamp_writes = ts.as_ref().map(|(qs, i)| ComputePassTimestampWrites {
+                query_set: qs,
+                beginning_of_pass_write_index: Some(*i),
+                end_of_pass_write_index: Some(*i + 1),
+            });
+            self.pass = None;
+            own = self
+                .encoder
+                .begin_compute_pass(&ComputePassDescriptor {
+                    label: Some(name),
+                    timestamp_writes,
+                })
+                .forget_lifetime();
+            &mut own
+        } else {
+            let enc = &mut *self.encoder;
+            self.pass.get_or_insert_with(|| {
+                enc.begin_compute_pass(&ComputePassDescriptor {
+                    label: Some("tissue"),
+                    timestamp_writes: None,
+                })
+                .forget_lifetime()
+            })
+        };
+        self.rec.begin(pass, name);
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, world, &[]);
+        if let Some((g, off)) = group1 {
+            pass.set_bind_group(1, g, &[off]);
+        }
+        pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
+        self.rec.end(pass);
     }
 }
 
@@ -352,10 +323,16 @@ fn cluster_kernel(k: &Kernels, n: u32, lanes_below: u32) -> (&ComputePipeline, (
     }
 }
 
-/// `g` workgroups as a 2-D grid within 65,535 per dimension.
+/// A workgroup per body for `nb` bodies, as the per-body kernels index them
+/// (`wid.x + wid.y * 65535`: `body_bounds`, `near_bodies`).
+fn per_body_groups(nb: u32) -> (u32, u32) {
+    (nb.min(65_535), nb.div_ceil(65_535))
+}
+
 /// Bytes per range record in the level group (`GpuRange`).
 const REC: u32 = size_of::<GpuRange>() as u32;
 
+/// `g` workgroups as a 2-D grid within 65,535 per dimension.
 fn grid_2d(g: u32) -> (u32, u32) {
     if g <= 65_535 {
         (g, 1)
@@ -603,7 +580,6 @@ impl GpuWorld {
             knn_out: unknown_lists(device, "tissue knn", n64 * knn_k.max(1) as u64, st),
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
             // Per body min and max, then per body the contact broad phase's flag.
-            // Per body min and max, then per body the contact broad phase's flag.
             bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 48, st),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
             grab: init("tissue grab", bytemuck::cast_slice(&grab), st),
@@ -750,7 +726,8 @@ impl GpuWorld {
             knn_cell,
             spare_stride,
             iterations: settings.iterations,
-            pad: [0; 3],
+            contact_reach: crate::core::knn::contact_reach_bound(packed.max_radius),
+            pad: [0; 2],
         };
         Ok(Self {
             settings,
@@ -932,8 +909,7 @@ impl GpuWorld {
         k: &Kernels,
         rec: &mut dyn PassRecorder,
     ) {
-        let nb = self.ranges.len() as u32;
-        let groups = (nb.min(65_535), nb.div_ceil(65_535));
+        let groups = per_body_groups(self.ranges.len() as u32);
         let mut r = Recording::new(encoder, rec);
         r.dispatch(
             &self.world_group,
@@ -1066,6 +1042,9 @@ impl GpuWorld {
             .filter(|_| self.body_kernel())
             .map(|b| (&b.substep, &b.iteration));
         let all_in_body = body.is_some() && self.body_fits.iter().all(|f| *f);
+        // With `body.wgsl` and contacts, an iteration's contact pass for its bodies runs
+        // at the start of the next body_iteration (see the iteration loop below).
+        let folded = body.is_some() && self.contacts_on;
         let nb = self.ranges.len() as u32;
         let mut r = Recording::new(encoder, rec);
         let w = &self.world_group;
@@ -1074,10 +1053,9 @@ impl GpuWorld {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
                 // Broad phase first: bodies near no other skip the search and the
                 // contact pass until the next refresh.
-                let bg = (nb.min(65_535), nb.div_ceil(65_535));
+                let bg = per_body_groups(nb);
                 r.dispatch(w, "tissue/broad", &k.body_bounds, None, bg);
                 r.dispatch(w, "tissue/broad", &k.near_bodies, None, bg);
-
                 self.record_grid(&mut r, k, false);
                 let knn = &k.knn_contacts[self.contacts_warm as usize]
                     [Kernels::knn_slots(self.contact_k)];
@@ -1106,12 +1084,11 @@ impl GpuWorld {
                     r.dispatch(w, "tissue/bodies", all, lv0, grid_2d(nb));
                 }
                 for it in 0..s.iterations {
-                    // Iterations alternate between the halves of p2. With `body.wgsl`, an
-                    // iteration's contact pass for its bodies runs at the start of the
-                    // next body_iteration (`prev`), so the contact dispatch leaves them
-                    // out (`skip`) but after the last iteration, and is not needed at all
-                    // before then when every body is `body.wgsl`'s.
-                    let folded = body.is_some() && self.contacts_on;
+                    // Iterations alternate between the halves of p2. With `folded`, an
+                    // iteration's contact pass for `body.wgsl`'s bodies runs at the start
+                    // of the next body_iteration (`prev`), so the contact dispatch leaves
+                    // them out (`skip`) but after the last iteration, and is not needed at
+                    // all before then when every body is `body.wgsl`'s.
                     let last = it + 1 == s.iterations;
                     let v = (it % 2)
                         | (((folded && it > 0) as u32) << 1)

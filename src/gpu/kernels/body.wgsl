@@ -260,7 +260,7 @@ fn body_substep(
             let acc = gather_local(k, body.first, t);
             let pj = sp[t].xyz;
             // Pass B reads only its own position, so it may be replaced at once.
-            sp[t] = vec4<f32>(boundary(c, pj + (acc.xyz - acc.w * pj)), 0.0);
+            sp[t] = vec4<f32>(boundary(c, gathered(pj, acc)), 0.0);
         }
         // The next pass A reads the new positions and overwrites the corrections.
         workgroupBarrier();

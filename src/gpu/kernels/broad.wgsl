@@ -1,6 +1,6 @@
 // Broad phase of the particle contacts, at each contact refresh: per body, whether its
 // bounding box (bounds[2b], bounds[2b + 1], from `body_bounds` on the same positions)
-// grown by the contact reach bound overlaps another body's box. Written to
+// grown by the contact reach bound (`params.contact_reach`) overlaps another body's box. Written to
 // bounds[2 n_bodies + b].x (1: near, 0: near no other). A body near no other gets empty
 // contact lists without a search (`knn_contacts`), runs all iterations of a substep in
 // one dispatch (body.wgsl, `body_substep`) or goes straight to p after the gather
@@ -27,7 +27,7 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
         atomicStore(&near_hit, u32(params.n_bodies > BROAD_MAX_BODIES));
     }
     workgroupBarrier();
-    let reach = 4.0 * params.max_radius * 1.001 + 1.0e-6;
+    let reach = params.contact_reach;
     let lo = bounds[2u * b].xyz - vec3<f32>(reach);
     let hi = bounds[2u * b + 1u].xyz + vec3<f32>(reach);
     let tested = select(params.n_bodies, 0u, params.n_bodies > BROAD_MAX_BODIES);
@@ -45,5 +45,3 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
         bounds[2u * params.n_bodies + b] = vec4<f32>(f32(atomicLoad(&near_hit)), 0.0, 0.0, 0.0);
     }
 }
-
-

@@ -27,6 +27,7 @@ struct Params {
     knn_cell: f32,           // grid cell edge of the all-particle search, m
     spare_stride: u32,       // entries per particle in `spare` (neighbour search)
     iterations: u32,         // Jacobi iterations per substep (body.wgsl's body_substep)
+    contact_reach: f32,      // broad phase: core::knn::contact_reach_bound(max_radius), m
 };
 
 // Per body, per frame: world → entity-local affine map for drawing, and where the

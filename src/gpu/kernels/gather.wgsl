@@ -213,11 +213,16 @@ fn gather(
     store_gathered(j, p[j].xyz, acc, pinfo[j].x);
 }
 
-// Particle j at pj moved by its gathered corrections `acc` (Σ a (R X + t), Σ a): to p
-// after its pins and colliders, or to p2 when the contact pass follows (`range.flag`).
-// Shared by the gather and body.wgsl.
+// A particle at pj moved by its gathered corrections `acc` (Σ a (R X + t), Σ a): the
+// Jacobi average pj + Σ a (R X + t − pj). Shared by the gather and body.wgsl.
+fn gathered(pj: vec3<f32>, acc: vec4<f32>) -> vec3<f32> {
+    return pj + (acc.xyz - acc.w * pj);
+}
+
+// Particle j at pj moved by its gathered corrections `acc`: to p after its pins and
+// colliders, or to p2 when the contact pass follows (`range.flag`, a body near another).
 fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
-    let out = pj + (acc.xyz - acc.w * pj);
+    let out = gathered(pj, acc);
     if (range.flag == 0u || !near_body(body)) {
         p[j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
