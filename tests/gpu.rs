@@ -469,6 +469,47 @@ fn small_shape_matching_bodies_in_a_workgroup_each_match_the_cpu() {
 }
 
 #[test]
+fn broad_phase_flags_match_the_cpu() {
+    // 600 small balls in a row, each pair of neighbours either within the contact reach
+    // or well beyond it (an irregular pattern): the GPU's near flags equal the CPU twin's
+    // (`knn::near_bodies`).
+    let Some(g) = gpu() else { return };
+    let mut one = Model::new();
+    let m = Material::ShapeMatching { stiffness: 1.0 };
+    one.add_body(&procedural::icosphere(0.01, 1), &body(m, Vec3::ZERO, 20, vec![]))
+        .unwrap();
+    let rest = one.placed_rest();
+    let (lo, hi) = rest
+        .iter()
+        .fold((Vec3::MAX, Vec3::MIN), |(l, h), p| (l.min(*p), h.max(*p)));
+    let reach = knn::contact_reach_bound(one.bodies[0].radius);
+    let nb = 600;
+    let mut model = Model::new();
+    let mut at = 0.0;
+    for i in 0..nb {
+        let mut b = one.clone();
+        b.bodies[0].translation = Vec3::new(at, 0.5, 0.0);
+        model.append(&b);
+        let near = (i * 7919) % 11 < 4;
+        at += hi.x - lo.x + if near { 0.5 * reach } else { 3.0 * reach };
+    }
+    let boxes = knn::body_boxes(
+        &model.placed_rest(),
+        model.bodies.iter().map(|b| (b.first, b.count)),
+    );
+    let want = knn::near_bodies(&boxes, reach);
+    let near = want.iter().filter(|n| **n).count();
+    assert!(near > 100 && near < nb - 100, "{near} near");
+    let mut world = fresh_world(g, &model);
+    run_gpu(g, &mut world, &[], 1);
+    let words = read_u32(&g.device, &g.queue, world.bounds(), (3 * nb) as u64 * 4);
+    let flags: Vec<bool> = (0..nb)
+        .map(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
+        .collect();
+    assert_eq!(flags, want, "near flags");
+}
+
+#[test]
 fn batched_bodies_equal_each_alone() {
     let Some(g) = gpu() else { return };
     let a = body(

@@ -1081,7 +1081,7 @@ impl GpuWorld {
                 // meet nothing between two iterations), then one dispatch per iteration
                 // for those with contact candidates (only with particle contacts on).
                 if let Some((all, _)) = body {
-                    r.dispatch(w, "tissue/bodies", all, lv0, grid_2d(nb));
+                    r.dispatch(w, "tissue/body_substep", all, lv0, grid_2d(nb));
                 }
                 for it in 0..s.iterations {
                     // Iterations alternate between the halves of p2. With `folded`, an
@@ -1095,7 +1095,7 @@ impl GpuWorld {
                         | (((folded && !last) as u32) << 2);
                     let rec = Some((&self.level_group, (self.iteration_records + v) * REC));
                     if let (Some((_, one)), true) = (body, self.contacts_on) {
-                        r.dispatch(w, "tissue/bodies", one, rec, grid_2d(nb));
+                        r.dispatch(w, "tissue/body_iteration", one, rec, grid_2d(nb));
                     }
                     if !all_in_body {
                         r.dispatch(w, "tissue/clusters", cp, rec, cg);

@@ -226,39 +226,50 @@ fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
     if (range.flag == 0u || !near_body(body)) {
         p[j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
-        p2[range.half * params.n + j] = vec4<f32>(out, 0.0);
+        // w: the particle's contact radius, so that the contact pass reads it with the
+        // position instead of through the body record.
+        p2[range.half * params.n + j] = vec4<f32>(out, bodies[body].radius);
     }
 }
 
 // The contact pass of particle j (a body near another: pass B left it in half `half` of
-// p2, its candidates too): its position after the contacts, pins and colliders.
+// p2, its candidates too, each with its radius in w): its position after the contacts,
+// pins and colliders. Each candidate's index is loaded one round ahead, so that a
+// candidate costs one round trip to memory (its position, pin and mass at once).
 fn contact_position(j: u32, bj: u32, half: u32) -> vec3<f32> {
     let h = half * params.n;
     let pj = p2[h + j].xyz;
+    let rj = bodies[bj].radius;
     var q = pj;
     let wj = inv_mass(j);
     var sum = vec3<f32>(0.0);
     var cnt = 0u;
     let kk = params.contact_k;
+    let first = j * kk;
+    var i = contacts[first];
     for (var s = 0u; s < kk; s = s + 1u) {
-        let i = contacts[j * kk + s];
         if (i == NONE) {
             break;
         }
-        let dist = bodies[pinfo[i].x].radius + bodies[bj].radius;
+        var next = NONE;
+        if (s + 1u < kk) {
+            next = contacts[first + s + 1u];
+        }
+        let qi = p2[h + i];
         let wi = inv_mass(i);
-        let delta = pj - p2[h + i].xyz;
+        let dist = qi.w + rj;
+        let delta = pj - qi.xyz;
         let l2 = dot(delta, delta);
         let w = wj + wi;
-        if (l2 >= dist * dist || l2 <= 1.0e-24 || w <= 0.0) {
-            continue;
+        if (l2 < dist * dist && l2 > 1.0e-24 && w > 0.0) {
+            let l = sqrt(l2);
+            let dc = delta * ((dist - l) / l * wj / w);
+            if (any(dc != vec3<f32>(0.0))) {
+                sum = sum + dc;
+                cnt = cnt + 1u;
+            }
         }
-        let l = sqrt(l2);
-        let dc = delta * ((dist - l) / l * wj / w);
-        if (any(dc != vec3<f32>(0.0))) {
-            sum = sum + dc;
-            cnt = cnt + 1u;
-        }
+        i = next;
     }
     if (cnt > 0u) {
         q = q + sum / f32(cnt);
