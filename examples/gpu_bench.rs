@@ -248,7 +248,13 @@ fn main() {
             std::process::exit(1);
         }
     };
-    println!("GPU: {}\n", g.adapter);
+    let limits = g.device.limits();
+    println!(
+        "GPU: {} (workgroup memory {} bytes, {} invocations per workgroup)\n",
+        g.adapter,
+        limits.max_compute_workgroup_storage_size,
+        limits.max_compute_invocations_per_workgroup
+    );
     // Shape matching at the plugin's default stiffness (k = 1: softer k stretches far
     // under Jacobi averaging, BENCHMARKS.md).
     let sm = Material::ShapeMatching { stiffness: 1.0 };
