@@ -476,8 +476,11 @@ fn broad_phase_flags_match_the_cpu() {
     let Some(g) = gpu() else { return };
     let mut one = Model::new();
     let m = Material::ShapeMatching { stiffness: 1.0 };
-    one.add_body(&procedural::icosphere(0.01, 1), &body(m, Vec3::ZERO, 20, vec![]))
-        .unwrap();
+    one.add_body(
+        &procedural::icosphere(0.01, 1),
+        &body(m, Vec3::ZERO, 20, vec![]),
+    )
+    .unwrap();
     let rest = one.placed_rest();
     let (lo, hi) = rest
         .iter()
