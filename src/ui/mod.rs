@@ -126,9 +126,9 @@ pub struct TissuePanel {
     /// only for cheap scenes. Default: `false`.
     pub live_drag: bool,
     /// The selected body's values while a slider is dragged (not written yet).
-    body_draft: Option<(Entity, SoftBody)>,
+    body_draft: Option<(Entity, panel::Draft<SoftBody>)>,
     /// The settings while a slider is dragged (not written yet).
-    settings_draft: Option<TissueSettings>,
+    settings_draft: Option<panel::Draft<TissueSettings>>,
     /// Gravity the gravity switch restores, m/s².
     last_gravity: Vec3,
 }

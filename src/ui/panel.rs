@@ -44,27 +44,63 @@ impl Edit {
     }
 }
 
+/// A drag in progress: the value as the panel last saw it, and the edited copy.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Draft<T> {
+    /// The component or resource when the draft was last updated.
+    pub base: T,
+    /// The copy the widgets edit.
+    pub value: T,
+}
+
+/// `current` with the fields of `edited` that differ from `base` (the fields the panel
+/// changed); every other field keeps `current`'s value, so a change made elsewhere
+/// while a slider was held (a script, a game system) is not undone by the release.
+fn merge_edits<T: Struct + Clone>(base: &T, edited: &T, current: &T) -> T {
+    let mut out = current.clone();
+    for i in 0..edited.field_len() {
+        let (Some(e), Some(b)) = (edited.field_at(i), base.field_at(i)) else {
+            continue;
+        };
+        if e.reflect_partial_eq(b) != Some(true)
+            && let Some(o) = out.field_at_mut(i)
+        {
+            // Same type on both sides: cannot fail; on failure the field keeps `current`.
+            let _ = o.try_apply(e);
+        }
+    }
+    out
+}
+
 /// Runs the widgets `ui` on a copy of `current` (or on the `draft` left by a drag in
-/// progress) and returns the value to write back, if any:
+/// progress, carried over onto `current`) and returns the value to write back, if any:
 ///
 /// * while a widget is dragged and `live` is off, the edited copy is kept in `draft`
 ///   and nothing is written (each write rebuilds the body or the GPU world);
 /// * otherwise the copy is written when a widget changed it (or a drag just ended)
 ///   and it differs from `current`.
 ///
-/// Nothing is written when no widget reported a change: a value that never equals
-/// itself (NaN) or a widget that re-rounds a value does not produce writes every frame.
-pub(crate) fn commit_edit<T: Clone + PartialEq>(
+/// A draft carries only the fields the panel edited: fields changed elsewhere during
+/// the drag keep their new values. Nothing is written when no widget reported a change:
+/// a value that never equals itself (NaN) or a widget that re-rounds a value does not
+/// produce writes every frame.
+pub(crate) fn commit_edit<T: Clone + PartialEq + Struct>(
     current: &T,
-    draft: &mut Option<T>,
+    draft: &mut Option<Draft<T>>,
     live: bool,
     ui: impl FnOnce(&mut T) -> Edit,
 ) -> Option<T> {
     let had_draft = draft.is_some();
-    let mut value = draft.take().unwrap_or_else(|| current.clone());
+    let mut value = match draft.take() {
+        Some(d) => merge_edits(&d.base, &d.value, current),
+        None => current.clone(),
+    };
     let edit = ui(&mut value);
     if edit.dragging && !live {
-        *draft = Some(value);
+        *draft = Some(Draft {
+            base: current.clone(),
+            value,
+        });
         return None;
     }
     ((edit.changed || had_draft) && value != *current).then_some(value)
@@ -431,7 +467,7 @@ mod tests {
             edit(true, true)
         });
         assert_eq!(out, None);
-        assert_eq!(draft.as_ref().map(|b| b.density), Some(1500.0));
+        assert_eq!(draft.as_ref().map(|d| d.value.density), Some(1500.0));
         // Frame 2: still held, not moved: the draft (not the component) is edited.
         let out = commit_edit(&body, &mut draft, false, |b| {
             assert_eq!(b.density, 1500.0);
@@ -462,6 +498,41 @@ mod tests {
             edit(true, false)
         });
         assert_eq!(out, None);
+    }
+
+    #[test]
+    fn a_drag_keeps_changes_made_elsewhere_meanwhile() {
+        // The density slider is held while a script sets K; the release writes the new
+        // density and keeps the script's K.
+        let body = SoftBody::default();
+        let mut draft = None;
+        let _ = commit_edit(&body, &mut draft, false, |b| {
+            b.density = 1500.0;
+            edit(true, true)
+        });
+        let changed = SoftBody {
+            neighbours: 40,
+            ..body.clone()
+        };
+        let out = commit_edit(&changed, &mut draft, false, |b| {
+            assert_eq!((b.density, b.neighbours), (1500.0, 40));
+            edit(false, true)
+        });
+        assert_eq!(out, None);
+        let out = commit_edit(&changed, &mut draft, false, |_| edit(false, false));
+        let out = out.expect("the drag is written on release");
+        assert_eq!((out.density, out.neighbours), (1500.0, 40));
+        // An enum field edited by the panel is carried too.
+        let mut draft = None;
+        let _ = commit_edit(&body, &mut draft, false, |b| {
+            b.material = TissueMaterial::ShapeMatching { stiffness: 0.3 };
+            edit(true, true)
+        });
+        let out = commit_edit(&changed, &mut draft, false, |_| edit(false, false)).unwrap();
+        assert_eq!(
+            (out.material, out.neighbours),
+            (TissueMaterial::ShapeMatching { stiffness: 0.3 }, 40)
+        );
     }
 
     #[test]
