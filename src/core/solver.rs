@@ -304,7 +304,6 @@ pub struct Solver {
     levels: Vec<LevelSolver>,
     /// Positions at the start of the coarse levels' pass (prolongation reference).
     snap: Vec<Vec3>,
-    frozen: Vec<Vec3>,
     /// Per-particle constraint counts of the distance iteration (kept to reuse).
     counts: Vec<u32>,
 }
@@ -361,7 +360,6 @@ impl Solver {
             h: 0.0,
             levels,
             snap: Vec::new(),
-            frozen: Vec::new(),
             counts: Vec::new(),
         })
     }
@@ -443,7 +441,6 @@ impl Solver {
                     }
                 }
             }
-            self.frozen.clone_from(&self.p);
             // XPBD multipliers start from zero every substep (Macklin et al. 2016).
             self.work.iter_mut().for_each(|w| w.1 = Multipliers::ZERO);
             self.col
@@ -909,10 +906,8 @@ impl Solver {
         // Pass C: particle contacts (from the positions pass B left, so the two do not
         // correct the same overlap twice), then colliders and pins.
         let t = std::time::Instant::now();
-        let freeze = std::env::var("TISSUE_FROZEN").is_ok();
         {
             let p = &out;
-            let others: &[Vec3] = if freeze { &self.frozen } else { &out };
             let cs = &self.contact_start;
             let cl = &self.contact_list;
             let pin_slot = &self.pin_slot;
@@ -934,7 +929,7 @@ impl Solver {
                             let bi = model.particle_body[i] as usize;
                             let dist = model.bodies[bi].radius + model.bodies[bj].radius;
                             let wi = inv_mass(model, pin_slot, i);
-                            let dc = solve_contact(pj, others[i], wj, wi, dist);
+                            let dc = solve_contact(pj, p[i], wj, wi, dist);
                             if dc != Vec3::ZERO {
                                 sum += dc;
                                 cnt += 1;
