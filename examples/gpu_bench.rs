@@ -32,7 +32,7 @@ use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Method, SolverSettings, State};
 use bevy_tissue::gpu::profile::GpuProfiler;
-use bevy_tissue::gpu::world::{read_u32, read_vec3};
+use bevy_tissue::gpu::world::read_vec3;
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, PassRecorder, headless};
 use glam::Vec3;
 use std::time::Instant;
@@ -228,13 +228,12 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
         .map(|(name, ms, count)| format!("{name} {ms:.4} ms ({count} dispatches)"))
         .collect();
     eprintln!("  per step: {}", per_pass.join(", "));
-    // The contact broad phase's flags, after the boxes in `bounds`.
-    let nb = world.ranges.len();
-    let words = read_u32(&g.device, &g.queue, world.bounds(), (3 * nb * 4) as u64);
-    let near = (0..nb)
-        .filter(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
-        .count();
-    eprintln!("  bodies near another at the last contact refresh: {near} of {nb}");
+    let near = world.read_near_flags(&g.device, &g.queue);
+    let count = near.iter().filter(|n| **n).count();
+    eprintln!(
+        "  bodies near another at the last contact refresh: {count} of {}",
+        near.len()
+    );
     r
 }
 

@@ -452,12 +452,8 @@ fn small_shape_matching_bodies_in_a_workgroup_each_match_the_cpu() {
             "cluster and gather kernels"
         };
         assert_close_after_200_steps(label, &model, &x, &cpu.x);
-        // The broad phase's flags (after the two boxes per body in `bounds`).
-        let nb = model.bodies.len();
-        let words = read_u32(&g.device, &g.queue, world.bounds(), (3 * nb * 4) as u64);
-        let near: Vec<bool> = (0..nb)
-            .map(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
-            .collect();
+        // The broad phase's flags.
+        let near = world.read_near_flags(&g.device, &g.queue);
         assert_eq!(near, [true, false, false, true], "{label}: near flags");
         runs.push(x);
     }
@@ -505,11 +501,11 @@ fn broad_phase_flags_match_the_cpu() {
     assert!(near > 100 && near < nb - 100, "{near} near");
     let mut world = fresh_world(g, &model);
     run_gpu(g, &mut world, &[], 1);
-    let words = read_u32(&g.device, &g.queue, world.bounds(), (3 * nb) as u64 * 4);
-    let flags: Vec<bool> = (0..nb)
-        .map(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
-        .collect();
-    assert_eq!(flags, want, "near flags");
+    assert_eq!(
+        world.read_near_flags(&g.device, &g.queue),
+        want,
+        "near flags"
+    );
 }
 
 #[test]

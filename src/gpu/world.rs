@@ -902,6 +902,17 @@ impl GpuWorld {
         &self.b.bounds
     }
 
+    /// The contact broad phase's flags of the last contact refresh, one per body in model
+    /// order (true: near another body), read back from [`GpuWorld::bounds`] (blocking:
+    /// for tests and benchmarks).
+    pub fn read_near_flags(&self, device: &RenderDevice, queue: &RenderQueue) -> Vec<bool> {
+        let nb = self.ranges.len();
+        let words = read_u32(device, queue, &self.b.bounds, (3 * nb * 4) as u64);
+        (0..nb)
+            .map(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
+            .collect()
+    }
+
     /// Records the per-body bounding boxes of the current positions.
     pub fn record_bounds(
         &self,

@@ -158,11 +158,11 @@ fn load_body(body: Body, lid: u32) {
 // dispatch fewer per iteration): its positions are that pass's results for its particles,
 // from the other half of p2, where the previous body_iteration (or gather) left every
 // particle near another.
-fn load_body_after_contacts(body: Body, b: u32, lid: u32) {
+fn load_body_after_contacts(body: Body, lid: u32) {
     let count = min(body.count, BODY_MAX);
     for (var t = lid; t < count; t = t + BODY_WG) {
         let j = body.first + t;
-        sp[t] = vec4<f32>(contact_position(j, b, 1u - range.half), 0.0);
+        sp[t] = vec4<f32>(contact_position(j, 1u - range.half), 0.0);
         sr[t] = rest[j];
     }
 }
@@ -193,7 +193,7 @@ fn body_iteration(
     let count = min(body.count, BODY_MAX);
     if (awake) {
         if (range.prev != 0u) {
-            load_body_after_contacts(body, b, lid);
+            load_body_after_contacts(body, lid);
         } else {
             load_body(body, lid);
         }

@@ -236,10 +236,11 @@ fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
 // p2, its candidates too, each with its radius in w): its position after the contacts,
 // pins and colliders. Each candidate's index is loaded one round ahead, so that a
 // candidate costs one round trip to memory (its position, pin and mass at once).
-fn contact_position(j: u32, bj: u32, half: u32) -> vec3<f32> {
+fn contact_position(j: u32, half: u32) -> vec3<f32> {
     let h = half * params.n;
-    let pj = p2[h + j].xyz;
-    let rj = bodies[bj].radius;
+    let own = p2[h + j];
+    let pj = own.xyz;
+    let rj = own.w;
     var q = pj;
     let wj = inv_mass(j);
     var sum = vec3<f32>(0.0);
@@ -290,5 +291,5 @@ fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (!near_body(bj) || (range.skip != 0u && bodies[bj].in_wg != 0u)) {
         return;
     }
-    p[j] = vec4<f32>(contact_position(j, bj, range.half), 0.0);
+    p[j] = vec4<f32>(contact_position(j, range.half), 0.0);
 }
