@@ -42,7 +42,8 @@ pub struct GpuParams {
     pub n_colliders: u32,
     /// Rotation-extraction iterations.
     pub rot_iters: u32,
-    /// 1 when particle contacts run as their own pass.
+    /// Particle contacts: 0 off, 1 every iteration (their own pass), 2 once per substep
+    /// (against the predicted positions predict leaves in p2).
     pub contacts: u32,
     /// Substep h, s.
     pub h: f32,
