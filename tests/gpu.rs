@@ -6,7 +6,7 @@ use bevy_tissue::core::colliders::{Collider, ColliderShape};
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::solver::{ContactCoupling, Control, Method, Solver, SolverSettings, State};
+use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use bevy_tissue::core::{TissueError, knn, skin};
 use bevy_tissue::gpu::world::{read_buffer, read_u32, read_vec3};
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
@@ -73,11 +73,15 @@ fn hanging(material: Material) -> (Model, Vec<Collider>) {
 
 /// A GPU world of `model` at rest, with the test settings and no all-particle search.
 fn fresh_world(g: &Headless, model: &Model) -> GpuWorld {
-    fresh_world_with(g, model, settings())
-}
-
-fn fresh_world_with(g: &Headless, model: &Model, s: SolverSettings) -> GpuWorld {
-    GpuWorld::new(&g.device, &g.kernels, model, &State::new(model), s, 0).unwrap()
+    GpuWorld::new(
+        &g.device,
+        &g.kernels,
+        model,
+        &State::new(model),
+        settings(),
+        0,
+    )
+    .unwrap()
 }
 
 /// Runs `steps` steps on the GPU (in chunks, one submission each).
@@ -101,17 +105,8 @@ fn run_gpu(g: &Headless, world: &mut GpuWorld, colliders: &[Collider], steps: u3
 }
 
 fn run_cpu(model: &Model, colliders: &[Collider], steps: u32) -> (State, Vec<Vec3>) {
-    run_cpu_with(model, colliders, steps, settings())
-}
-
-fn run_cpu_with(
-    model: &Model,
-    colliders: &[Collider],
-    steps: u32,
-    s: SolverSettings,
-) -> (State, Vec<Vec3>) {
     let mut state = State::new(model);
-    let mut solver = Solver::new(model, s).unwrap();
+    let mut solver = Solver::new(model, settings()).unwrap();
     let control = Control {
         colliders: colliders.to_vec(),
     };
@@ -518,8 +513,7 @@ fn touching_bodies_push_apart_as_on_the_cpu() {
     // Two 300-particle balls placed 5 mm into each other, falling together: only the
     // particle contacts separate them. Both GPU paths (a workgroup per body with the
     // contact pass folded into the next iteration, and the cluster, gather and contact
-    // kernels) against the CPU Jacobi solver, with contacts every iteration and once per
-    // substep (then all in body_substep, or in the gather).
+    // kernels) against the CPU Jacobi solver.
     let Some(g) = gpu() else { return };
     let mesh = procedural::icosphere(0.03, 2);
     let mut model = Model::new();
@@ -535,41 +529,24 @@ fn touching_bodies_push_apart_as_on_the_cpu() {
     };
     let gap = |x: &[Vec3]| centre(x, 1).x - centre(x, 0).x;
     let steps = 60;
-    for coupling in [ContactCoupling::Iteration, ContactCoupling::Substep] {
-        let s = SolverSettings {
-            contact_coupling: coupling,
-            ..settings()
-        };
-        let (cpu, _) = run_cpu_with(&model, &[], steps, s.clone());
-        let start = gap(&State::new(&model).x);
-        eprintln!(
-            "{coupling:?}: centres {start:.4} m apart at the start, {:.4} m on the CPU",
-            gap(&cpu.x)
-        );
-        assert!(
-            gap(&cpu.x) > start + 0.002,
-            "{coupling:?}: the contacts must push the balls apart ({start} → {} m)",
-            gap(&cpu.x)
-        );
-        touching_balls_on_the_gpu(g, &model, s, &cpu.x, steps);
-    }
-}
-
-fn touching_balls_on_the_gpu(
-    g: &Headless,
-    model: &Model,
-    s: SolverSettings,
-    cpu: &[Vec3],
-    steps: u32,
-) {
+    let (cpu, _) = run_cpu(&model, &[], steps);
+    let start = gap(&State::new(&model).x);
+    eprintln!(
+        "centres {start:.4} m apart at the start, {:.4} m on the CPU",
+        gap(&cpu.x)
+    );
+    assert!(
+        gap(&cpu.x) > start + 0.002,
+        "the contacts must push the balls apart ({start} → {} m)",
+        gap(&cpu.x)
+    );
     let size = model.bodies[0].size;
-    let coupling = s.contact_coupling;
     for on in [true, false] {
-        let mut world = fresh_world_with(g, model, s.clone());
+        let mut world = fresh_world(g, &model);
         world.set_body_kernel(&g.queue, on);
         let x = run_gpu(g, &mut world, &[], steps);
-        let d = max_dist(&x, cpu);
-        eprintln!("{coupling:?}, body kernel {on}: GPU–CPU {d:.3e} m (size {size:.3} m)");
+        let d = max_dist(&x, &cpu.x);
+        eprintln!("body kernel {on}: GPU–CPU {d:.3e} m (size {size:.3} m)");
         // Looser than the 1e-4 of the scenes without contact: a contact acts or not at a
         // distance threshold, so a rounding difference (the gather kernel sums in another
         // order than the CPU) can switch one on a step earlier. Measured on lavapipe:
@@ -577,8 +554,7 @@ fn touching_balls_on_the_gpu(
         // kernels; the balls move 21 mm apart.
         assert!(
             d < 1e-3 * size,
-            "{coupling:?}, body kernel {on}: GPU and CPU differ by {d} m after {steps} \
-             steps of contact"
+            "body kernel {on}: GPU and CPU differ by {d} m after {steps} steps of contact"
         );
     }
 }

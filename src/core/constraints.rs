@@ -611,26 +611,3 @@ pub fn solve_contact(pi: Vec3, pj: Vec3, wi: f32, wj: f32, d: f32) -> Vec3 {
     let l = l2.sqrt();
     delta * ((d - l) / l * wi / w)
 }
-
-/// Particle–particle contact against a contact plane fixed at the start of the substep
-/// ([`ContactCoupling::Substep`](super::solver::ContactCoupling::Substep)): from the pair's
-/// positions `pi0`, `pj0` at that start (distance `D`, normal `n` from i to j), particle j
-/// keeps `n · (p_j − p_i0) ≥ D + (d − D) w_j / (w_i + w_j)`, its mass-weighted share of
-/// the overlap to resolve (or, for a pair apart, of the gap it may close). Returns the
-/// correction of particle j at `pj`; zero when the constraint holds, for coincident
-/// particles, or when both are pinned. Linear in `pj`, so iterating it against the same
-/// frozen partner converges to exactly j's share instead of the whole overlap.
-#[inline]
-pub fn solve_contact_plane(pj: Vec3, pj0: Vec3, pi0: Vec3, wj: f32, wi: f32, d: f32) -> Vec3 {
-    let delta0 = pj0 - pi0;
-    let l2 = delta0.length_squared();
-    let w = wi + wj;
-    if l2 <= 1e-24 || w <= 0.0 {
-        return Vec3::ZERO;
-    }
-    let l = l2.sqrt();
-    let n = delta0 / l;
-    let target = l + (d - l) * (wj / w);
-    let c = n.dot(pj - pi0) - target;
-    if c < 0.0 { n * -c } else { Vec3::ZERO }
-}

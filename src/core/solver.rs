@@ -20,8 +20,7 @@
 use super::colliders::{Collider, Grab, grab_target, project_collider, update_grab};
 use super::constraints::{
     ClusterCorrection, ClusterRest, Hyperelastic, Multipliers, cluster_moments,
-    iteration_stiffness, solve_contact, solve_contact_plane, solve_hyperelastic,
-    solve_shape_matching, strain_dead_band,
+    iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
 };
 use super::error::{DivergenceKind, TissueError, in_range, positive};
 use super::model::{Level, Material, Model};
@@ -38,23 +37,6 @@ pub enum Method {
     GaussSeidel,
     /// Parallel Jacobi with constraint averaging and relaxation.
     Jacobi,
-}
-
-/// How particle contacts between bodies are coupled to the constraint iterations.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum ContactCoupling {
-    /// Every iteration: a particle's contacts read its candidates' positions of the same
-    /// iteration ([`solve_contact`], Jacobi pass C). The tightest coupling; on the GPU
-    /// each iteration of a body near another is then its own dispatch.
-    #[default]
-    Iteration,
-    /// Once per substep: each contact is a plane fixed from the pair's predicted
-    /// positions at the substep's start, of which each particle resolves its
-    /// mass-weighted share ([`solve_contact_plane`]), every iteration. Bodies then
-    /// exchange nothing between iterations, so on the GPU every small body runs all its
-    /// iterations in one dispatch (BENCHMARKS.md: 1,000 touching bodies). Contacts made
-    /// during a substep are caught at the next one.
-    Substep,
 }
 
 /// Time stepping and solver settings.
@@ -84,8 +66,6 @@ pub struct SolverSettings {
     pub particle_contacts: bool,
     /// Neighbours searched per particle for contacts.
     pub contact_neighbours: u32,
-    /// When particle contacts act: every iteration or once per substep.
-    pub contact_coupling: ContactCoupling,
     /// Most iterations of the warm-started rotation extraction per cluster solve (it stops
     /// early once converged; usually 1–2 when warm).
     pub rotation_iterations: u32,
@@ -139,7 +119,6 @@ impl Default for SolverSettings {
             knn_every: 10,
             particle_contacts: true,
             contact_neighbours: 16,
-            contact_coupling: ContactCoupling::Iteration,
             rotation_iterations: 2,
             max_speed: 500.0,
             trace_residual: false,
@@ -327,8 +306,6 @@ pub struct Solver {
     snap: Vec<Vec3>,
     /// Per-particle constraint counts of the distance iteration (kept to reuse).
     counts: Vec<u32>,
-    /// Positions predicted at the start of the substep ([`ContactCoupling::Substep`]).
-    frozen: Vec<Vec3>,
 }
 
 /// A coarse level's own solver and state, and which of level 0's pin slots each of its
@@ -384,7 +361,6 @@ impl Solver {
             levels,
             snap: Vec::new(),
             counts: Vec::new(),
-            frozen: Vec::new(),
         })
     }
 
@@ -464,9 +440,6 @@ impl Solver {
                         self.p[i] = t;
                     }
                 }
-            }
-            if s.particle_contacts && s.contact_coupling == ContactCoupling::Substep {
-                self.frozen.clone_from(&self.p);
             }
             // XPBD multipliers start from zero every substep (Macklin et al. 2016).
             self.work.iter_mut().for_each(|w| w.1 = Multipliers::ZERO);
@@ -847,11 +820,6 @@ impl Solver {
                         inv_mass(model, &self.pin_slot, i),
                         inv_mass(model, &self.pin_slot, j),
                     );
-                    if self.settings.contact_coupling == ContactCoupling::Substep {
-                        let (f, pi) = (&self.frozen, self.p[i]);
-                        self.p[i] += solve_contact_plane(pi, f[i], f[j], wi, wj, d);
-                        continue;
-                    }
                     let di = solve_contact(self.p[i], self.p[j], wi, wj, d);
                     let dj = solve_contact(self.p[j], self.p[i], wj, wi, d);
                     self.p[i] += di;
@@ -946,8 +914,6 @@ impl Solver {
             let pin_targets = &state.pin_targets;
             let x = &state.x;
             let grab = &state.grab;
-            let frozen = (self.settings.contact_coupling == ContactCoupling::Substep)
-                .then_some(&self.frozen[..]);
             par::for_chunks_mut2(&mut self.p, &mut self.col, threads, |start, dst, col| {
                 for (k, (o, cid)) in dst.iter_mut().zip(col.iter_mut()).enumerate() {
                     let j = start + k;
@@ -963,10 +929,7 @@ impl Solver {
                             let bi = model.particle_body[i] as usize;
                             let dist = model.bodies[bi].radius + model.bodies[bj].radius;
                             let wi = inv_mass(model, pin_slot, i);
-                            let dc = match frozen {
-                                Some(f) => solve_contact_plane(pj, f[j], f[i], wj, wi, dist),
-                                None => solve_contact(pj, p[i], wj, wi, dist),
-                            };
+                            let dc = solve_contact(pj, p[i], wj, wi, dist);
                             if dc != Vec3::ZERO {
                                 sum += dc;
                                 cnt += 1;

@@ -42,8 +42,7 @@ pub struct GpuParams {
     pub n_colliders: u32,
     /// Rotation-extraction iterations.
     pub rot_iters: u32,
-    /// Particle contacts: 0 off, 1 every iteration (their own pass), 2 once per substep
-    /// (against the predicted positions predict leaves in p2).
+    /// 1 when particle contacts run as their own pass.
     pub contacts: u32,
     /// Substep h, s.
     pub h: f32,

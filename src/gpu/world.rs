@@ -8,11 +8,7 @@
 //! workgroup each (`body.wgsl`): all `iterations` at once for those near no other, one
 //! iteration per dispatch for the others, each starting with the contact pass of the
 //! iteration before for its body (the contact dispatch then only runs for the other
-//! bodies, and after the last iteration). With contacts once per substep
-//! ([`ContactCoupling::Substep`]) predict also leaves every particle's predicted position
-//! in p2, the gather and `body_substep` take the contacts against it, and every
-//! `body.wgsl` body runs `body_substep`: no contact pass, no per-iteration body dispatch.
-//! Results are
+//! bodies, and after the last iteration). Results are
 //! deterministic: no float atomics, every sum in a fixed order.
 //!
 //! The world works on a bare `RenderDevice`/`RenderQueue`, so it runs inside Bevy's
@@ -23,7 +19,7 @@ use super::kernels::{self, Kernels};
 use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::Model;
-use crate::core::solver::{ContactCoupling, SolverSettings, State};
+use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferDescriptor,
     BufferUsages, CommandEncoder, ComputePass, ComputePassDescriptor, ComputePipeline, MapMode,
@@ -712,12 +708,7 @@ impl GpuWorld {
             n,
             n_colliders: 0,
             rot_iters: settings.rotation_iterations,
-            // 0 off, 1 every iteration (the contact pass), 2 once per substep.
-            contacts: match (contacts_on, settings.contact_coupling) {
-                (false, _) => 0,
-                (true, ContactCoupling::Iteration) => 1,
-                (true, ContactCoupling::Substep) => 2,
-            },
+            contacts: contacts_on as u32,
             h,
             h2: h * h,
             keep: (1.0 - settings.damping * h).max(0.0),
@@ -1064,10 +1055,7 @@ impl GpuWorld {
         let all_in_body = body.is_some() && self.body_fits.iter().all(|f| *f);
         // With `body.wgsl` and contacts, an iteration's contact pass for its bodies runs
         // at the start of the next body_iteration (see the iteration loop below).
-        // Contacts once per substep: no contact pass, no per-iteration dispatches (every
-        // body.wgsl body runs body_substep; the gather takes the frozen contacts).
-        let per_iteration = self.contacts_on && self.params.contacts == 1;
-        let folded = body.is_some() && per_iteration;
+        let folded = body.is_some() && self.contacts_on;
         let nb = self.ranges.len() as u32;
         let mut r = Recording::new(encoder, rec);
         let w = &self.world_group;
@@ -1117,14 +1105,14 @@ impl GpuWorld {
                         | (((folded && it > 0) as u32) << 1)
                         | (((folded && !last) as u32) << 2);
                     let rec = Some((&self.level_group, (self.iteration_records + v) * REC));
-                    if let (Some((_, one)), true) = (body, per_iteration) {
+                    if let (Some((_, one)), true) = (body, self.contacts_on) {
                         r.dispatch(w, "tissue/body_iteration", one, rec, grid_2d(nb));
                     }
                     if !all_in_body {
                         r.dispatch(w, "tissue/clusters", cp, rec, cg);
                         r.dispatch(w, "tissue/gather", &k.gather, rec, lg);
                     }
-                    if per_iteration && (last || !(folded && all_in_body)) {
+                    if self.contacts_on && (last || !(folded && all_in_body)) {
                         r.dispatch(w, "tissue/contacts", &k.contact, rec, (g, 1));
                     }
                 }

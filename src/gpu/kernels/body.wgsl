@@ -170,7 +170,7 @@ fn load_body_after_contacts(body: Body, lid: u32) {
 // Whether a body with particle contacts has candidates now (broad.wgsl): then its
 // iterations are dispatched one at a time (body_iteration).
 fn in_contact(b: u32) -> bool {
-    return range.flag != 0u && params.contacts == 1u && near_body(b);
+    return range.flag != 0u && near_body(b);
 }
 
 // One iteration of the bodies near another (the others ran `body_substep`).
@@ -244,9 +244,6 @@ fn body_substep(
     let t = lid;
     let mine = t < min(body.count, BODY_MAX);
     let c = body.first + t;
-    // Contacts once per substep: against planes fixed at the substep's start, so a body
-    // near another runs here too (gather.wgsl, frozen_contacts).
-    let frozen = params.contacts == 2u && near_body(b);
     var rot = vec4<f32>(0.0, 0.0, 0.0, 1.0);
     var k: LocalConst;
     if (mine) {
@@ -263,11 +260,7 @@ fn body_substep(
             let acc = gather_local(k, body.first, t);
             let pj = sp[t].xyz;
             // Pass B reads only its own position, so it may be replaced at once.
-            var q = gathered(pj, acc);
-            if (frozen) {
-                q = frozen_contacts(c, q);
-            }
-            sp[t] = vec4<f32>(boundary(c, q), 0.0);
+            sp[t] = vec4<f32>(boundary(c, gathered(pj, acc)), 0.0);
         }
         // The next pass A reads the new positions and overwrites the corrections.
         workgroupBarrier();

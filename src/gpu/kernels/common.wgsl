@@ -9,7 +9,7 @@ struct Params {
     n: u32,                  // particles
     n_colliders: u32,
     rot_iters: u32,
-    contacts: u32,           // particle contacts: 0 off, 1 every iteration, 2 once per substep
+    contacts: u32,           // 1: particle contacts on (pass C separate)
     h: f32,                  // substep, s
     h2: f32,                 // h², s²
     keep: f32,               // velocity kept after damping, max(0, 1 − damping·h)

@@ -221,71 +221,15 @@ fn gathered(pj: vec3<f32>, acc: vec4<f32>) -> vec3<f32> {
 
 // Particle j at pj moved by its gathered corrections `acc`: to p after its pins and
 // colliders, or to p2 when the contact pass follows (`range.flag`, a body near another).
-// With contacts once per substep (`params.contacts` 2), a level-0 particle of a body near
-// another takes its contacts against the substep's frozen planes first.
 fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
     let out = gathered(pj, acc);
-    if (range.flag == 0u || params.contacts != 1u || !near_body(body)) {
-        var q = out;
-        if (params.contacts == 2u && j < params.n && near_body(body)) {
-            q = frozen_contacts(j, q);
-        }
-        p[j] = vec4<f32>(boundary(j, q), 0.0);
+    if (range.flag == 0u || !near_body(body)) {
+        p[j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
         // w: the particle's contact radius, so that the contact pass reads it with the
         // position instead of through the body record.
         p2[range.half * params.n + j] = vec4<f32>(out, bodies[body].radius);
     }
-}
-
-// Contacts once per substep (`params.contacts` 2; core::solver::ContactCoupling::Substep):
-// particle j at q0 against the contact planes of its candidates fixed at the substep's
-// start, from the predicted positions that predict left in the first half of p2 (each
-// with its radius in w); the active corrections averaged, as the CPU's pass C does.
-// CPU twin: core::constraints::solve_contact_plane.
-fn frozen_contacts(j: u32, q0: vec3<f32>) -> vec3<f32> {
-    let own = p2[j];
-    let pj0 = own.xyz;
-    let rj = own.w;
-    let wj = inv_mass(j);
-    var sum = vec3<f32>(0.0);
-    var cnt = 0u;
-    let kk = params.contact_k;
-    let first = j * kk;
-    var i = contacts[first];
-    for (var s = 0u; s < kk; s = s + 1u) {
-        if (i == NONE) {
-            break;
-        }
-        var next = NONE;
-        if (s + 1u < kk) {
-            next = contacts[first + s + 1u];
-        }
-        let qi = p2[i];
-        let wi = inv_mass(i);
-        let dist = qi.w + rj;
-        let delta0 = pj0 - qi.xyz;
-        let l2 = dot(delta0, delta0);
-        let w = wi + wj;
-        if (l2 > 1.0e-24 && w > 0.0) {
-            let l = sqrt(l2);
-            let n = delta0 / l;
-            let keep = l + (dist - l) * (wj / w);
-            let c = dot(n, q0 - qi.xyz) - keep;
-            if (c < 0.0) {
-                let dc = n * -c;
-                if (any(dc != vec3<f32>(0.0))) {
-                    sum = sum + dc;
-                    cnt = cnt + 1u;
-                }
-            }
-        }
-        i = next;
-    }
-    if (cnt > 0u) {
-        return q0 + sum / f32(cnt);
-    }
-    return q0;
 }
 
 // The contact pass of particle j (a body near another: pass B left it in half `half` of

@@ -53,18 +53,9 @@ fn finish_predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 }
 
-// Contacts once per substep: the predicted position and the contact radius of particle
-// i, the frozen side of its contact planes (gather.wgsl, frozen_contacts).
-fn snapshot(i: u32, pos: vec3<f32>) {
-    if (params.contacts == 2u) {
-        p2[i] = vec4<f32>(pos, bodies[pinfo[i].x].radius);
-    }
-}
-
 fn predict_one(i: u32) {
     if (asleep(i)) {
         p[i] = x[i];
-        snapshot(i, x[i].xyz);
         return;
     }
     let vv = v[i].xyz + params.gravity.xyz * params.h;
@@ -81,7 +72,6 @@ fn predict_one(i: u32) {
         }
     }
     p[i] = vec4<f32>(pp, 0.0);
-    snapshot(i, pp);
     let st = cstate[i];
     cstate[i] = ClusterState(st.rot, vec4<f32>(0.0), vec4<f32>(0.0));
     coldp[i] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
