@@ -24,6 +24,8 @@
 //! reach of another, and the run prints how many), `he` (the hyperelastic liver),
 //! `1m`; all four by default. `1000c` (the 1,000 bodies 0.1 m apart, every one touching
 //! its neighbours: the contact search and pass run for all) only when named.
+//! `--bodies N` changes the body count of those two scenes. `--contact-every N` solves particle contacts in every N-th iteration
+//! (`SolverSettings::contact_every`; default 1).
 #[path = "support/bench.rs"]
 mod bench;
 
@@ -122,6 +124,9 @@ fn record_into(
     }
 }
 
+/// `SolverSettings::contact_every` of every scene (`--contact-every`).
+static CONTACT_EVERY: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+
 fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -> Row {
     let n = model.particle_count() as u32;
     let t0 = Instant::now();
@@ -130,6 +135,7 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
         method: Method::Jacobi,
         iterations: 10,
         knn_every: 10,
+        contact_every: *CONTACT_EVERY.get_or_init(|| 1),
         ..Default::default()
     };
     let state = State::new(model);
@@ -247,7 +253,12 @@ fn main() {
             std::process::exit(1);
         }
     };
+    let every: u32 = args.num("--contact-every", 1);
+    // The body count of the `1000` and `1000c` scenes (fewer fit lavapipe's buffers).
+    let bodies: u32 = args.num("--bodies", 1000);
+    CONTACT_EVERY.set(every).ok();
     let limits = g.device.limits();
+    println!("Particle contacts in every {every} iteration(s)");
     println!(
         "GPU: {} (workgroup memory {} bytes, {} invocations per workgroup)\n",
         g.adapter,
@@ -342,7 +353,7 @@ fn main() {
             rows.push(bench(
                 &g,
                 "1000 bodies x 512, shape matching",
-                &many(1000, 512, 32, sm, 0.15),
+                &many(bodies, 512, 32, sm, 0.15),
                 steps,
                 repeats,
             ));
@@ -353,7 +364,7 @@ fn main() {
             rows.push(bench(
                 &g,
                 "1000 bodies x 512 in contact, shape matching",
-                &many(1000, 512, 32, sm, 0.1),
+                &many(bodies, 512, 32, sm, 0.1),
                 steps,
                 repeats,
             ));

@@ -304,6 +304,13 @@ fn bad_solver_settings() {
         ),
         (
             SolverSettings {
+                contact_every: 0,
+                ..Default::default()
+            },
+            "contact_every",
+        ),
+        (
+            SolverSettings {
                 gravity: Vec3::NAN,
                 ..Default::default()
             },

@@ -277,3 +277,31 @@ fn stability_quick_fills_every_cell() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn contacts_quick_fills_every_cell() {
+    let (out, stdout, _) = run_quick("contacts");
+    let rows: Vec<Vec<String>> = stdout
+        .lines()
+        .filter(|l| l.starts_with("| pile"))
+        .map(|l| l.split('|').map(|c| c.trim().to_string()).collect())
+        .collect();
+    // One row per contact interval, 1, 2, 3, 5 and 10.
+    assert_eq!(rows.len(), 5, "{stdout}");
+    for (r, every) in rows.iter().zip(["1", "2", "3", "5", "10"]) {
+        assert_eq!(r[3], every, "{stdout}");
+        let depth: f64 = r[4].trim_end_matches('%').parse().expect("a depth");
+        let speeds: Vec<f64> = r[5]
+            .split('/')
+            .map(|v| v.trim().parse().expect("a speed"))
+            .collect();
+        let top: f64 = r[6].parse().expect("a height");
+        let ms: f64 = r[7].parse().expect("ms per step");
+        assert!((0.0..=200.0).contains(&depth), "{stdout}");
+        assert!(speeds.len() == 2 && speeds[0] <= speeds[1], "{stdout}");
+        // The balls rest on the ground: none below it, none flung away, none exploded.
+        assert!(top > 0.0 && top < 0.35 && speeds[1] < 5.0, "{stdout}");
+        assert!(ms > 0.0, "{stdout}");
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}

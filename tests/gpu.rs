@@ -73,15 +73,11 @@ fn hanging(material: Material) -> (Model, Vec<Collider>) {
 
 /// A GPU world of `model` at rest, with the test settings and no all-particle search.
 fn fresh_world(g: &Headless, model: &Model) -> GpuWorld {
-    GpuWorld::new(
-        &g.device,
-        &g.kernels,
-        model,
-        &State::new(model),
-        settings(),
-        0,
-    )
-    .unwrap()
+    fresh_world_with(g, model, settings())
+}
+
+fn fresh_world_with(g: &Headless, model: &Model, s: SolverSettings) -> GpuWorld {
+    GpuWorld::new(&g.device, &g.kernels, model, &State::new(model), s, 0).unwrap()
 }
 
 /// Runs `steps` steps on the GPU (in chunks, one submission each).
@@ -105,8 +101,17 @@ fn run_gpu(g: &Headless, world: &mut GpuWorld, colliders: &[Collider], steps: u3
 }
 
 fn run_cpu(model: &Model, colliders: &[Collider], steps: u32) -> (State, Vec<Vec3>) {
+    run_cpu_with(model, colliders, steps, settings())
+}
+
+fn run_cpu_with(
+    model: &Model,
+    colliders: &[Collider],
+    steps: u32,
+    s: SolverSettings,
+) -> (State, Vec<Vec3>) {
     let mut state = State::new(model);
-    let mut solver = Solver::new(model, settings()).unwrap();
+    let mut solver = Solver::new(model, s).unwrap();
     let control = Control {
         colliders: colliders.to_vec(),
     };
@@ -513,7 +518,8 @@ fn touching_bodies_push_apart_as_on_the_cpu() {
     // Two 300-particle balls placed 5 mm into each other, falling together: only the
     // particle contacts separate them. Both GPU paths (a workgroup per body with the
     // contact pass folded into the next iteration, and the cluster, gather and contact
-    // kernels) against the CPU Jacobi solver.
+    // kernels) against the CPU Jacobi solver, with contacts in every iteration and in
+    // every third (`contact_every`: blocks of 3, 3, 3 and 1 iterations).
     let Some(g) = gpu() else { return };
     let mesh = procedural::icosphere(0.03, 2);
     let mut model = Model::new();
@@ -529,24 +535,42 @@ fn touching_bodies_push_apart_as_on_the_cpu() {
     };
     let gap = |x: &[Vec3]| centre(x, 1).x - centre(x, 0).x;
     let steps = 60;
-    let (cpu, _) = run_cpu(&model, &[], steps);
-    let start = gap(&State::new(&model).x);
-    eprintln!(
-        "centres {start:.4} m apart at the start, {:.4} m on the CPU",
-        gap(&cpu.x)
-    );
-    assert!(
-        gap(&cpu.x) > start + 0.002,
-        "the contacts must push the balls apart ({start} → {} m)",
-        gap(&cpu.x)
-    );
+    for every in [1, 3] {
+        let s = SolverSettings {
+            contact_every: every,
+            ..settings()
+        };
+        let (cpu, _) = run_cpu_with(&model, &[], steps, s.clone());
+        let start = gap(&State::new(&model).x);
+        eprintln!(
+            "contacts every {every}: centres {start:.4} m apart at the start, {:.4} m on \
+             the CPU",
+            gap(&cpu.x)
+        );
+        assert!(
+            gap(&cpu.x) > start + 0.002,
+            "contacts every {every}: the contacts must push the balls apart ({start} → {} m)",
+            gap(&cpu.x)
+        );
+        touching_balls_on_the_gpu(g, &model, s, &cpu.x, steps);
+    }
+}
+
+fn touching_balls_on_the_gpu(
+    g: &Headless,
+    model: &Model,
+    s: SolverSettings,
+    cpu: &[Vec3],
+    steps: u32,
+) {
     let size = model.bodies[0].size;
+    let every = s.contact_every;
     for on in [true, false] {
-        let mut world = fresh_world(g, &model);
+        let mut world = fresh_world_with(g, model, s.clone());
         world.set_body_kernel(&g.queue, on);
         let x = run_gpu(g, &mut world, &[], steps);
-        let d = max_dist(&x, &cpu.x);
-        eprintln!("body kernel {on}: GPU–CPU {d:.3e} m (size {size:.3} m)");
+        let d = max_dist(&x, cpu);
+        eprintln!("contacts every {every}, body kernel {on}: GPU–CPU {d:.3e} m (size {size:.3} m)");
         // Looser than the 1e-4 of the scenes without contact: a contact acts or not at a
         // distance threshold, so a rounding difference (the gather kernel sums in another
         // order than the CPU) can switch one on a step earlier. Measured on lavapipe:
@@ -554,7 +578,8 @@ fn touching_bodies_push_apart_as_on_the_cpu() {
         // kernels; the balls move 21 mm apart.
         assert!(
             d < 1e-3 * size,
-            "body kernel {on}: GPU and CPU differ by {d} m after {steps} steps of contact"
+            "contacts every {every}, body kernel {on}: GPU and CPU differ by {d} m after \
+             {steps} steps of contact"
         );
     }
 }

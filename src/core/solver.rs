@@ -66,6 +66,13 @@ pub struct SolverSettings {
     pub particle_contacts: bool,
     /// Neighbours searched per particle for contacts.
     pub contact_neighbours: u32,
+    /// Solve particle contacts in every this many iterations (and always in the last of
+    /// a substep; 1, the default, is every iteration); colliders and pins in every
+    /// iteration. The GPU runs the iterations of a body near another one dispatch per
+    /// contact pass, so 2 halves those dispatches. Measured on the CPU
+    /// (`examples/contacts.rs`, BENCHMARKS.md): 2 keeps contacts about as firm as 1, 3
+    /// and more let piled bodies sink deeper.
+    pub contact_every: u32,
     /// Most iterations of the warm-started rotation extraction per cluster solve (it stops
     /// early once converged; usually 1–2 when warm).
     pub rotation_iterations: u32,
@@ -119,6 +126,7 @@ impl Default for SolverSettings {
             knn_every: 10,
             particle_contacts: true,
             contact_neighbours: 16,
+            contact_every: 1,
             rotation_iterations: 2,
             max_speed: 500.0,
             trace_residual: false,
@@ -149,6 +157,7 @@ impl SolverSettings {
         count("substeps", self.substeps)?;
         count("iterations", self.iterations)?;
         count("knn_every", self.knn_every)?;
+        count("contact_every", self.contact_every)?;
         if !self.gravity.is_finite() {
             return Err(TissueError::InvalidParameter {
                 name: "gravity",
@@ -306,6 +315,9 @@ pub struct Solver {
     snap: Vec<Vec3>,
     /// Per-particle constraint counts of the distance iteration (kept to reuse).
     counts: Vec<u32>,
+    /// Whether the current iteration solves particle contacts
+    /// ([`SolverSettings::contact_every`]).
+    contacts_now: bool,
 }
 
 /// A coarse level's own solver and state, and which of level 0's pin slots each of its
@@ -361,6 +373,7 @@ impl Solver {
             levels,
             snap: Vec::new(),
             counts: Vec::new(),
+            contacts_now: true,
         })
     }
 
@@ -468,6 +481,8 @@ impl Solver {
             };
             trace(self, 0, &state.rot);
             for it in 0..s.iterations {
+                self.contacts_now =
+                    (it + 1).is_multiple_of(s.contact_every) || it + 1 == s.iterations;
                 self.iterate(model, state, control, &consts);
                 trace(self, it + 1, &state.rot);
             }
@@ -810,7 +825,7 @@ impl Solver {
         self.timings.clusters += ms(t);
         let t = std::time::Instant::now();
         for i in 0..n {
-            if self.settings.particle_contacts {
+            if self.settings.particle_contacts && self.contacts_now {
                 let bi = model.particle_body[i] as usize;
                 for s in self.contact_start[i]..self.contact_start[i + 1] {
                     let j = self.contact_list[s as usize] as usize;
@@ -871,7 +886,7 @@ impl Solver {
         let ri = self.settings.rotation_iterations;
         let threads = self.settings.threads;
         let omega = self.settings.relaxation;
-        let contacts = self.settings.particle_contacts;
+        let contacts = self.settings.particle_contacts && self.contacts_now;
         // Pass A: every cluster from the same positions.
         let t = std::time::Instant::now();
         {

@@ -639,8 +639,13 @@ pub struct GpuRange {
     /// Contact pass: 1 leaves the particles of `body.wgsl`'s bodies to the next
     /// `body_iteration`.
     pub skip: u32,
+    /// `body_iteration`: the Jacobi iterations it runs (particle contacts only before the
+    /// first, the previous dispatch's; [`SolverSettings::contact_every`]).
+    ///
+    /// [`SolverSettings::contact_every`]: crate::core::solver::SolverSettings::contact_every
+    pub iters: u32,
     /// Padding to the uniform offset alignment.
-    pub pad: [u32; 57],
+    pub pad: [u32; 56],
 }
 
 /// Grid parameters for `n` particles whose largest lattice spacing is `spacing` (m):

@@ -653,15 +653,19 @@ impl GpuWorld {
             lrecs.push(range(lv.tr_first, lv.tr_count, packed.records_base, 0));
         }
         // Level 0's iteration records (after the coarse levels'): half | prev << 1 |
-        // skip << 2 (`GpuRange`; `record_steps` picks one per iteration).
+        // skip << 2 | no contacts << 3, then 16 × (iterations − 1) for a body_iteration
+        // of several iterations (`GpuRange`; `record_steps` picks one per dispatch).
         let iteration_records = lrecs.len() as u32;
-        for v in 0..8u32 {
-            lrecs.push(GpuRange {
-                half: v & 1,
-                prev: (v >> 1) & 1,
-                skip: (v >> 2) & 1,
-                ..range(0, n, 0, contacts_on as u32)
-            });
+        for iters in 1..=Self::max_block(&settings) {
+            for v in 0..16u32 {
+                lrecs.push(GpuRange {
+                    half: v & 1,
+                    prev: (v >> 1) & 1,
+                    skip: (v >> 2) & 1,
+                    iters,
+                    ..range(0, n, 0, (contacts_on && v < 8) as u32)
+                });
+            }
         }
         let lrec_buf = init(
             "tissue level ranges",
@@ -1094,27 +1098,51 @@ impl GpuWorld {
                 if let Some((all, _)) = body {
                     r.dispatch(w, "tissue/body_substep", all, lv0, grid_2d(nb));
                 }
-                for it in 0..s.iterations {
-                    // Iterations alternate between the halves of p2. With `folded`, an
-                    // iteration's contact pass for `body.wgsl`'s bodies runs at the start
-                    // of the next body_iteration (`prev`), so the contact dispatch leaves
-                    // them out (`skip`) but after the last iteration, and is not needed at
-                    // all before then when every body is `body.wgsl`'s.
-                    let last = it + 1 == s.iterations;
-                    let v = (it % 2)
-                        | (((folded && it > 0) as u32) << 1)
+                // Iterations in blocks that end with one solving particle contacts (every
+                // `contact_every`-th and the last; without contacts one block, which only
+                // the cluster and gather kernels see). Blocks alternate between the halves
+                // of p2. With `folded`, a block's contact pass for `body.wgsl`'s bodies runs
+                // at the start of the next block's body_iteration (`prev`), so the contact
+                // dispatch leaves them out (`skip`) but after the last block, and is not
+                // needed at all before then when every body is `body.wgsl`'s.
+                let every = if self.contacts_on {
+                    Self::max_block(s)
+                } else {
+                    s.iterations
+                };
+                let mut start = 0;
+                let mut block = 0u32;
+                while start < s.iterations {
+                    let end = (start + every).min(s.iterations);
+                    let last = end == s.iterations;
+                    let v = (block % 2)
+                        | (((folded && block > 0) as u32) << 1)
                         | (((folded && !last) as u32) << 2);
-                    let rec = Some((&self.level_group, (self.iteration_records + v) * REC));
+                    let rec = |v: u32, iters: u32| {
+                        let i = self.iteration_records + v + 16 * (iters - 1);
+                        Some((&self.level_group, i * REC))
+                    };
                     if let (Some((_, one)), true) = (body, self.contacts_on) {
-                        r.dispatch(w, "tissue/body_iteration", one, rec, grid_2d(nb));
+                        let dispatch = rec(v, end - start);
+                        r.dispatch(w, "tissue/body_iteration", one, dispatch, grid_2d(nb));
                     }
                     if !all_in_body {
-                        r.dispatch(w, "tissue/clusters", cp, rec, cg);
-                        r.dispatch(w, "tissue/gather", &k.gather, rec, lg);
+                        for it in start..end {
+                            // Iterations before the block's last: no contact pass (flag 0).
+                            let one = if it + 1 == end {
+                                rec(v, 1)
+                            } else {
+                                rec(v | 8, 1)
+                            };
+                            r.dispatch(w, "tissue/clusters", cp, one, cg);
+                            r.dispatch(w, "tissue/gather", &k.gather, one, lg);
+                        }
                     }
                     if self.contacts_on && (last || !(folded && all_in_body)) {
-                        r.dispatch(w, "tissue/contacts", &k.contact, rec, (g, 1));
+                        r.dispatch(w, "tissue/contacts", &k.contact, rec(v, 1), (g, 1));
                     }
+                    start = end;
+                    block += 1;
                 }
                 if nc > 0 {
                     let fg = (FORCE_GROUPS, nc);
@@ -1129,6 +1157,12 @@ impl GpuWorld {
             }
             self.step += 1;
         }
+    }
+
+    /// Most Jacobi iterations between two contact passes:
+    /// [`SolverSettings::contact_every`], at most `iterations`.
+    fn max_block(s: &SolverSettings) -> u32 {
+        s.contact_every.clamp(1, s.iterations.max(1))
     }
 
     /// The hierarchy's coarse levels for one substep, coarsest first (the twin of

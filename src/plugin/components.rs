@@ -465,6 +465,11 @@ pub struct TissueSettings {
     pub particle_contacts: bool,
     /// Contact neighbours per particle.
     pub contact_neighbours: u32,
+    /// Solve particle contacts in every this many iterations (and always in the last of
+    /// a substep; default 1, every iteration). On the GPU a body near another runs one
+    /// dispatch per contact pass, so 2 halves those dispatches; contacts get softer as it
+    /// grows ([`crate::core::solver::SolverSettings::contact_every`]).
+    pub contact_every: u32,
     /// Most steps per frame (the accumulator drops time beyond it, so a slow frame does
     /// not snowball).
     pub max_steps_per_frame: u32,
@@ -486,6 +491,7 @@ impl Default for TissueSettings {
             knn_every: c.knn_every,
             particle_contacts: c.particle_contacts,
             contact_neighbours: c.contact_neighbours,
+            contact_every: c.contact_every,
             max_steps_per_frame: 4,
         }
     }
@@ -505,6 +511,7 @@ impl TissueSettings {
             knn_every: self.knn_every,
             particle_contacts: self.particle_contacts,
             contact_neighbours: self.contact_neighbours,
+            contact_every: self.contact_every,
             method: Method::Jacobi,
             ..Default::default()
         }

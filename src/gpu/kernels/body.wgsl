@@ -173,7 +173,10 @@ fn in_contact(b: u32) -> bool {
     return range.flag != 0u && near_body(b);
 }
 
-// One iteration of the bodies near another (the others ran `body_substep`).
+// `range.iters` iterations of the bodies near another (the others ran `body_substep`):
+// the previous dispatch's contact pass for the body's particles first (`range.prev`),
+// then the iterations, pins and colliders after each but the last, whose result goes to
+// p2 for the contact pass (particle contacts every `contact_every` iterations).
 @compute @workgroup_size(512)
 fn body_iteration(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -199,21 +202,32 @@ fn body_iteration(
         }
     }
     workgroupBarrier();
-    // Pass A: every cluster (one per particle) from the same positions.
-    for (var t = lid; t < count; t = t + BODY_WG) {
-        if (awake) {
-            let c = body.first + t;
-            let rot = solve_local_cluster(local_const(body, t), body.first, t, cstate[c].rot);
-            cstate[c].rot = rot;
+    for (var it = 1u; it <= range.iters; it = it + 1u) {
+        let final_it = it == range.iters;
+        // Pass A: every cluster (one per particle) from the same positions.
+        for (var t = lid; t < count; t = t + BODY_WG) {
+            if (awake) {
+                let c = body.first + t;
+                let rot = solve_local_cluster(local_const(body, t), body.first, t, cstate[c].rot);
+                cstate[c].rot = rot;
+            }
         }
-    }
-    workgroupBarrier();
-    // Pass B: every particle adds the corrections of the clusters that contain it.
-    for (var t = lid; t < count; t = t + BODY_WG) {
-        if (awake) {
-            let acc = gather_local(local_const(body, t), body.first, t);
-            store_gathered(body.first + t, sp[t].xyz, acc, b);
+        workgroupBarrier();
+        // Pass B: every particle adds the corrections of the clusters that contain it.
+        for (var t = lid; t < count; t = t + BODY_WG) {
+            if (awake) {
+                let acc = gather_local(local_const(body, t), body.first, t);
+                let c = body.first + t;
+                if (final_it) {
+                    store_gathered(c, sp[t].xyz, acc, b);
+                } else {
+                    // An iteration without contacts: pins and colliders at once (pass B
+                    // reads only its own position, so it may be replaced now).
+                    sp[t] = vec4<f32>(boundary(c, gathered(sp[t].xyz, acc)), 0.0);
+                }
+            }
         }
+        workgroupBarrier();
     }
 }
 

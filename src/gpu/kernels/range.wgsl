@@ -14,6 +14,8 @@ struct Range {
                     // its particles first (from the other half of p2)
     skip: u32,      // contact: 1 leaves the particles of body.wgsl's bodies to the next
                     // body_iteration
+    iters: u32,     // body_iteration: Jacobi iterations in this dispatch (contacts only
+                    // before the first, from the dispatch before; SolverSettings::contact_every)
 };
 
 @group(1) @binding(0) var<uniform> range: Range;
