@@ -276,6 +276,17 @@ pub(crate) fn settings_widgets(
         "coarse iterations",
     ));
     e.add(&r.on_hover_text("Iterations per coarse level, for bodies with a hierarchy"));
+    if s.particle_contacts {
+        let r = ui.add(slider(
+            &mut s.contact_every,
+            1..=10,
+            "contacts every n iterations",
+        ));
+        e.add(&r.on_hover_text(
+            "Particle contacts between bodies in every n-th iteration (and the last): \
+             2 halves the GPU's dispatches for bodies in contact; 3 and more soften contacts",
+        ));
+    }
     e.add(&ui.add(slider(&mut s.damping, 0.0..=20.0, "damping").suffix(" 1/s")));
     let mut on = s.gravity != Vec3::ZERO;
     let r = ui.checkbox(&mut on, "gravity");
