@@ -332,6 +332,9 @@ fn per_body_groups(nb: u32) -> (u32, u32) {
 /// Bytes per range record in the level group (`GpuRange`).
 const REC: u32 = size_of::<GpuRange>() as u32;
 
+/// Bodies listed per body by the contact broad phase (`NEAR_SLOTS` in `broad.wgsl`).
+const NEAR_SLOTS: u64 = 32;
+
 /// `g` workgroups as a 2-D grid within 65,535 per dimension.
 fn grid_2d(g: u32) -> (u32, u32) {
     if g <= 65_535 {
@@ -579,8 +582,13 @@ impl GpuWorld {
             ),
             knn_out: unknown_lists(device, "tissue knn", n64 * knn_k.max(1) as u64, st),
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
-            // Per body min and max, then per body the contact broad phase's flag.
-            bounds: zeroed("tissue bounds", model.bodies.len() as u64 * 48, st),
+            // Per body min and max, then per body the contact broad phase's flag, then
+            // per body the bodies near it (broad.wgsl: NEAR_SLOTS indices).
+            bounds: zeroed(
+                "tissue bounds",
+                model.bodies.len() as u64 * (48 + NEAR_SLOTS * 4),
+                st,
+            ),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
             grab: init("tissue grab", bytemuck::cast_slice(&grab), st),
             spare: zeroed("tissue knn spare", n64 * spare_stride as u64 * 4, st),
@@ -901,7 +909,9 @@ impl GpuWorld {
     /// frame; the min's w is the body's divergence flag, the max's w its fastest
     /// particle's speed in m/s), written by [`GpuWorld::record_bounds`] (and at each
     /// contact refresh); after them, one vec4 per body whose x is the contact broad
-    /// phase's flag (1: near another body at the last refresh).
+    /// phase's flag (1: near another body at the last refresh) and y how many bodies are
+    /// near it; after those, per body the indices of the bodies near it (`NEAR_SLOTS`
+    /// u32, when that many or fewer).
     pub fn bounds(&self) -> &Buffer {
         &self.b.bounds
     }

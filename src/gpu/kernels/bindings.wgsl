@@ -64,6 +64,36 @@ fn near_body(b: u32) -> bool {
     return bounds[2u * params.n_bodies + b].x != 0.0;
 }
 
+// Other bodies listed per body for the contact search's per-particle test (knn.wgsl,
+// `knn_contacts`): after the flags, NEAR_SLOTS / 4 vec4 per body, the indices as bits.
+// A body with more near ones (`y` of its flag entry above NEAR_SLOTS) is not listed and
+// its particles all search.
+const NEAR_SLOTS: u32 = 32u;
+
+// Whether the contact search of particle i (at q, of near body b) can find anything:
+// q lies within `params.contact_reach` of the bounding box of one of the bodies near b
+// (the reach bound is at least any particle's search radius, so a particle outside all
+// of them has no candidate within its reach and its list is empty, as a full search's).
+// True when b has more near bodies than the list holds.
+fn may_touch(b: u32, q: vec3<f32>) -> bool {
+    let nb = params.n_bodies;
+    let count = u32(bounds[2u * nb + b].y);
+    if (count > NEAR_SLOTS) {
+        return true;
+    }
+    let r = vec3<f32>(params.contact_reach);
+    let base = 3u * nb + b * (NEAR_SLOTS / 4u);
+    for (var k = 0u; k < count; k = k + 1u) {
+        let c = bitcast<u32>(bounds[base + k / 4u][k % 4u]);
+        let l = bounds[2u * c].xyz - r;
+        let h = bounds[2u * c + 1u].xyz + r;
+        if (all(l <= q) && all(q <= h)) {
+            return true;
+        }
+    }
+    return false;
+}
+
 // Whether the cluster and gather kernels leave particle (or cluster) i alone: its body
 // sleeps, or body.wgsl solves it.
 fn passed_over(b: Body) -> bool {

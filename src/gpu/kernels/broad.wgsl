@@ -15,6 +15,8 @@ const BROAD_WG: u32 = 64u;
 const BROAD_MAX_BODIES: u32 = 2048u;
 
 var<workgroup> near_hit: atomic<u32>;
+var<workgroup> near_count: atomic<u32>;
+var<workgroup> near_list: array<u32, NEAR_SLOTS>;
 
 // One workgroup per body; its threads test every BROAD_WG-th other body.
 @compute @workgroup_size(64)
@@ -24,7 +26,10 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
         return;
     }
     if (lid == 0u) {
-        atomicStore(&near_hit, u32(params.n_bodies > BROAD_MAX_BODIES));
+        let all = params.n_bodies > BROAD_MAX_BODIES;
+        atomicStore(&near_hit, u32(all));
+        // Without the pair tests no list: every particle searches.
+        atomicStore(&near_count, select(0u, NEAR_SLOTS + 1u, all));
     }
     workgroupBarrier();
     let reach = params.contact_reach;
@@ -37,11 +42,29 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
             let h = bounds[2u * c + 1u].xyz;
             if (all(lo <= h) && all(l <= hi)) {
                 atomicOr(&near_hit, 1u);
+                let slot = atomicAdd(&near_count, 1u);
+                if (slot < NEAR_SLOTS) {
+                    near_list[slot] = c;
+                }
             }
         }
     }
     workgroupBarrier();
+    let count = atomicLoad(&near_count);
     if (lid == 0u) {
-        bounds[2u * params.n_bodies + b] = vec4<f32>(f32(atomicLoad(&near_hit)), 0.0, 0.0, 0.0);
+        let hit = f32(atomicLoad(&near_hit));
+        bounds[2u * params.n_bodies + b] = vec4<f32>(hit, f32(count), 0.0, 0.0);
+    }
+    // The list (in no particular order: the per-particle test does not depend on it).
+    let base = 3u * params.n_bodies + b * (NEAR_SLOTS / 4u);
+    if (count <= NEAR_SLOTS && lid < NEAR_SLOTS / 4u) {
+        var v = vec4<u32>(0u);
+        for (var k = 0u; k < 4u; k = k + 1u) {
+            let slot = 4u * lid + k;
+            if (slot < count) {
+                v[k] = near_list[slot];
+            }
+        }
+        bounds[base + lid] = bitcast<vec4<f32>>(v);
     }
 }

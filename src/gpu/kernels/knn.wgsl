@@ -242,8 +242,10 @@ fn knn_contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (i >= params.n) {
         return;
     }
-    // Broad phase (broad.wgsl): a body near no other has no candidates.
-    if (!near_body(pinfo[i].x)) {
+    // Broad phase (broad.wgsl): a body near no other has no candidates, nor has a
+    // particle farther than the contact reach from every body near its own.
+    let b = pinfo[i].x;
+    if (!near_body(b) || !may_touch(b, x[i].xyz)) {
         for (var s = 0u; s < params.contact_k; s = s + 1u) {
             contacts[i * params.contact_k + s] = NONE;
         }
