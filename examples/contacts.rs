@@ -19,6 +19,7 @@
 //! ```text
 //! cargo run --release --example contacts
 //! cargo run --release --example contacts -- --quick   # 1 s, the pile only
+//! cargo run --release --example contacts -- --knn-every 1 --substeps 4
 //! ```
 #[path = "support/bench.rs"]
 mod bench;
@@ -146,6 +147,8 @@ fn main() {
     let args = bench::Args::new();
     let quick = args.flag("--quick");
     let seconds: f32 = args.num("--seconds", if quick { 1.0 } else { 3.0 });
+    let knn_every: u32 = args.num("--knn-every", 10);
+    let substeps: u32 = args.num("--substeps", 1);
     let mut scenes = vec![("pile of 27 balls", pile(), Method::Jacobi)];
     if !quick {
         scenes.push(("ball onto slab", slab(), Method::Jacobi));
@@ -161,6 +164,8 @@ fn main() {
             let settings = SolverSettings {
                 method: *method,
                 contact_every: coupling,
+                knn_every,
+                substeps,
                 ..Default::default()
             };
             match run(model, settings, seconds) {

@@ -69,9 +69,9 @@ pub struct SolverSettings {
     /// Solve particle contacts in every this many iterations (and always in the last of
     /// a substep; 1, the default, is every iteration); colliders and pins in every
     /// iteration. The GPU runs the iterations of a body near another one dispatch per
-    /// contact pass, so 2 halves those dispatches. Measured on the CPU
-    /// (`examples/contacts.rs`, BENCHMARKS.md): 2 keeps contacts about as firm as 1, 3
-    /// and more let piled bodies sink deeper.
+    /// contact pass, so 2 halves those dispatches. A trade (`examples/contacts.rs`,
+    /// BENCHMARKS.md): with 2 a pile is no worse, a ball sinks deeper into a slab under
+    /// Jacobi; from 3 Gauss–Seidel lets the ball through.
     pub contact_every: u32,
     /// Most iterations of the warm-started rotation extraction per cluster solve (it stops
     /// early once converged; usually 1–2 when warm).

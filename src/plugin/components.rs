@@ -467,8 +467,8 @@ pub struct TissueSettings {
     pub contact_neighbours: u32,
     /// Solve particle contacts in every this many iterations (and always in the last of
     /// a substep; default 1, every iteration). On the GPU a body near another runs one
-    /// dispatch per contact pass, so 2 halves those dispatches; contacts get softer as it
-    /// grows ([`crate::core::solver::SolverSettings::contact_every`]).
+    /// dispatch per contact pass, so 2 halves those dispatches; contacts hold less firmly
+    /// as it grows ([`crate::core::solver::SolverSettings::contact_every`]).
     pub contact_every: u32,
     /// Most steps per frame (the accumulator drops time beyond it, so a slow frame does
     /// not snowball).

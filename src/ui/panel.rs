@@ -284,7 +284,7 @@ pub(crate) fn settings_widgets(
         ));
         e.add(&r.on_hover_text(
             "Particle contacts between bodies in every n-th iteration (and the last): \
-             2 halves the GPU's dispatches for bodies in contact; 3 and more soften contacts",
+             2 halves the GPU's dispatches for bodies in contact, contacts hold less firmly",
         ));
     }
     e.add(&ui.add(slider(&mut s.damping, 0.0..=20.0, "damping").suffix(" 1/s")));
