@@ -24,11 +24,14 @@
 //! reach of another, and the run prints how many), `he` (the hyperelastic liver),
 //! `1m`; all four by default. `1000c` (the 1,000 bodies 0.1 m apart, every one touching
 //! its neighbours: the contact search and pass run for all) only when named.
-//! `--bodies N` changes the body count of those two scenes. `--contact-every N` solves particle contacts in every N-th iteration
+//! `1000g` (the 1,000 bodies resting on a ground plane in one layer, 0.15 m apart: near
+//! no other, and they stay so) also only when named. `--bodies N` changes the body count
+//! of those three scenes. `--contact-every N` solves particle contacts in every N-th iteration
 //! (`SolverSettings::contact_every`; default 1).
 #[path = "support/bench.rs"]
 mod bench;
 
+use bevy_tissue::core::colliders::Collider;
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
@@ -71,6 +74,21 @@ fn many(bodies: u32, particles: u32, k: u32, material: Material, apart: f32) -> 
         let mut b = one.clone();
         let (x, y, z) = (i % side, (i / side) % side, i / (side * side));
         b.bodies[0].translation = Vec3::new(x as f32, y as f32 + 1.0, z as f32) * apart;
+        model.append(&b);
+    }
+    model
+}
+
+/// `bodies` balls like [`many`]'s in one layer on the ground (y = 0), `apart` m between
+/// centres, each 1 cm above it at the start: they land and rest, apart.
+fn on_ground(bodies: u32, particles: u32, k: u32, material: Material, apart: f32) -> Model {
+    let one = many(1, particles, k, material, apart);
+    let mut model = Model::new();
+    let side = (bodies as f32).sqrt().ceil() as u32;
+    for i in 0..bodies {
+        let mut b = one.clone();
+        let (x, z) = (i % side, i / side);
+        b.bodies[0].translation = Vec3::new(x as f32 * apart, 0.06, z as f32 * apart);
         model.append(&b);
     }
     model
@@ -128,6 +146,18 @@ fn record_into(
 static CONTACT_EVERY: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
 
 fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -> Row {
+    bench_with(g, scene, model, steps, repeats, &[])
+}
+
+/// [`bench`] with kinematic colliders.
+fn bench_with(
+    g: &Headless,
+    scene: &str,
+    model: &Model,
+    steps: u32,
+    repeats: usize,
+    colliders: &[Collider],
+) -> Row {
     let n = model.particle_count() as u32;
     let t0 = Instant::now();
     eprintln!("{scene}: {n} particles, uploading");
@@ -140,6 +170,9 @@ fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -
     };
     let state = State::new(model);
     let mut world = GpuWorld::new(&g.device, &g.kernels, model, &state, settings, 32)
+        .unwrap_or_else(|e| panic!("{scene}: {e}"));
+    world
+        .set_colliders(&g.queue, colliders)
         .unwrap_or_else(|e| panic!("{scene}: {e}"));
     world.write_params(&g.queue);
     eprintln!("  uploaded in {:.2} s", t0.elapsed().as_secs_f64());
@@ -325,9 +358,13 @@ fn main() {
             rows.push(bench(&g, &name, &model, steps.min(50), repeats.min(3)));
         }
     } else {
-        let all = ["38k", "1000", "1000c", "he", "1m"].map(String::from);
-        // All but the contact variant of the 1,000 bodies by default.
-        let default: Vec<String> = all.iter().filter(|s| *s != "1000c").cloned().collect();
+        let all = ["38k", "1000", "1000c", "1000g", "he", "1m"].map(String::from);
+        // All but the contact and ground variants of the 1,000 bodies by default.
+        let default: Vec<String> = all
+            .iter()
+            .filter(|s| *s != "1000c" && *s != "1000g")
+            .cloned()
+            .collect();
         let scenes = args.text("--scenes").map_or(default, |s| {
             s.split(',').map(|x| x.trim().to_lowercase()).collect()
         });
@@ -367,6 +404,18 @@ fn main() {
                 &many(bodies, 512, 32, sm, 0.1),
                 steps,
                 repeats,
+            ));
+        }
+        if on("1000g") {
+            // Resting on a ground plane, apart: no drift into contact (the `1000` scene
+            // falls without end and drifts), the ground collider for every particle.
+            rows.push(bench_with(
+                &g,
+                "1000 bodies x 512 resting on the ground, shape matching",
+                &on_ground(bodies, 512, 32, sm, 0.15),
+                steps,
+                repeats,
+                &[Collider::ground(0.0)],
             ));
         }
         if on("he") {
