@@ -548,3 +548,31 @@ impl TissueClock {
         self.pending_steps += 1;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn settings_reach_the_core_solver_field_by_field() {
+        let core = SolverSettings::default();
+        let d = TissueSettings::default().to_core();
+        assert_eq!(d.contact_every, core.contact_every);
+        assert_eq!(d.knn_every, core.knn_every);
+        let s = TissueSettings {
+            contact_every: 3,
+            knn_every: 5,
+            iterations: 7,
+            ..Default::default()
+        }
+        .to_core();
+        assert_eq!((s.contact_every, s.knn_every, s.iterations), (3, 5, 7));
+        assert_eq!(s.method, Method::Jacobi);
+        assert!(s.validate().is_ok());
+        let bad = TissueSettings {
+            contact_every: 0,
+            ..Default::default()
+        };
+        assert!(bad.to_core().validate().is_err());
+    }
+}
