@@ -232,6 +232,8 @@ pub struct GpuWorld {
     level_group: BindGroup,
     /// Record of level 0's first iteration record in `level_group` (eight of them).
     iteration_records: u32,
+    /// Longest body_iteration block the records were built for (`max_block` at creation).
+    block_records: u32,
     /// The hierarchy's coarse levels in the particle arrays.
     coarse: Vec<PackedLevel>,
     n: u32,
@@ -664,7 +666,8 @@ impl GpuWorld {
         // skip << 2 | no contacts << 3, then 16 × (iterations − 1) for a body_iteration
         // of several iterations (`GpuRange`; `record_steps` picks one per dispatch).
         let iteration_records = lrecs.len() as u32;
-        for iters in 1..=Self::max_block(&settings) {
+        let block_records = Self::max_block(&settings);
+        for iters in 1..=block_records {
             for v in 0..16u32 {
                 lrecs.push(GpuRange {
                     half: v & 1,
@@ -757,6 +760,7 @@ impl GpuWorld {
             scan_group,
             level_group,
             iteration_records,
+            block_records,
             coarse: packed.levels.clone(),
             n,
             n_vertices: nv,
@@ -1116,7 +1120,9 @@ impl GpuWorld {
                 // dispatch leaves them out (`skip`) but after the last block, and is not
                 // needed at all before then when every body is `body.wgsl`'s.
                 let every = if self.contacts_on {
-                    Self::max_block(s)
+                    // (At most the block length the records were built for, should the
+                    // settings have been changed since.)
+                    Self::max_block(s).min(self.block_records)
                 } else {
                     s.iterations
                 };
