@@ -311,6 +311,13 @@ fn bad_solver_settings() {
         ),
         (
             SolverSettings {
+                contact_relaxation: f32::NAN,
+                ..Default::default()
+            },
+            "contact_relaxation",
+        ),
+        (
+            SolverSettings {
                 gravity: Vec3::NAN,
                 ..Default::default()
             },

@@ -519,7 +519,8 @@ fn touching_bodies_push_apart_as_on_the_cpu() {
     // particle contacts separate them. Both GPU paths (a workgroup per body with the
     // contact pass folded into the next iteration, and the cluster, gather and contact
     // kernels) against the CPU Jacobi solver, with contacts in every iteration and in
-    // every third (`contact_every`: blocks of 3, 3, 3 and 1 iterations).
+    // every third (`contact_every`: blocks of 3, 3, 3 and 1 iterations), and with the
+    // contacts over-relaxed (`contact_relaxation` 2).
     let Some(g) = gpu() else { return };
     let mesh = procedural::icosphere(0.03, 2);
     let mut model = Model::new();
@@ -535,16 +536,17 @@ fn touching_bodies_push_apart_as_on_the_cpu() {
     };
     let gap = |x: &[Vec3]| centre(x, 1).x - centre(x, 0).x;
     let steps = 60;
-    for every in [1, 3] {
+    for (every, omega) in [(1, 1.0), (3, 1.0), (1, 2.0)] {
         let s = SolverSettings {
             contact_every: every,
+            contact_relaxation: omega,
             ..settings()
         };
         let (cpu, _) = run_cpu_with(&model, &[], steps, s.clone());
         let start = gap(&State::new(&model).x);
         eprintln!(
-            "contacts every {every}: centres {start:.4} m apart at the start, {:.4} m on \
-             the CPU",
+            "contacts every {every}, ω {omega}: centres {start:.4} m apart at the start, \
+             {:.4} m on the CPU",
             gap(&cpu.x)
         );
         assert!(
@@ -564,13 +566,16 @@ fn touching_balls_on_the_gpu(
     steps: u32,
 ) {
     let size = model.bodies[0].size;
-    let every = s.contact_every;
+    let (every, omega) = (s.contact_every, s.contact_relaxation);
     for on in [true, false] {
         let mut world = fresh_world_with(g, model, s.clone());
         world.set_body_kernel(&g.queue, on);
         let x = run_gpu(g, &mut world, &[], steps);
         let d = max_dist(&x, cpu);
-        eprintln!("contacts every {every}, body kernel {on}: GPU–CPU {d:.3e} m (size {size:.3} m)");
+        eprintln!(
+            "contacts every {every}, ω {omega}, body kernel {on}: GPU–CPU {d:.3e} m (size \
+             {size:.3} m)"
+        );
         // Looser than the 1e-4 of the scenes without contact: a contact acts or not at a
         // distance threshold, so a rounding difference (the gather kernel sums in another
         // order than the CPU) can switch one on a step earlier. Measured on lavapipe:
@@ -578,7 +583,7 @@ fn touching_balls_on_the_gpu(
         // kernels; the balls move 21 mm apart.
         assert!(
             d < 1e-3 * size,
-            "contacts every {every}, body kernel {on}: GPU and CPU differ by {d} m after \
+            "contacts every {every}, ω {omega}, body kernel {on}: GPU and CPU differ by {d} m after \
              {steps} steps of contact"
         );
     }

@@ -82,8 +82,11 @@ pub struct GpuParams {
     /// The contact broad phase's reach, m: [`crate::core::knn::contact_reach_bound`] of
     /// the largest particle radius.
     pub contact_reach: f32,
+    /// Jacobi relaxation of the particle contacts
+    /// ([`crate::core::solver::SolverSettings::contact_relaxation`]).
+    pub contact_omega: f32,
     /// Padding to the WGSL struct's 16-byte multiple.
-    pub pad: [u32; 2],
+    pub pad: [u32; 1],
 }
 
 /// Candidates beyond K that a warm neighbour search may set aside before it falls back to

@@ -742,7 +742,8 @@ impl GpuWorld {
             spare_stride,
             iterations: settings.iterations,
             contact_reach: crate::core::knn::contact_reach_bound(packed.max_radius),
-            pad: [0; 2],
+            contact_omega: settings.contact_relaxation,
+            pad: [0; 1],
         };
         Ok(Self {
             settings,

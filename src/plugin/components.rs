@@ -470,6 +470,10 @@ pub struct TissueSettings {
     /// dispatch per contact pass, so 2 halves those dispatches; contacts hold less firmly
     /// as it grows ([`crate::core::solver::SolverSettings::contact_every`]).
     pub contact_every: u32,
+    /// Jacobi relaxation of the particle contacts (default 1; 2 lets each particle take
+    /// the whole overlap and holds piles more firmly;
+    /// [`crate::core::solver::SolverSettings::contact_relaxation`]).
+    pub contact_relaxation: f32,
     /// Most steps per frame (the accumulator drops time beyond it, so a slow frame does
     /// not snowball).
     pub max_steps_per_frame: u32,
@@ -492,6 +496,7 @@ impl Default for TissueSettings {
             particle_contacts: c.particle_contacts,
             contact_neighbours: c.contact_neighbours,
             contact_every: c.contact_every,
+            contact_relaxation: c.contact_relaxation,
             max_steps_per_frame: 4,
         }
     }
@@ -512,6 +517,7 @@ impl TissueSettings {
             particle_contacts: self.particle_contacts,
             contact_neighbours: self.contact_neighbours,
             contact_every: self.contact_every,
+            contact_relaxation: self.contact_relaxation,
             method: Method::Jacobi,
             ..Default::default()
         }
@@ -558,15 +564,18 @@ mod tests {
         let core = SolverSettings::default();
         let d = TissueSettings::default().to_core();
         assert_eq!(d.contact_every, core.contact_every);
+        assert_eq!(d.contact_relaxation, core.contact_relaxation);
         assert_eq!(d.knn_every, core.knn_every);
         let s = TissueSettings {
             contact_every: 3,
+            contact_relaxation: 2.0,
             knn_every: 5,
             iterations: 7,
             ..Default::default()
         }
         .to_core();
         assert_eq!((s.contact_every, s.knn_every, s.iterations), (3, 5, 7));
+        assert_eq!(s.contact_relaxation, 2.0);
         assert_eq!(s.method, Method::Jacobi);
         assert!(s.validate().is_ok());
         let bad = TissueSettings {

@@ -286,6 +286,15 @@ pub(crate) fn settings_widgets(
             "Particle contacts between bodies in every n-th iteration (and the last): \
              2 halves the GPU's dispatches for bodies in contact, contacts hold less firmly",
         ));
+        let r = ui.add(slider(
+            &mut s.contact_relaxation,
+            0.5..=2.0,
+            "contact relaxation",
+        ));
+        e.add(&r.on_hover_text(
+            "Jacobi relaxation of the particle contacts: 1 resolves a contact between two \
+             free particles exactly, 2 lets each take the whole overlap (firmer piles)",
+        ));
     }
     e.add(&ui.add(slider(&mut s.damping, 0.0..=20.0, "damping").suffix(" 1/s")));
     let mut on = s.gravity != Vec3::ZERO;

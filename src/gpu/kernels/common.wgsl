@@ -28,6 +28,7 @@ struct Params {
     spare_stride: u32,       // entries per particle in `spare` (neighbour search)
     iterations: u32,         // Jacobi iterations per substep (body.wgsl's body_substep)
     contact_reach: f32,      // broad phase: core::knn::contact_reach_bound(max_radius), m
+    contact_omega: f32,      // Jacobi relaxation of the particle contacts
 };
 
 // Per body, per frame: world → entity-local affine map for drawing, and where the

@@ -273,7 +273,7 @@ fn contact_position(j: u32, half: u32) -> vec3<f32> {
         i = next;
     }
     if (cnt > 0u) {
-        q = q + sum / f32(cnt);
+        q = q + sum / f32(cnt) * params.contact_omega;
     }
     return boundary(j, q);
 }
