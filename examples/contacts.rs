@@ -211,11 +211,11 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|");
     for (name, model, method) in &scenes {
-        for coupling in [1u32, 2, 3, 5, 10] {
-            eprintln!("{name}, {method:?}, contacts every {coupling} iterations");
+        for every in [1u32, 2, 3, 5, 10] {
+            eprintln!("{name}, {method:?}, contacts every {every} iterations");
             let settings = SolverSettings {
                 method: *method,
-                contact_every: coupling,
+                contact_every: every,
                 knn_every,
                 substeps,
                 contact_relaxation,
@@ -223,14 +223,14 @@ fn main() {
             };
             match run(model, settings, seconds) {
                 Ok(o) => println!(
-                    "| {name} | {method:?} | {coupling} | {:.0}% | {:.3} / {:.3} | {:.4} | {:.1} |",
+                    "| {name} | {method:?} | {every} | {:.0}% | {:.3} / {:.3} | {:.4} | {:.1} |",
                     o.depth * 100.0,
                     o.mean_speed,
                     o.max_speed,
                     o.top,
                     o.ms
                 ),
-                Err(e) => println!("| {name} | {method:?} | {coupling} | {e} | | | |"),
+                Err(e) => println!("| {name} | {method:?} | {every} | {e} | | | |"),
             }
         }
     }
@@ -238,20 +238,20 @@ fn main() {
         "\n| head-on collision at 0.5 m/s, Jacobi | contacts every n iterations | restitution | centres apart after 0.5 s, m (touching: 0.1) | deepest penetration |"
     );
     println!("|---|---|---|---|---|");
-    for coupling in [1u32, 2, 3, 5, 10] {
+    for every in [1u32, 2, 3, 5, 10] {
         let settings = SolverSettings {
             method: Method::Jacobi,
-            contact_every: coupling,
+            contact_every: every,
             substeps,
             contact_relaxation,
             ..Default::default()
         };
         match restitution(&settings) {
             Ok((e, gap, depth)) => println!(
-                "| two balls | {coupling} | {e:.3} | {gap:.4} | {:.0}% |",
+                "| two balls | {every} | {e:.3} | {gap:.4} | {:.0}% |",
                 depth * 100.0
             ),
-            Err(e) => println!("| two balls | {coupling} | {e} | | |"),
+            Err(e) => println!("| two balls | {every} | {e} | | |"),
         }
     }
 }

@@ -230,7 +230,8 @@ pub struct GpuWorld {
     /// particle range; then per coarse level its particle range, its prolongation
     /// records and its multiplier-transfer records (256 bytes each).
     level_group: BindGroup,
-    /// Record of level 0's first iteration record in `level_group` (eight of them).
+    /// Record of level 0's first iteration record in `level_group` (16 variants per
+    /// body_iteration block length, `block_records` lengths).
     iteration_records: u32,
     /// Longest body_iteration block the records were built for (`max_block` at creation).
     block_records: u32,
@@ -333,9 +334,6 @@ fn per_body_groups(nb: u32) -> (u32, u32) {
 
 /// Bytes per range record in the level group (`GpuRange`).
 const REC: u32 = size_of::<GpuRange>() as u32;
-
-/// Bodies listed per body by the contact broad phase (`NEAR_SLOTS` in `broad.wgsl`).
-const NEAR_SLOTS: u64 = 32;
 
 /// `g` workgroups as a 2-D grid within 65,535 per dimension.
 fn grid_2d(g: u32) -> (u32, u32) {
@@ -588,7 +586,7 @@ impl GpuWorld {
             // per body the bodies near it (broad.wgsl: NEAR_SLOTS indices).
             bounds: zeroed(
                 "tissue bounds",
-                model.bodies.len() as u64 * (48 + NEAR_SLOTS * 4),
+                model.bodies.len() as u64 * (48 + kernels::broad::NEAR_SLOTS as u64 * 4),
                 st,
             ),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),

@@ -14,6 +14,10 @@ pub const SOURCE: &str = concat!(
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["near_bodies"];
 
+/// Near bodies listed per body after the flags in the `bounds` buffer (`NEAR_SLOTS` in
+/// `bindings.wgsl`; `knn_contacts` tests a particle against their boxes).
+pub const NEAR_SLOTS: u32 = 32;
+
 #[cfg(test)]
 mod tests {
     #[test]
@@ -25,6 +29,15 @@ mod tests {
         assert!(
             super::SOURCE.contains(&line),
             "broad.wgsl must declare `{line}`"
+        );
+    }
+
+    #[test]
+    fn the_near_list_length_matches_the_buffer_layout() {
+        let line = format!("const NEAR_SLOTS: u32 = {}u;", super::NEAR_SLOTS);
+        assert!(
+            super::SOURCE.contains(&line),
+            "bindings.wgsl must declare `{line}`"
         );
     }
 }
