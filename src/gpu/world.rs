@@ -1107,8 +1107,10 @@ impl GpuWorld {
                 }
                 // `body.wgsl`: all iterations of the bodies near no other at once (they
                 // meet nothing between two iterations), then one dispatch per iteration
-                // for those with contact candidates (only with particle contacts on).
-                if let Some((all, _)) = body {
+                // for those with contact candidates (only with particle contacts on). With
+                // contacts the first of those dispatches solves the bodies near no other
+                // too, so body_substep runs only without them.
+                if let (Some((all, _)), false) = (body, self.contacts_on) {
                     r.dispatch(w, "tissue/body_substep", all, lv0, grid_2d(nb));
                 }
                 // Iterations in blocks that end with one solving particle contacts (every

@@ -3,9 +3,12 @@
 // memory, every cluster is solved from there (its members' reads are workgroup-memory
 // hits instead of L2 round trips), the corrections stay in workgroup memory, and every
 // particle gathers them. A body near no other (broad.wgsl; or any body without particle
-// contacts) runs all iterations of a substep in one dispatch (`body_substep`: nothing
-// outside the body acts on it between two iterations, so its positions and cluster
-// rotations stay in the workgroup); a body with contact candidates runs one iteration
+// contacts) runs all iterations of a substep in one workgroup (nothing outside the body
+// acts on it between two iterations, so its positions and cluster rotations stay in the
+// workgroup): in `body_substep` without particle contacts, with them in the substep's
+// first `body_iteration` dispatch, beside the other bodies' first block of iterations
+// (H100, every body touching: 0.165 ms per step less; BENCHMARKS.md, session 13); a
+// body with contact candidates runs one iteration
 // per dispatch (`body_iteration`), which starts with the previous iteration's contact
 // pass for the body's particles (iterations alternate between two halves of p2).
 // The arithmetic is the cluster and gather kernels' (the gather adds a particle's
@@ -190,6 +193,20 @@ fn body_iteration(
     // The flag's load is issued before the body record's, so that the two overlap.
     let contact = in_contact(b);
     let body = bodies[b];
+    // The first block of a substep also solves the bodies near no other, all their
+    // iterations at once (`body_substep`'s work, which is then not dispatched): those
+    // bodies meet none of the others in this substep, and in this dispatch their
+    // workgroups run beside the others' instead of in a lightly loaded dispatch of
+    // their own before it.
+    if (range.prev == 0u) {
+        if (lid == 0u) {
+            wg_flag = u32(solves_substep(body, b));
+        }
+        if (workgroupUniformLoad(&wg_flag) != 0u) {
+            run_substep(body, lid);
+            return;
+        }
+    }
     // A sleeping body, one the cluster and gather kernels solve, or one body_substep
     // solved, is left alone (every thread still meets the barriers).
     let awake = contact && body.asleep == 0u && body.in_wg != 0u;
@@ -248,11 +265,23 @@ fn body_substep(
     }
     let body = bodies[b];
     if (lid == 0u) {
-        wg_flag = u32(body.asleep == 0u && body.in_wg != 0u && !in_contact(b));
+        wg_flag = u32(solves_substep(body, b));
     }
     if (workgroupUniformLoad(&wg_flag) == 0u) {
         return;
     }
+    run_substep(body, lid);
+}
+
+// Whether body b's substep is solved whole in one workgroup (`run_substep`): awake, one
+// of this file's bodies, and near no other (or without particle contacts).
+fn solves_substep(body: Body, b: u32) -> bool {
+    return body.asleep == 0u && body.in_wg != 0u && !in_contact(b);
+}
+
+// All `params.iterations` iterations of a substep of `body` in this workgroup (every
+// thread calls it, in uniform control flow).
+fn run_substep(body: Body, lid: u32) {
     load_body(body, lid);
     // BODY_WG = BODY_MAX: thread t owns cluster and particle t.
     let t = lid;
