@@ -100,11 +100,9 @@ fn passed_over(b: Body) -> bool {
     return b.asleep != 0u || b.in_wg != 0u;
 }
 
+// Inverse mass (1/kg) of particle i: 0 when pinned. Both loads are issued at once.
 fn inv_mass(i: u32) -> f32 {
-    if (pinfo[i].y != NONE) {
-        return 0.0;
-    }
-    return 1.0 / rest[i].w;
+    return select(1.0 / rest[i].w, 0.0, pinfo[i].y != NONE);
 }
 
 // Grid cell of a point (unbounded integer coordinates) and its hash bucket.

@@ -232,10 +232,38 @@ fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
     }
 }
 
+// What candidate i (at qi, its radius in w, inverse mass wi) asks of particle j (at pj,
+// radius rj, inverse mass wj): j's share of their overlap (xyz) and 1 (w), or zero when
+// they do not overlap. CPU twin: core::constraints::solve_contact (pass C).
+fn contact_move(pj: vec3<f32>, rj: f32, wj: f32, qi: vec4<f32>, wi: f32) -> vec4<f32> {
+    let dist = qi.w + rj;
+    let delta = pj - qi.xyz;
+    let l2 = dot(delta, delta);
+    let w = wj + wi;
+    if (l2 < dist * dist && l2 > 1.0e-24 && w > 0.0) {
+        let l = sqrt(l2);
+        let dc = delta * ((dist - l) / l * wj / w);
+        if (any(dc != vec3<f32>(0.0))) {
+            return vec4<f32>(dc, 1.0);
+        }
+    }
+    return vec4<f32>(0.0);
+}
+
+// Candidate slot s of particle j's list (`first` = j · contact_k), NONE past the list.
+fn candidate(first: u32, s: u32, kk: u32) -> u32 {
+    if (s < kk) {
+        return contacts[first + s];
+    }
+    return NONE;
+}
+
 // The contact pass of particle j (a body near another: pass B left it in half `half` of
 // p2, its candidates too, each with its radius in w): its position after the contacts,
-// pins and colliders. Each candidate's index is loaded one round ahead, so that a
-// candidate costs one round trip to memory (its position, pin and mass at once).
+// pins and colliders. Candidates are taken four at a time: their positions, pins and
+// masses loaded together, and the next four's indices with them, so that four
+// candidates cost one round trip to memory; they are added in list order (as the CPU
+// twin does) up to the first empty slot.
 fn contact_position(j: u32, half: u32) -> vec3<f32> {
     let h = half * params.n;
     let own = p2[h + j];
@@ -243,37 +271,52 @@ fn contact_position(j: u32, half: u32) -> vec3<f32> {
     let rj = own.w;
     var q = pj;
     let wj = inv_mass(j);
-    var sum = vec3<f32>(0.0);
-    var cnt = 0u;
+    var acc = vec4<f32>(0.0);
     let kk = params.contact_k;
     let first = j * kk;
-    var i = contacts[first];
-    for (var s = 0u; s < kk; s = s + 1u) {
-        if (i == NONE) {
+    var ids = vec4<u32>(
+        candidate(first, 0u, kk),
+        candidate(first, 1u, kk),
+        candidate(first, 2u, kk),
+        candidate(first, 3u, kk),
+    );
+    for (var s = 0u; s < kk; s = s + 4u) {
+        if (ids.x == NONE) {
             break;
         }
-        var next = NONE;
-        if (s + 1u < kk) {
-            next = contacts[first + s + 1u];
+        // An empty slot loads particle j itself (in bounds; never used).
+        let a = select(ids, vec4<u32>(j), ids == vec4<u32>(NONE));
+        let q0 = p2[h + a.x];
+        let q1 = p2[h + a.y];
+        let q2 = p2[h + a.z];
+        let q3 = p2[h + a.w];
+        let w0 = inv_mass(a.x);
+        let w1 = inv_mass(a.y);
+        let w2 = inv_mass(a.z);
+        let w3 = inv_mass(a.w);
+        let cur = ids;
+        ids = vec4<u32>(
+            candidate(first, s + 4u, kk),
+            candidate(first, s + 5u, kk),
+            candidate(first, s + 6u, kk),
+            candidate(first, s + 7u, kk),
+        );
+        acc = acc + contact_move(pj, rj, wj, q0, w0);
+        if (cur.y == NONE) {
+            break;
         }
-        let qi = p2[h + i];
-        let wi = inv_mass(i);
-        let dist = qi.w + rj;
-        let delta = pj - qi.xyz;
-        let l2 = dot(delta, delta);
-        let w = wj + wi;
-        if (l2 < dist * dist && l2 > 1.0e-24 && w > 0.0) {
-            let l = sqrt(l2);
-            let dc = delta * ((dist - l) / l * wj / w);
-            if (any(dc != vec3<f32>(0.0))) {
-                sum = sum + dc;
-                cnt = cnt + 1u;
-            }
+        acc = acc + contact_move(pj, rj, wj, q1, w1);
+        if (cur.z == NONE) {
+            break;
         }
-        i = next;
+        acc = acc + contact_move(pj, rj, wj, q2, w2);
+        if (cur.w == NONE) {
+            break;
+        }
+        acc = acc + contact_move(pj, rj, wj, q3, w3);
     }
-    if (cnt > 0u) {
-        q = q + sum / f32(cnt) * params.contact_omega;
+    if (acc.w > 0.0) {
+        q = q + acc.xyz / acc.w * params.contact_omega;
     }
     return boundary(j, q);
 }
