@@ -284,8 +284,26 @@ fn bench_with(
     r
 }
 
+/// What `--help` prints: the options (the module documentation says more).
+const USAGE: &str = "gpu_bench: the batched GPU world's ms per step (SPEC §7)
+
+options:
+  --quick               small sizes (lavapipe: seconds)
+  --scenes a,b,..       38k, 1000, he, 1m (the default set); 1000c, 1000g only when named
+  --bodies N            body count of the 1000, 1000c and 1000g scenes (default 1000)
+  --contact-every N     particle contacts every N-th iteration (default 1)
+  --no-knn-all          leave the paper's all-particle search out of the steps
+  --steps N             steps per repeat (default 300; --quick 20)
+  --repeats N           repeats (default 5; --quick 3)
+  --scale [--sizes ..]  the liver from 37,982 to 4,000,000 particles
+  --help                this text";
+
 fn main() {
     let args = bench::Args::new();
+    if args.flag("--help") || args.flag("-h") {
+        println!("{USAGE}");
+        return;
+    }
     let quick = args.flag("--quick");
     let g = match headless() {
         Ok(g) => g,
