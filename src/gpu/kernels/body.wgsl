@@ -7,7 +7,7 @@
 // acts on it between two iterations, so its positions and cluster rotations stay in the
 // workgroup): in `body_substep` without particle contacts, with them in the substep's
 // first `body_iteration` dispatch, beside the other bodies' first block of iterations
-// (H100, every body touching: 0.165 ms per step less; BENCHMARKS.md, session 13); a
+// (H100, every body touching: ~0.04 ms per step less; BENCHMARKS.md, session 13); a
 // body with contact candidates runs one iteration
 // per dispatch (`body_iteration`), which starts with the previous iteration's contact
 // pass for the body's particles (iterations alternate between two halves of p2).
@@ -25,7 +25,7 @@ var<workgroup> sp: array<vec4<f32>, BODY_MAX>;   // the body's predicted positio
 var<workgroup> sr: array<vec4<f32>, BODY_MAX>;   // its rest records (X, m)
 var<workgroup> sq: array<vec4<f32>, BODY_MAX>;   // per cluster: rotation (quaternion)
 var<workgroup> st: array<vec4<f32>, BODY_MAX>;   // per cluster: (a t, a)
-var<workgroup> wg_flag: u32;                      // body_substep: whether it solves the body
+var<workgroup> wg_flag: u32;                      // whether it solves the body's substep whole
 
 // Members j.x..j.w (local indices) added in that order.
 fn add_four_local(t: MomentSums, j: vec4<u32>, origin: vec3<f32>, com: vec3<f32>) -> MomentSums {
@@ -176,8 +176,8 @@ fn in_contact(b: u32) -> bool {
     return range.flag != 0u && near_body(b);
 }
 
-// `range.iters` iterations of the bodies near another (the others ran `body_substep`):
-// the previous dispatch's contact pass for the body's particles first (`range.prev`),
+// `range.iters` iterations of the bodies near another (in the substep's first block, the
+// others' whole substep, `run_substep`): the previous dispatch's contact pass for the body's particles first (`range.prev`),
 // then the iterations, pins and colliders after each but the last, whose result goes to
 // p2 for the contact pass (particle contacts every `contact_every` iterations).
 @compute @workgroup_size(512)
@@ -207,8 +207,9 @@ fn body_iteration(
             return;
         }
     }
-    // A sleeping body, one the cluster and gather kernels solve, or one body_substep
-    // solved, is left alone (every thread still meets the barriers).
+    // A sleeping body, one the cluster and gather kernels solve, or one near no other
+    // (solved whole above, or by body_substep), is left alone (every thread still meets
+    // the barriers).
     let awake = contact && body.asleep == 0u && body.in_wg != 0u;
     let count = min(body.count, BODY_MAX);
     if (awake) {
@@ -248,8 +249,9 @@ fn body_iteration(
     }
 }
 
-// All `params.iterations` iterations of a substep for every awake body it solves that is
-// near no other (or, without particle contacts, every one): positions and rotations stay
+// All `params.iterations` iterations of a substep for every awake body it solves, when
+// particle contacts are off (with them, `body_iteration`'s first block does this for the
+// bodies near no other; world.rs dispatches this kernel only without them): positions and rotations stay
 // in the workgroup between iterations, each particle's pins and colliders applied after
 // every iteration as `store_gathered` does; p and the rotations written at the end. The
 // same arithmetic as `body_iteration` dispatched `iterations` times.
