@@ -62,9 +62,35 @@ fn local_const(body: Body, t: u32) -> LocalConst {
     );
 }
 
+// The first indices of a particle's two lists: its cluster's first two rounds of four
+// members and the first four clusters that contain it (zero where a list is shorter).
+// The same in every iteration: `run_substep` loads them once and keeps them over all its
+// iterations (H100, 1,000 bodies apart: 1.51 → 1.46 ms per step); `body_iteration` loads
+// them at the head of each pass (loading them, with the rest of `LocalConst`, before the
+// contact pass measured slower: 1,000 touching bodies 2.26 → 2.56 ms; BENCHMARKS.md).
+struct ListHead {
+    jn: vec4<u32>,
+    jm: vec4<u32>,
+    on: vec4<u32>,
+};
+
+fn list_head(k: LocalConst) -> ListHead {
+    var h = ListHead(vec4<u32>(0u), vec4<u32>(0u), vec4<u32>(0u));
+    if (k.start + 4u <= k.end) {
+        h.jn = lists4(k.start);
+    }
+    if (k.start + 8u <= k.end) {
+        h.jm = lists4(k.start + 4u);
+    }
+    if (k.s0 + 4u <= k.s1) {
+        h.on = lists4(k.s0);
+    }
+    return h;
+}
+
 // Cluster moments (members in list order, as moments_from) from workgroup memory;
 // `first` is the body's first particle.
-fn local_moments(k: LocalConst, first: u32) -> Moments {
+fn local_moments(k: LocalConst, first: u32, head: ListHead) -> Moments {
     let end = k.end;
     let com = k.com_mass.xyz;
     let origin = sp[k.origin].xyz;
@@ -72,15 +98,10 @@ fn local_moments(k: LocalConst, first: u32) -> Moments {
     var t = MomentSums(z, z, z, z, z);
     var s = k.start;
     let f4 = vec4<u32>(first);
-    // The indices of the next two rounds of four are loaded while this round is added.
-    var jn = vec4<u32>(0u);
-    var jm = vec4<u32>(0u);
-    if (s + 4u <= end) {
-        jn = lists4(s);
-    }
-    if (s + 8u <= end) {
-        jm = lists4(s + 4u);
-    }
+    // The indices of the next two rounds of four are loaded while this round is added
+    // (the first two by `list_head`, before the pass).
+    var jn = head.jn;
+    var jm = head.jm;
     loop {
         if (s + 4u > end) {
             break;
@@ -103,8 +124,8 @@ fn local_moments(k: LocalConst, first: u32) -> Moments {
 
 // Pass A for cluster first + t: its rotation (warm-started from `rot`) and correction
 // to workgroup memory; returns the rotation.
-fn solve_local_cluster(k: LocalConst, first: u32, t: u32, rot: vec4<f32>) -> vec4<f32> {
-    let mo = local_moments(k, first);
+fn solve_local_cluster(k: LocalConst, first: u32, t: u32, rot: vec4<f32>, head: ListHead) -> vec4<f32> {
+    let mo = local_moments(k, first, head);
     let q = extract_rotation(mo.apq, rot, params.rot_iters);
     let r = quat_mat(q);
     sq[t] = q;
@@ -114,17 +135,15 @@ fn solve_local_cluster(k: LocalConst, first: u32, t: u32, rot: vec4<f32>) -> vec
 
 // Pass B for particle first + t: Σ over the clusters that contain it of a (R X + t)
 // (xyz) and a (w), in inverse-list order (the CPU's).
-fn gather_local(k: LocalConst, first: u32, t: u32) -> vec4<f32> {
+fn gather_local(k: LocalConst, first: u32, t: u32, head: ListHead) -> vec4<f32> {
     let xr = sr[t].xyz;
     var acc = vec4<f32>(0.0);
     let base = k.s0;
     let n = k.s1 - k.s0;
     let f4 = vec4<u32>(first);
-    // Four indices at a time, the next four loaded while these are added.
-    var on = vec4<u32>(0u);
-    if (n >= 4u) {
-        on = lists4(base);
-    }
+    // Four indices at a time, the next four loaded while these are added (the first
+    // four by `list_head`).
+    var on = head.on;
     var s = 0u;
     loop {
         if (s + 4u > n) {
@@ -226,7 +245,7 @@ fn body_iteration(
         for (var t = lid; t < count; t = t + BODY_WG) {
             if (awake) {
                 let c = body.first + t;
-                let rot = solve_local_cluster(local_const(body, t), body.first, t, cstate[c].rot);
+                let rot = solve_local_cluster(local_const(body, t), body.first, t, cstate[c].rot, list_head(local_const(body, t)));
                 cstate[c].rot = rot;
             }
         }
@@ -234,7 +253,8 @@ fn body_iteration(
         // Pass B: every particle adds the corrections of the clusters that contain it.
         for (var t = lid; t < count; t = t + BODY_WG) {
             if (awake) {
-                let acc = gather_local(local_const(body, t), body.first, t);
+                let k = local_const(body, t);
+                let acc = gather_local(k, body.first, t, list_head(k));
                 let c = body.first + t;
                 if (final_it) {
                     store_gathered(c, sp[t].xyz, acc, b);
@@ -291,18 +311,20 @@ fn run_substep(body: Body, lid: u32) {
     let c = body.first + t;
     var rot = vec4<f32>(0.0, 0.0, 0.0, 1.0);
     var k: LocalConst;
+    var head: ListHead;
     if (mine) {
         rot = cstate[c].rot;
         k = local_const(body, t);
+        head = list_head(k);
     }
     workgroupBarrier();
     for (var it = 0u; it < params.iterations; it = it + 1u) {
         if (mine) {
-            rot = solve_local_cluster(k, body.first, t, rot);
+            rot = solve_local_cluster(k, body.first, t, rot, head);
         }
         workgroupBarrier();
         if (mine) {
-            let acc = gather_local(k, body.first, t);
+            let acc = gather_local(k, body.first, t, head);
             let pj = sp[t].xyz;
             // Pass B reads only its own position, so it may be replaced at once.
             sp[t] = vec4<f32>(boundary(c, gathered(pj, acc)), 0.0);
