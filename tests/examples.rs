@@ -305,3 +305,41 @@ fn contacts_quick_fills_every_cell() {
     }
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn kernel_stats_translates_every_kernel() {
+    // naga translates every entry point of every kernel module with wgpu's options; a
+    // driver with VK_KHR_pipeline_executable_properties then compiles each (lavapipe of
+    // Debian 12 has no such extension: the program says so and exits with 0).
+    let bin = example("kernel_stats");
+    assert!(bin.exists(), "{} not built", bin.display());
+    let run = Command::new(&bin).output().expect("run kernel_stats");
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        run.status.success(),
+        "kernel_stats failed:\n{stdout}\n{stderr}"
+    );
+    let n: usize = stdout
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("translated ")?
+                .split(' ')
+                .next()?
+                .parse()
+                .ok()
+        })
+        .unwrap_or_else(|| panic!("no translation count:\n{stdout}"));
+    // Every kernel module's entry points, body.wgsl's and the four KNN variants' included.
+    assert!(n >= 30, "only {n} entry points translated:\n{stdout}");
+    let rows: Vec<&str> = stdout
+        .lines()
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| module"))
+        .collect();
+    if !stdout.contains("no statistics:") {
+        assert_eq!(rows.len(), n, "one row per entry point:\n{stdout}");
+        for r in rows {
+            assert!(!r.contains("vkCreate"), "a pipeline failed: {r}");
+        }
+    }
+}
