@@ -245,7 +245,8 @@ fn body_iteration(
         for (var t = lid; t < count; t = t + BODY_WG) {
             if (awake) {
                 let c = body.first + t;
-                let rot = solve_local_cluster(local_const(body, t), body.first, t, cstate[c].rot, list_head(local_const(body, t)));
+                let k = local_const(body, t);
+                let rot = solve_local_cluster(k, body.first, t, cstate[c].rot, list_head(k));
                 cstate[c].rot = rot;
             }
         }
