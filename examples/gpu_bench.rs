@@ -27,7 +27,8 @@
 //! `1000g` (the 1,000 bodies resting on a ground plane in one layer, 0.15 m apart: near
 //! no other, and they stay so) also only when named. `--bodies N` changes the body count
 //! of those three scenes. `--contact-every N` solves particle contacts in every N-th iteration
-//! (`SolverSettings::contact_every`; default 1). `--no-knn-all` leaves the all-particle
+//! and `--contact-relaxation W` relaxes them by ω_c (`SolverSettings::contact_every`,
+//! `contact_relaxation`; by default the plugin's, `TissueSettings::default()`). `--no-knn-all` leaves the all-particle
 //! K = 32 search out of the steps (the paper's every-10th-step search, which the plugin's
 //! step never runs: it searches only for contact candidates, and those searches stay);
 //! the KNN columns still time it on its own.
@@ -42,6 +43,7 @@ use bevy_tissue::core::solver::{Method, SolverSettings, State};
 use bevy_tissue::gpu::profile::GpuProfiler;
 use bevy_tissue::gpu::world::read_vec3;
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, PassRecorder, headless};
+use bevy_tissue::plugin::components::TissueSettings;
 use glam::Vec3;
 use std::time::Instant;
 
@@ -150,8 +152,16 @@ fn record_into(
 /// the contact search, which stays).
 static KNN_ALL: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
 
-/// `SolverSettings::contact_every` of every scene (`--contact-every`).
-static CONTACT_EVERY: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+/// `SolverSettings::contact_every` and `contact_relaxation` of every scene
+/// (`--contact-every`, `--contact-relaxation`; by default the plugin's, from
+/// `TissueSettings::default()`).
+static CONTACT_EVERY: std::sync::OnceLock<(u32, f32)> = std::sync::OnceLock::new();
+
+/// The plugin's contact schedule: `TissueSettings::default()`'s.
+fn plugin_contacts() -> (u32, f32) {
+    let d = TissueSettings::default();
+    (d.contact_every, d.contact_relaxation)
+}
 
 fn bench(g: &Headless, scene: &str, model: &Model, steps: u32, repeats: usize) -> Row {
     bench_with(g, scene, model, steps, repeats, &[])
@@ -173,7 +183,8 @@ fn bench_with(
         method: Method::Jacobi,
         iterations: 10,
         knn_every: 10,
-        contact_every: *CONTACT_EVERY.get_or_init(|| 1),
+        contact_every: CONTACT_EVERY.get_or_init(plugin_contacts).0,
+        contact_relaxation: CONTACT_EVERY.get_or_init(plugin_contacts).1,
         ..Default::default()
     };
     let state = State::new(model);
@@ -291,7 +302,8 @@ options:
   --quick               small sizes (lavapipe: seconds)
   --scenes a,b,..       38k, 1000, he, 1m (the default set); 1000c, 1000g only when named
   --bodies N            body count of the 1000, 1000c and 1000g scenes (default 1000)
-  --contact-every N     particle contacts every N-th iteration (default 1)
+  --contact-every N     particle contacts every N-th iteration (default: the plugin's)
+  --contact-relaxation W  their Jacobi relaxation ω_c (default: the plugin's)
   --no-knn-all          leave the paper's all-particle search out of the steps
   --steps N             steps per repeat (default 300; --quick 20)
   --repeats N           repeats (default 5; --quick 3)
@@ -312,14 +324,16 @@ fn main() {
             std::process::exit(1);
         }
     };
-    let every: u32 = args.num("--contact-every", 1);
+    let (every, omega) = plugin_contacts();
+    let every: u32 = args.num("--contact-every", every);
+    let omega: f32 = args.num("--contact-relaxation", omega);
     // The body count of the `1000` and `1000c` scenes (fewer fit lavapipe's buffers).
     let bodies: u32 = args.num("--bodies", 1000);
-    CONTACT_EVERY.set(every).ok();
+    CONTACT_EVERY.set((every, omega)).ok();
     let knn_all = !args.flag("--no-knn-all");
     KNN_ALL.set(knn_all).ok();
     let limits = g.device.limits();
-    println!("Particle contacts in every {every} iteration(s)");
+    println!("Particle contacts in every {every} iteration(s), relaxation ω_c = {omega}");
     if !knn_all {
         println!("Steps without the all-particle search (--no-knn-all): the plugin's step");
     }

@@ -286,18 +286,35 @@ fn contacts_quick_fills_every_cell() {
         .filter(|l| l.starts_with("| pile"))
         .map(|l| l.split('|').map(|c| c.trim().to_string()).collect())
         .collect();
-    // One row per contact interval, 1, 2, 3, 5 and 10.
+    // One row per contact interval, 1, 2, 3, 5 and 10, at the default ω_c = 1.
     assert_eq!(rows.len(), 5, "{stdout}");
+    let pct = |c: &str| -> f64 {
+        c.trim()
+            .trim_end_matches('%')
+            .parse()
+            .expect("a percentage")
+    };
     for (r, every) in rows.iter().zip(["1", "2", "3", "5", "10"]) {
-        assert_eq!(r[3], every, "{stdout}");
-        let depth: f64 = r[4].trim_end_matches('%').parse().expect("a depth");
-        let speeds: Vec<f64> = r[5]
+        assert_eq!((r[3].as_str(), r[4].as_str()), ("1", every), "{stdout}");
+        let depth = pct(&r[5]);
+        let sampled: Vec<f64> = r[6].split('/').map(pct).collect();
+        let (overlap, count) = r[7].split_once(',').expect("overlap, count");
+        let (overlap, count) = (pct(overlap), count.trim().parse::<f64>().expect("a count"));
+        let speeds: Vec<f64> = r[8]
             .split('/')
             .map(|v| v.trim().parse().expect("a speed"))
             .collect();
-        let top: f64 = r[6].parse().expect("a height");
-        let ms: f64 = r[7].parse().expect("ms per step");
+        let top: f64 = r[9].parse().expect("a height");
+        let ms: f64 = r[10].parse().expect("ms per step");
         assert!((0.0..=200.0).contains(&depth), "{stdout}");
+        // The samples include the end: their largest is at least the end's deepest, the
+        // mean at most the largest; a particle's overlap is at most the deepest pair's.
+        assert!(
+            sampled.len() == 2 && sampled[0] <= sampled[1] + 0.5 && sampled[1] + 0.5 >= depth,
+            "{stdout}"
+        );
+        assert!(overlap <= sampled[1] + 0.5 && count >= 0.0, "{stdout}");
+        assert!((overlap > 0.0) == (count > 0.0), "{stdout}");
         assert!(speeds.len() == 2 && speeds[0] <= speeds[1], "{stdout}");
         // The balls rest on the ground: none below it, none flung away, none exploded.
         assert!(top > 0.0 && top < 0.35 && speeds[1] < 5.0, "{stdout}");

@@ -466,12 +466,15 @@ pub struct TissueSettings {
     /// Contact neighbours per particle.
     pub contact_neighbours: u32,
     /// Solve particle contacts in every this many iterations (and always in the last of
-    /// a substep; default 1, every iteration). On the GPU a body near another runs one
-    /// dispatch per contact pass, so 2 halves those dispatches; contacts hold less firmly
-    /// as it grows ([`crate::core::solver::SolverSettings::contact_every`]).
+    /// a substep; default 2, with `contact_relaxation` 2). On the GPU a body near another
+    /// runs one dispatch per contact pass, so 2 halves those dispatches (1,000 touching
+    /// bodies of 512 on an H100: about 1.9 ms per step against 2.26 with 1); alone, 2
+    /// holds contacts less firmly than 1, which the relaxation of 2 more than makes up
+    /// for (BENCHMARKS.md, "The plugin's contact schedule";
+    /// [`crate::core::solver::SolverSettings::contact_every`]).
     pub contact_every: u32,
-    /// Jacobi relaxation of the particle contacts (default 1; 2 lets each particle take
-    /// the whole overlap and holds piles more firmly;
+    /// Jacobi relaxation ω_c of the particle contacts (default 2: each particle takes
+    /// the whole averaged overlap, which holds piles more firmly than 1;
     /// [`crate::core::solver::SolverSettings::contact_relaxation`]).
     pub contact_relaxation: f32,
     /// Most steps per frame (the accumulator drops time beyond it, so a slow frame does
@@ -481,7 +484,10 @@ pub struct TissueSettings {
 
 impl Default for TissueSettings {
     /// The core solver's defaults (the paper's dt, iterations and KNN interval), at most
-    /// 4 steps per frame.
+    /// 4 steps per frame, except the contact schedule: the core defaults to Gauss–Seidel
+    /// with contacts in every iteration, the plugin solves with Jacobi and defaults to
+    /// contacts in every 2nd iteration relaxed by 2 ([`Self::PLUGIN_CONTACT_EVERY`],
+    /// [`Self::PLUGIN_CONTACT_RELAXATION`]).
     fn default() -> Self {
         let c = SolverSettings::default();
         Self {
@@ -495,14 +501,25 @@ impl Default for TissueSettings {
             knn_every: c.knn_every,
             particle_contacts: c.particle_contacts,
             contact_neighbours: c.contact_neighbours,
-            contact_every: c.contact_every,
-            contact_relaxation: c.contact_relaxation,
+            contact_every: Self::PLUGIN_CONTACT_EVERY,
+            contact_relaxation: Self::PLUGIN_CONTACT_RELAXATION,
             max_steps_per_frame: 4,
         }
     }
 }
 
 impl TissueSettings {
+    /// The plugin's default [`Self::contact_every`]: 2. Measured (CPU, Jacobi,
+    /// `examples/contacts.rs`) with [`Self::PLUGIN_CONTACT_RELAXATION`] against contacts in
+    /// every iteration unrelaxed: the same or less overlap between bodies in piles of
+    /// balls and a ball on a slab, at 1, 2 and 4 substeps, no more jitter, no bounce in
+    /// a head-on collision; and on the GPU 15% less time per step for 1,000 touching
+    /// bodies (BENCHMARKS.md, "The plugin's contact schedule").
+    pub const PLUGIN_CONTACT_EVERY: u32 = 2;
+    /// The plugin's default [`Self::contact_relaxation`], ω_c = 2 (see
+    /// [`Self::PLUGIN_CONTACT_EVERY`]).
+    pub const PLUGIN_CONTACT_RELAXATION: f32 = 2.0;
+
     /// The core solver settings (Jacobi: the GPU's method).
     pub fn to_core(&self) -> SolverSettings {
         SolverSettings {
@@ -563,9 +580,14 @@ mod tests {
     fn settings_reach_the_core_solver_field_by_field() {
         let core = SolverSettings::default();
         let d = TissueSettings::default().to_core();
-        assert_eq!(d.contact_every, core.contact_every);
-        assert_eq!(d.contact_relaxation, core.contact_relaxation);
+        // The plugin's own contact schedule; the rest is the core's.
+        assert_eq!((d.contact_every, d.contact_relaxation), (2, 2.0));
+        assert_eq!((core.contact_every, core.contact_relaxation), (1, 1.0));
         assert_eq!(d.knn_every, core.knn_every);
+        assert_eq!(
+            (d.dt, d.iterations, d.substeps),
+            (core.dt, core.iterations, core.substeps)
+        );
         let s = TissueSettings {
             contact_every: 3,
             contact_relaxation: 2.0,
