@@ -182,7 +182,7 @@ fn run(model: &Model, settings: SolverSettings, seconds: f32) -> Result<Outcome,
         solve += t.elapsed();
         // Six samples of the deepest penetration over the last second (one instant's
         // deepest pair is noisy), outside the timed solve.
-        if k + last >= steps && (steps - 1 - k) % last.div_ceil(6).max(1) == 0 {
+        if k + last >= steps && (steps - 1 - k).is_multiple_of(last.div_ceil(6).max(1)) {
             depths.push(overlap(model, &state.x));
         }
         if k + last >= steps {

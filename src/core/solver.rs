@@ -56,10 +56,13 @@ pub struct SolverSettings {
     pub method: Method,
     /// Jacobi relaxation of the particle contacts, ω_c: the averaged contact correction
     /// of a particle (each contact its mass share of the overlap) is scaled by it in
-    /// Jacobi's pass C (Gauss–Seidel ignores it). 1, the default, resolves a contact
-    /// between two free particles exactly; 2 lets each particle take the whole overlap,
-    /// which holds piles far more firmly under Jacobi (BENCHMARKS.md, "Contacts every
-    /// n-th iteration": a pile 54% → 2% of the contact distance deep).
+    /// Jacobi's pass C (Gauss–Seidel ignores it; Macklin et al. 2014, "Unified particle
+    /// physics", §4.2, constraint averaging with over-relaxation). 1, the default here,
+    /// resolves a contact between two free particles exactly; 2 lets each particle take
+    /// the whole overlap, which holds piles more firmly under Jacobi (an ensemble of
+    /// dropped piles: 68% of the contact distance deep against 86%; BENCHMARKS.md, "The
+    /// plugin's contact schedule"). The plugin defaults to 2
+    /// (`plugin::components::TissueSettings`).
     pub contact_relaxation: f32,
     /// Jacobi relaxation ω (1 = plain averaging; above 1 over-relaxes): shape-matching
     /// corrections are scaled by `ω/s_c`, XPBD multiplier increments (solved with split
@@ -74,11 +77,13 @@ pub struct SolverSettings {
     /// Neighbours searched per particle for contacts.
     pub contact_neighbours: u32,
     /// Solve particle contacts in every this many iterations (and always in the last of
-    /// a substep; 1, the default, is every iteration); colliders and pins in every
+    /// a substep; 1, the default here, is every iteration); colliders and pins in every
     /// iteration. The GPU runs the iterations of a body near another one dispatch per
-    /// contact pass, so 2 halves those dispatches. A trade (`examples/contacts.rs`,
-    /// BENCHMARKS.md): with 2 a pile is no worse, a ball sinks deeper into a slab under
-    /// Jacobi; from 3 Gauss–Seidel lets the ball through.
+    /// contact pass, so 2 halves those dispatches. Alone a trade (`examples/contacts.rs`,
+    /// BENCHMARKS.md): with 2 bodies press a little deeper into each other under Jacobi;
+    /// from 3 Gauss–Seidel lets a ball through a slab. With `contact_relaxation` 2 it is
+    /// no trade under Jacobi: 2 and 2 hold contacts at least as firmly as 1 and 1, the
+    /// plugin's default (`plugin::components::TissueSettings`).
     pub contact_every: u32,
     /// Most iterations of the warm-started rotation extraction per cluster solve (it stops
     /// early once converged; usually 1–2 when warm).
