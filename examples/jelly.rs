@@ -5,6 +5,7 @@
 //! ```text
 //! cargo run --release --example jelly
 //! cargo run --release --example jelly -- --bodies 64 --particles 400
+//! cargo run --release --example jelly -- --contact-every 1 --contact-relaxation 1
 //! ```
 //!
 //! Controls: left mouse drags a body; R drops everything again; Space pauses. With
@@ -37,7 +38,14 @@ fn main() {
         bodies: args.num("--bodies", 36u32).max(1),
         particles: args.num("--particles", 500u32),
     };
-    let mut app = scene::app(&scene, "bevy_tissue: jelly", TissueSettings::default());
+    // The contact schedule can be set from the command line to compare it by eye.
+    let d = TissueSettings::default();
+    let settings = TissueSettings {
+        contact_every: args.num("--contact-every", d.contact_every).max(1),
+        contact_relaxation: args.num("--contact-relaxation", d.contact_relaxation),
+        ..d
+    };
+    let mut app = scene::app(&scene, "bevy_tissue: jelly", settings);
     app.add_plugins(TissueDragPlugin::default())
         .insert_resource(jelly)
         .insert_resource(ClearColor(Color::srgb(0.55, 0.75, 0.95)))
