@@ -268,22 +268,20 @@ fn main() {
     let relaxations: Vec<f32> = args.list("--contact-relaxation", &[1.0]);
     let everys: Vec<u32> = args.list("--every", &[1, 2, 3, 5, 10]);
     let seeds: Vec<u32> = args.list("--seeds", &[0]);
-    let names: Vec<String> = seeds
+    let mut scenes: Vec<(String, Model, Method)> = seeds
         .iter()
-        .map(|&k| match k {
-            0 => "pile of 27 balls".to_string(),
-            k => format!("pile of 27 balls, seed {k}"),
+        .map(|&k| {
+            let name = match k {
+                0 => "pile of 27 balls".to_string(),
+                k => format!("pile of 27 balls, seed {k}"),
+            };
+            (name, pile(k), Method::Jacobi)
         })
         .collect();
-    let mut scenes: Vec<(&str, Model, Method)> = seeds
-        .iter()
-        .zip(&names)
-        .map(|(&k, name)| (name.as_str(), pile(k), Method::Jacobi))
-        .collect();
     if !quick {
-        scenes.push(("ball onto slab", slab(), Method::Jacobi));
+        scenes.push(("ball onto slab".into(), slab(), Method::Jacobi));
         if !args.flag("--jacobi-only") {
-            scenes.push(("ball onto slab", slab(), Method::GaussSeidel));
+            scenes.push(("ball onto slab".into(), slab(), Method::GaussSeidel));
         }
     }
     println!(

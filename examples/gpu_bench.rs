@@ -155,7 +155,7 @@ static KNN_ALL: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
 /// `SolverSettings::contact_every` and `contact_relaxation` of every scene
 /// (`--contact-every`, `--contact-relaxation`; by default the plugin's, from
 /// `TissueSettings::default()`).
-static CONTACT_EVERY: std::sync::OnceLock<(u32, f32)> = std::sync::OnceLock::new();
+static CONTACTS: std::sync::OnceLock<(u32, f32)> = std::sync::OnceLock::new();
 
 /// The plugin's contact schedule: `TissueSettings::default()`'s.
 fn plugin_contacts() -> (u32, f32) {
@@ -179,12 +179,13 @@ fn bench_with(
     let n = model.particle_count() as u32;
     let t0 = Instant::now();
     eprintln!("{scene}: {n} particles, uploading");
+    let (contact_every, contact_relaxation) = *CONTACTS.get_or_init(plugin_contacts);
     let settings = SolverSettings {
         method: Method::Jacobi,
         iterations: 10,
         knn_every: 10,
-        contact_every: CONTACT_EVERY.get_or_init(plugin_contacts).0,
-        contact_relaxation: CONTACT_EVERY.get_or_init(plugin_contacts).1,
+        contact_every,
+        contact_relaxation,
         ..Default::default()
     };
     let state = State::new(model);
@@ -329,7 +330,7 @@ fn main() {
     let omega: f32 = args.num("--contact-relaxation", omega);
     // The body count of the `1000` and `1000c` scenes (fewer fit lavapipe's buffers).
     let bodies: u32 = args.num("--bodies", 1000);
-    CONTACT_EVERY.set((every, omega)).ok();
+    CONTACTS.set((every, omega)).ok();
     let knn_all = !args.flag("--no-knn-all");
     KNN_ALL.set(knn_all).ok();
     let limits = g.device.limits();

@@ -81,9 +81,10 @@ pub struct SolverSettings {
     /// iteration. The GPU runs the iterations of a body near another one dispatch per
     /// contact pass, so 2 halves those dispatches. Alone a trade (`examples/contacts.rs`,
     /// BENCHMARKS.md): with 2 bodies press a little deeper into each other under Jacobi;
-    /// from 3 Gauss–Seidel lets a ball through a slab. With `contact_relaxation` 2 it is
-    /// no trade under Jacobi: 2 and 2 hold contacts at least as firmly as 1 and 1, the
-    /// plugin's default (`plugin::components::TissueSettings`).
+    /// from 3 Gauss–Seidel lets a ball through a slab. With `contact_relaxation` 2, under
+    /// Jacobi, 2 and 2 held contacts more firmly than 1 and 1 in every ensemble and slab
+    /// run measured (one regular pile excepted): the plugin's default
+    /// (`plugin::components::TissueSettings`).
     pub contact_every: u32,
     /// Most iterations of the warm-started rotation extraction per cluster solve (it stops
     /// early once converged; usually 1–2 when warm).
