@@ -11,9 +11,17 @@
 //! GPU-to-GPU copy, the least of 5; the host's wall clock where the adapter has no
 //! timestamp queries).
 //!
-//! Writes `hierarchy.csv` and `hierarchy.png` into the output folder and a summary on
-//! stdout: for each scene and backend, the time and iterations each solver needs to
-//! reach the smallest residual both reach, and the speed-up.
+//! The residual counts the constraints only (`C + α̃λ`), not the momentum balance
+//! `M(x − x̃) = Jᵀλ` that the hierarchy's multiplier hand-over leaves unbalanced, so the
+//! example also solves the step to convergence (flat Gauss–Seidel, `--reference`
+//! iterations) and measures each solver's distance to it at the sampled iteration
+//! counts (fresh one-step solves; RMS over the particles, relative to the step's RMS
+//! motion).
+//!
+//! Writes `hierarchy.csv` and `hierarchy.png` into the output folder and two summaries
+//! on stdout: for each scene and backend, the time and iterations each solver needs to
+//! reach a residual, and to come within 90%, 80%, … of the step's motion of the
+//! converged step (each down to the smallest both reach), with the speed-ups.
 //!
 //! ```text
 //! cargo run --release --example hierarchy                  # bar 20,000 + liver 37,982
@@ -23,7 +31,11 @@
 //! Options: `--bar N`, `--liver N` (particles, 0 skips the scene), `--iters N` (most
 //! level-0 iterations), `--coarse N` (iterations per coarse level, default 20),
 //! `--levels N` (levels including level 0; default: chosen from the body's size),
-//! `--no-cpu`, `--no-gpu`, `--out DIR` (default `hierarchy_out`).
+//! `--reference N` (flat Gauss–Seidel iterations of the converged step that both solvers'
+//! positions are compared with; default 8,000, `--quick` 4,000, 0 skips it), `--no-cpu`,
+//! `--no-gpu`, `--out DIR` (default `hierarchy_out`), `--reference-dir DIR` (where the
+//! converged step is saved and, if there from an earlier run, read; default the output
+//! folder).
 
 #[path = "support/bench.rs"]
 mod bench;
@@ -51,6 +63,108 @@ struct Point {
     iterations: u32,
     ms: f64,
     residual: f32,
+    /// Distance to the converged step ([`Reference`]) relative to the step's motion
+    /// (`None`: not computed at this iteration count, or no reference).
+    error: Option<f32>,
+}
+
+/// The step solved to convergence: flat Gauss–Seidel with many iterations, from the
+/// same start. Both solvers' positions are compared with it, so the comparison counts
+/// what the residual does not: the momentum balance `M(x − x̃) = Jᵀλ`, which the
+/// hierarchy's hand-over leaves unbalanced (BENCHMARKS.md, "Hierarchy").
+struct Reference {
+    start: Vec<Vec3>,
+    x: Vec<Vec3>,
+    /// Distance between the solves with half and all of the reference's iterations,
+    /// relative to the step's motion: how far the reference itself is from converged.
+    own_error: f32,
+}
+
+impl Reference {
+    /// The reference of scene `name` with `n` particles, read from `dir` if an earlier
+    /// run saved it there (same particles, same start), else solved and saved.
+    fn cached(dir: &std::path::Path, name: &str, n: u32, iterations: u32) -> Self {
+        let path = dir.join(format!("reference-{name}-{n}-{iterations}.bin"));
+        let start = scene(name, n, None).1.x;
+        if let Ok(bytes) = std::fs::read(&path)
+            && bytes.len() == 4 + 2 * 12 * start.len()
+        {
+            let f: Vec<f32> = bytes
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            let v = |k: usize| Vec3::new(f[1 + 3 * k], f[2 + 3 * k], f[3 + 3 * k]);
+            let n = start.len();
+            let saved_start: Vec<Vec3> = (0..n).map(v).collect();
+            if saved_start == start {
+                eprintln!("  reference read from {}", path.display());
+                return Self {
+                    start,
+                    x: (n..2 * n).map(v).collect(),
+                    own_error: f[0],
+                };
+            }
+        }
+        let r = Self::new(name, n, iterations);
+        let mut bytes = r.own_error.to_le_bytes().to_vec();
+        for p in r.start.iter().chain(&r.x) {
+            for c in p.to_array() {
+                bytes.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        if let Err(e) = std::fs::write(&path, bytes) {
+            eprintln!("  reference not saved to {}: {e}", path.display());
+        }
+        r
+    }
+
+    fn new(name: &str, n: u32, iterations: u32) -> Self {
+        let solve = |iterations: u32| {
+            let (model, mut state) = scene(name, n, None);
+            let start = state.x.clone();
+            let s = SolverSettings {
+                method: Method::GaussSeidel,
+                iterations,
+                particle_contacts: false,
+                ..Default::default()
+            };
+            let mut solver = Solver::new(&model, s).expect("solver");
+            solver
+                .step(&model, &mut state, &Control::default())
+                .expect("reference step");
+            (start, state.x)
+        };
+        let (_, half) = solve(iterations / 2);
+        let (start, x) = solve(iterations);
+        let mut r = Self {
+            start,
+            x,
+            own_error: 0.0,
+        };
+        r.own_error = r.error(&half);
+        r
+    }
+
+    /// RMS distance of `x` to the converged step over the RMS motion of that step.
+    fn error(&self, x: &[Vec3]) -> f32 {
+        let (mut num, mut den) = (0.0f64, 0.0f64);
+        for ((x, r), s) in x.iter().zip(&self.x).zip(&self.start) {
+            num += x.distance_squared(*r) as f64;
+            den += r.distance_squared(*s) as f64;
+        }
+        (num / den.max(1e-30)).sqrt() as f32
+    }
+}
+
+/// The iteration counts sampled by fresh one-step solves, up to `iters`.
+fn counts(iters: u32) -> Vec<u32> {
+    let mut counts: Vec<u32> = vec![1, 2, 3, 4, 6, 8, 11, 16, 23, 32, 45, 64, 90, 128, 181, 256];
+    counts.extend([362, 512, 724, 1024]);
+    counts.retain(|&c| c <= iters);
+    if counts.last() != Some(&iters) {
+        counts.push(iters);
+    }
+    counts
 }
 
 struct Curve {
@@ -69,6 +183,8 @@ struct Args {
     iters: u32,
     coarse: u32,
     levels: u32,
+    reference: u32,
+    reference_dir: PathBuf,
     cpu: bool,
     gpu: bool,
     out: PathBuf,
@@ -83,6 +199,8 @@ fn args() -> Args {
         iters: a.num("--iters", if quick { 40 } else { 200 }),
         coarse: a.num("--coarse", SolverSettings::default().coarse_iterations),
         levels: a.num("--levels", 0),
+        reference: a.num("--reference", if quick { 4000 } else { 8000 }),
+        reference_dir: a.path("--reference-dir", ""),
         cpu: !a.flag("--no-cpu"),
         gpu: !a.flag("--no-gpu"),
         out: a.path("--out", "hierarchy_out"),
@@ -171,9 +289,11 @@ fn cpu_curve(
     h: Option<HierarchyDesc>,
     iters: u32,
     coarse: u32,
+    reference: Option<&Reference>,
 ) -> Curve {
     let hier = h.is_some();
     let (model, mut state) = scene(name, n, h);
+    let start = state.clone();
     let s = settings(iters, coarse);
     let mut solver = Solver::new(&model, s.clone()).expect("solver");
     eprintln!(
@@ -189,21 +309,40 @@ fn cpu_curve(
     let stats = solver
         .step(&model, &mut state, &Control::default())
         .expect("step");
+    let mut points: Vec<Point> = stats
+        .residuals
+        .iter()
+        .map(|r| Point {
+            iterations: r.iteration,
+            ms: r.ms,
+            residual: r.residual,
+            error: None,
+        })
+        .collect();
+    // The distance to the converged step at the sampled counts: fresh untraced solves
+    // (the traced run above gives the times).
+    if let Some(r) = reference {
+        for it in counts(iters) {
+            let mut st = start.clone();
+            let untraced = SolverSettings {
+                trace_residual: false,
+                ..settings(it, coarse)
+            };
+            let mut sv = Solver::new(&model, untraced).expect("solver");
+            if sv.step(&model, &mut st, &Control::default()).is_ok()
+                && let Some(p) = points.iter_mut().find(|p| p.iterations == it)
+            {
+                p.error = Some(r.error(&st.x));
+            }
+        }
+    }
     Curve {
         scene: name,
         particles: model.particle_count(),
         backend: "CPU",
         solver: if hier { "hierarchical" } else { "flat" },
         coarse_work: coarse_work(&model, &s),
-        points: stats
-            .residuals
-            .iter()
-            .map(|r| Point {
-                iterations: r.iteration,
-                ms: r.ms,
-                residual: r.residual,
-            })
-            .collect(),
+        points,
     }
 }
 
@@ -214,18 +353,13 @@ fn gpu_curve(
     h: Option<HierarchyDesc>,
     iters: u32,
     coarse: u32,
+    reference: Option<&Reference>,
 ) -> Curve {
     let hier = h.is_some();
     let (model, state) = scene(name, n, h);
     let nn = model.particle_count();
-    let mut counts: Vec<u32> = vec![1, 2, 3, 4, 6, 8, 11, 16, 23, 32, 45, 64, 90, 128, 181, 256];
-    counts.extend([362, 512, 724, 1024]);
-    counts.retain(|&c| c <= iters);
-    if counts.last() != Some(&iters) {
-        counts.push(iters);
-    }
     let mut points = Vec::new();
-    for &it in &counts {
+    for it in counts(iters) {
         let s = settings(it, coarse);
         let mut world = GpuWorld::new(&g.device, &g.kernels, &model, &state, s.clone(), 0)
             .unwrap_or_else(|e| panic!("{name}: {e}"));
@@ -308,6 +442,7 @@ fn gpu_curve(
             iterations: it,
             ms,
             residual,
+            error: reference.map(|r| r.error(&x)),
         });
     }
     eprintln!(
@@ -331,8 +466,11 @@ fn reach(c: &Curve, target: f32) -> Option<Point> {
 }
 
 fn main() {
-    let a = args();
+    let mut a = args();
     std::fs::create_dir_all(&a.out).expect("output folder");
+    if a.reference_dir.as_os_str().is_empty() {
+        a.reference_dir = a.out.clone();
+    }
     let gpu = if a.gpu {
         match headless() {
             Ok(g) => Some(g),
@@ -359,23 +497,45 @@ fn main() {
             levels: (a.levels > 0).then_some(a.levels),
             ..Default::default()
         };
+        let reference = (a.reference > 0).then(|| {
+            let t = Instant::now();
+            let r = Reference::cached(&a.reference_dir, name, n, a.reference);
+            eprintln!(
+                "  reference: flat Gauss–Seidel, {} iterations (ready in {:.1} s); {} and {} \
+                 iterations differ by {:.2e} of the step's motion",
+                a.reference,
+                t.elapsed().as_secs_f64(),
+                a.reference / 2,
+                a.reference,
+                r.own_error
+            );
+            r
+        });
         for h in [None, Some(hd)] {
             if a.cpu {
-                curves.push(cpu_curve(name, n, h, a.iters, a.coarse));
+                curves.push(cpu_curve(name, n, h, a.iters, a.coarse, reference.as_ref()));
             }
             if let Some(g) = &gpu {
-                curves.push(gpu_curve(g, name, n, h, a.iters, a.coarse));
+                curves.push(gpu_curve(
+                    g,
+                    name,
+                    n,
+                    h,
+                    a.iters,
+                    a.coarse,
+                    reference.as_ref(),
+                ));
             }
         }
     }
     // CSV.
     let mut csv =
-        String::from("scene,particles,backend,solver,coarse_work,iterations,ms,residual\n");
+        String::from("scene,particles,backend,solver,coarse_work,iterations,ms,residual,error\n");
     for c in &curves {
         for p in &c.points {
             let _ = writeln!(
                 csv,
-                "{},{},{},{},{:.3},{},{:.4},{:.6e}",
+                "{},{},{},{},{:.3},{},{:.4},{:.6e},{}",
                 c.scene,
                 c.particles,
                 c.backend,
@@ -383,7 +543,8 @@ fn main() {
                 c.coarse_work,
                 p.iterations,
                 p.ms,
-                p.residual
+                p.residual,
+                p.error.map(|e| format!("{e:.6e}")).unwrap_or_default()
             );
         }
     }
@@ -436,6 +597,69 @@ fn main() {
             }
         }
     }
+    // Summary: time to come within a fraction of the step's motion of the converged step.
+    println!();
+    println!(
+        "| scene | particles | backend | error (of the step's motion) | flat: iterations / ms | hierarchical: iterations / ms | speed-up |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for &(name, _) in &scenes {
+        for backend in ["CPU", "GPU"] {
+            let find = |solver: &str| {
+                curves
+                    .iter()
+                    .find(|c| c.scene == name && c.backend == backend && c.solver == solver)
+            };
+            let (Some(f), Some(h)) = (find("flat"), find("hierarchical")) else {
+                continue;
+            };
+            let best = |c: &Curve| {
+                c.points
+                    .iter()
+                    .filter_map(|p| p.error)
+                    .filter(|e| e.is_finite())
+                    .fold(f32::MAX, f32::min)
+            };
+            if best(f) == f32::MAX || best(h) == f32::MAX {
+                continue;
+            }
+            let within = |c: &Curve, target: f32| {
+                c.points
+                    .iter()
+                    .copied()
+                    .find(|p| p.error.is_some_and(|e| e <= target))
+            };
+            let cell = |c: &Curve, target: f32| match within(c, target) {
+                Some(p) => format!("{} / {:.2}", p.iterations, p.ms),
+                None => format!("not reached (best {:.2e})", best(c)),
+            };
+            // Both converge slowly in this norm (their low modes): targets from 90% of
+            // the step's motion down to the smallest distance both reach.
+            let common = best(f).max(best(h));
+            let mut targets = vec![0.9f32, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.1];
+            targets.retain(|&t| t > common);
+            targets.push(common);
+            for target in targets {
+                let speed = match (within(f, target), within(h, target)) {
+                    (Some(pf), Some(ph)) => format!("{:.1}x", pf.ms / ph.ms.max(1e-9)),
+                    (None, Some(_)) => "flat never".into(),
+                    (Some(_), None) => "hierarchical never".into(),
+                    _ => "-".into(),
+                };
+                println!(
+                    "| {name} | {} | {backend} | {target:.3}{} | {} | {} | {speed} |",
+                    f.particles,
+                    if target == common {
+                        " (both's best)"
+                    } else {
+                        ""
+                    },
+                    cell(f, target),
+                    cell(h, target),
+                );
+            }
+        }
+    }
     // Chart: per scene, residual against iterations and against time.
     let mut panels = Vec::new();
     for &(name, _) in &scenes {
@@ -469,6 +693,36 @@ fn main() {
                 },
                 y_label: "residual / body size".into(),
                 x_log: by_time,
+                y_log: true,
+                series,
+            });
+        }
+    }
+    // And the distance to the converged step against time.
+    for &(name, _) in &scenes {
+        let series: Vec<chart::Series> = curves
+            .iter()
+            .filter(|c| c.scene == name)
+            .enumerate()
+            .map(|(k, c)| chart::Series {
+                label: format!("{} {}", c.backend, c.solver),
+                points: c
+                    .points
+                    .iter()
+                    .filter_map(|p| p.error.filter(|e| e.is_finite()).map(|e| (p.ms, e as f64)))
+                    .collect(),
+                color: k,
+                markers: true,
+                line: true,
+            })
+            .filter(|s| !s.points.is_empty())
+            .collect();
+        if !series.is_empty() {
+            panels.push(chart::Panel {
+                title: format!("{name}: distance to the converged step against time"),
+                x_label: "ms (solve time of the step)".into(),
+                y_label: "RMS error / RMS motion of the step".into(),
+                x_log: true,
                 y_log: true,
                 series,
             });
