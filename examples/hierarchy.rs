@@ -460,9 +460,80 @@ fn gpu_curve(
     }
 }
 
-/// The first point at or below `target`.
-fn reach(c: &Curve, target: f32) -> Option<Point> {
-    c.points.iter().copied().find(|p| p.residual <= target)
+/// Prints a table: per scene and backend, the time and level-0 iterations each solver
+/// needs to bring `value` (residual or distance) down to each of `fixed` and to the
+/// smallest value both reach, and the hierarchy's speed-up.
+fn summary(
+    curves: &[Curve],
+    scenes: &[(&'static str, u32)],
+    what: &str,
+    value: fn(&Point) -> Option<f32>,
+    fixed: &[f32],
+    show: fn(f32) -> String,
+) {
+    println!(
+        "| scene | particles | backend | {what} | flat: iterations / ms | hierarchical: iterations (+ coarse) / ms | speed-up |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for &(name, _) in scenes {
+        for backend in ["CPU", "GPU"] {
+            let find = |solver: &str| {
+                curves
+                    .iter()
+                    .find(|c| c.scene == name && c.backend == backend && c.solver == solver)
+            };
+            let (Some(f), Some(h)) = (find("flat"), find("hierarchical")) else {
+                continue;
+            };
+            let best = |c: &Curve| {
+                c.points
+                    .iter()
+                    .filter_map(value)
+                    .filter(|v| v.is_finite())
+                    .fold(f32::MAX, f32::min)
+            };
+            if best(f) == f32::MAX || best(h) == f32::MAX {
+                continue;
+            }
+            let common = best(f).max(best(h));
+            let mut targets = fixed.to_vec();
+            targets.retain(|&t| t > common);
+            targets.push(common);
+            let reach = |c: &Curve, target: f32| {
+                c.points
+                    .iter()
+                    .copied()
+                    .find(|p| value(p).is_some_and(|v| v <= target))
+            };
+            for target in targets {
+                let cell = |c: &Curve, coarse: bool| match reach(c, target) {
+                    Some(p) if coarse => {
+                        format!("{} (+{:.2}) / {:.2}", p.iterations, c.coarse_work, p.ms)
+                    }
+                    Some(p) => format!("{} / {:.2}", p.iterations, p.ms),
+                    None => format!("not reached (best {:.2e})", best(c)),
+                };
+                let speed = match (reach(f, target), reach(h, target)) {
+                    (Some(pf), Some(ph)) => format!("{:.1}x", pf.ms / ph.ms.max(1e-9)),
+                    (None, Some(_)) => "flat never".into(),
+                    (Some(_), None) => "hierarchical never".into(),
+                    _ => "-".into(),
+                };
+                println!(
+                    "| {name} | {} | {backend} | {}{} | {} | {} | {speed} |",
+                    f.particles,
+                    show(target),
+                    if target == common {
+                        " (both's best)"
+                    } else {
+                        ""
+                    },
+                    cell(f, false),
+                    cell(h, true),
+                );
+            }
+        }
+    }
 }
 
 fn main() {
@@ -550,116 +621,26 @@ fn main() {
     }
     let csv_path = a.out.join("hierarchy.csv");
     std::fs::write(&csv_path, csv).expect("write CSV");
-    // Summary: time to reach fixed residuals, and the smallest residual both reach.
-    println!(
-        "| scene | particles | backend | residual | flat: iterations / ms | hierarchical: iterations (+ coarse) / ms | speed-up |"
+    // Summaries: time to reach fixed residuals, and to come within fractions of the
+    // step's motion of the converged step (both's convergence in this norm is slow, in
+    // their low modes), each down to the smallest value both reach.
+    summary(
+        &curves,
+        &scenes,
+        "residual",
+        |p| Some(p.residual),
+        &[1e-3, 5e-4, 3e-4],
+        |t| format!("{t:.2e}"),
     );
-    println!("|---|---|---|---|---|---|---|");
-    for &(name, _) in &scenes {
-        for backend in ["CPU", "GPU"] {
-            let find = |solver: &str| {
-                curves
-                    .iter()
-                    .find(|c| c.scene == name && c.backend == backend && c.solver == solver)
-            };
-            let (Some(f), Some(h)) = (find("flat"), find("hierarchical")) else {
-                continue;
-            };
-            let best = |c: &Curve| c.points.iter().map(|p| p.residual).fold(f32::MAX, f32::min);
-            let common = best(f).max(best(h));
-            let mut targets = vec![1e-3f32, 5e-4, 3e-4];
-            targets.retain(|&t| t > common);
-            targets.push(common);
-            for target in targets {
-                let cell = |c: &Curve, coarse: bool| match reach(c, target) {
-                    Some(p) if coarse => {
-                        format!("{} (+{:.2}) / {:.2}", p.iterations, c.coarse_work, p.ms)
-                    }
-                    Some(p) => format!("{} / {:.2}", p.iterations, p.ms),
-                    None => "not reached".into(),
-                };
-                let speed = match (reach(f, target), reach(h, target)) {
-                    (Some(pf), Some(ph)) => format!("{:.1}x", pf.ms / ph.ms.max(1e-9)),
-                    (None, Some(_)) => "flat never".into(),
-                    _ => "-".into(),
-                };
-                println!(
-                    "| {name} | {} | {backend} | {target:.2e}{} | {} | {} | {speed} |",
-                    f.particles,
-                    if target == common {
-                        " (both's best)"
-                    } else {
-                        ""
-                    },
-                    cell(f, false),
-                    cell(h, true),
-                );
-            }
-        }
-    }
-    // Summary: time to come within a fraction of the step's motion of the converged step.
     println!();
-    println!(
-        "| scene | particles | backend | error (of the step's motion) | flat: iterations / ms | hierarchical: iterations / ms | speed-up |"
+    summary(
+        &curves,
+        &scenes,
+        "error (of the step's motion)",
+        |p| p.error,
+        &[0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.1],
+        |t| format!("{t:.3}"),
     );
-    println!("|---|---|---|---|---|---|---|");
-    for &(name, _) in &scenes {
-        for backend in ["CPU", "GPU"] {
-            let find = |solver: &str| {
-                curves
-                    .iter()
-                    .find(|c| c.scene == name && c.backend == backend && c.solver == solver)
-            };
-            let (Some(f), Some(h)) = (find("flat"), find("hierarchical")) else {
-                continue;
-            };
-            let best = |c: &Curve| {
-                c.points
-                    .iter()
-                    .filter_map(|p| p.error)
-                    .filter(|e| e.is_finite())
-                    .fold(f32::MAX, f32::min)
-            };
-            if best(f) == f32::MAX || best(h) == f32::MAX {
-                continue;
-            }
-            let within = |c: &Curve, target: f32| {
-                c.points
-                    .iter()
-                    .copied()
-                    .find(|p| p.error.is_some_and(|e| e <= target))
-            };
-            let cell = |c: &Curve, target: f32| match within(c, target) {
-                Some(p) => format!("{} / {:.2}", p.iterations, p.ms),
-                None => format!("not reached (best {:.2e})", best(c)),
-            };
-            // Both converge slowly in this norm (their low modes): targets from 90% of
-            // the step's motion down to the smallest distance both reach.
-            let common = best(f).max(best(h));
-            let mut targets = vec![0.9f32, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.1];
-            targets.retain(|&t| t > common);
-            targets.push(common);
-            for target in targets {
-                let speed = match (within(f, target), within(h, target)) {
-                    (Some(pf), Some(ph)) => format!("{:.1}x", pf.ms / ph.ms.max(1e-9)),
-                    (None, Some(_)) => "flat never".into(),
-                    (Some(_), None) => "hierarchical never".into(),
-                    _ => "-".into(),
-                };
-                println!(
-                    "| {name} | {} | {backend} | {target:.3}{} | {} | {} | {speed} |",
-                    f.particles,
-                    if target == common {
-                        " (both's best)"
-                    } else {
-                        ""
-                    },
-                    cell(f, target),
-                    cell(h, target),
-                );
-            }
-        }
-    }
     // Chart: per scene, residual against iterations and against time.
     let mut panels = Vec::new();
     for &(name, _) in &scenes {
