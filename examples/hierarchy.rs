@@ -82,63 +82,60 @@ struct Reference {
 
 impl Reference {
     /// The reference of scene `name` with `n` particles, read from `dir` if an earlier
-    /// run saved it there (same particles, same start), else solved and saved.
+    /// run saved it there (same particles, same start), else solved and saved. The file
+    /// holds `own_error`, then the start and converged positions (f32, native order).
     fn cached(dir: &std::path::Path, name: &str, n: u32, iterations: u32) -> Self {
         let path = dir.join(format!("reference-{name}-{n}-{iterations}.bin"));
-        let start = scene(name, n, None).1.x;
+        let (model, state) = scene(name, n, None);
+        let len = state.x.len();
         if let Ok(bytes) = std::fs::read(&path)
-            && bytes.len() == 4 + 2 * 12 * start.len()
+            && bytes.len() == 4 + 2 * size_of::<Vec3>() * len
         {
-            let f: Vec<f32> = bytes
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            let (head, body) = bytes.split_at(4);
+            let saved: Vec<Vec3> = body
+                .chunks_exact(size_of::<Vec3>())
+                .map(bytemuck::pod_read_unaligned)
                 .collect();
-            let v = |k: usize| Vec3::new(f[1 + 3 * k], f[2 + 3 * k], f[3 + 3 * k]);
-            let n = start.len();
-            let saved_start: Vec<Vec3> = (0..n).map(v).collect();
-            if saved_start == start {
+            if saved[..len] == state.x[..] {
                 eprintln!("  reference read from {}", path.display());
                 return Self {
-                    start,
-                    x: (n..2 * n).map(v).collect(),
-                    own_error: f[0],
+                    start: state.x,
+                    x: saved[len..].to_vec(),
+                    own_error: bytemuck::pod_read_unaligned(head),
                 };
             }
         }
-        let r = Self::new(name, n, iterations);
-        let mut bytes = r.own_error.to_le_bytes().to_vec();
-        for p in r.start.iter().chain(&r.x) {
-            for c in p.to_array() {
-                bytes.extend_from_slice(&c.to_le_bytes());
-            }
-        }
+        let r = Self::solve(&model, &state, iterations);
+        let mut bytes = bytemuck::bytes_of(&r.own_error).to_vec();
+        bytes.extend_from_slice(bytemuck::cast_slice(&r.start));
+        bytes.extend_from_slice(bytemuck::cast_slice(&r.x));
         if let Err(e) = std::fs::write(&path, bytes) {
             eprintln!("  reference not saved to {}: {e}", path.display());
         }
         r
     }
 
-    fn new(name: &str, n: u32, iterations: u32) -> Self {
-        let solve = |iterations: u32| {
-            let (model, mut state) = scene(name, n, None);
-            let start = state.x.clone();
+    /// Solves one step of `model` from `state` with `iterations` flat Gauss–Seidel
+    /// iterations, and with half as many to estimate how far that is from converged.
+    fn solve(model: &Model, state: &State, iterations: u32) -> Self {
+        let step = |iterations: u32| {
+            let mut st = state.clone();
             let s = SolverSettings {
                 method: Method::GaussSeidel,
                 iterations,
                 particle_contacts: false,
                 ..Default::default()
             };
-            let mut solver = Solver::new(&model, s).expect("solver");
+            let mut solver = Solver::new(model, s).expect("solver");
             solver
-                .step(&model, &mut state, &Control::default())
+                .step(model, &mut st, &Control::default())
                 .expect("reference step");
-            (start, state.x)
+            st.x
         };
-        let (_, half) = solve(iterations / 2);
-        let (start, x) = solve(iterations);
+        let half = step(iterations / 2);
         let mut r = Self {
-            start,
-            x,
+            start: state.x.clone(),
+            x: step(iterations),
             own_error: 0.0,
         };
         r.own_error = r.error(&half);
@@ -193,6 +190,7 @@ struct Args {
 fn args() -> Args {
     let a = bench::Args::new();
     let quick = a.flag("--quick");
+    let out = a.path("--out", "hierarchy_out");
     Args {
         bar: a.num("--bar", if quick { 3000 } else { 20_000 }),
         liver: a.num("--liver", if quick { 3000 } else { 37_982 }),
@@ -200,10 +198,10 @@ fn args() -> Args {
         coarse: a.num("--coarse", SolverSettings::default().coarse_iterations),
         levels: a.num("--levels", 0),
         reference: a.num("--reference", if quick { 4000 } else { 8000 }),
-        reference_dir: a.path("--reference-dir", ""),
+        reference_dir: a.path("--reference-dir", &out.to_string_lossy()),
         cpu: !a.flag("--no-cpu"),
         gpu: !a.flag("--no-gpu"),
-        out: a.path("--out", "hierarchy_out"),
+        out,
     }
 }
 
@@ -537,11 +535,8 @@ fn summary(
 }
 
 fn main() {
-    let mut a = args();
+    let a = args();
     std::fs::create_dir_all(&a.out).expect("output folder");
-    if a.reference_dir.as_os_str().is_empty() {
-        a.reference_dir = a.out.clone();
-    }
     let gpu = if a.gpu {
         match headless() {
             Ok(g) => Some(g),
