@@ -37,6 +37,25 @@ pub struct ClusterRest {
     pub metric_split: Metric,
 }
 
+impl ClusterRest {
+    /// The rest data of a particle that owns no cluster (a particle of a hexahedral
+    /// body, [`super::model::Discretisation::Lattice`]): no members, no mass.
+    pub fn empty() -> Self {
+        let zero = Metric {
+            w: Mat3::ZERO,
+            basis: Mat3::IDENTITY,
+            values: Vec3::ZERO,
+        };
+        Self {
+            com: Vec3::ZERO,
+            aqq_inv: Mat3::ZERO,
+            mass: 0.0,
+            metric: zero,
+            metric_split: zero,
+        }
+    }
+}
+
 /// The inverse-mass metric `W = A_qq⁻¹ (Σ_j w_j m_j² q_j q_jᵀ) A_qq⁻¹` (kg⁻¹·m⁻²) of a
 /// cluster, with its eigen-decomposition (used to solve the deviatoric block exactly).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -50,7 +69,8 @@ pub struct Metric {
 }
 
 impl Metric {
-    fn new(w: glam::DMat3) -> Self {
+    /// The metric `w` with its eigen-decomposition (eigenvalues clamped at 0).
+    pub fn new(w: glam::DMat3) -> Self {
         let (vals, vecs) = sym_eigen(&w);
         Self {
             w: w.as_mat3(),
@@ -523,6 +543,38 @@ pub fn solve_hyperelastic(
     lam: &mut Multipliers,
     dead_band: f32,
 ) -> ClusterCorrection {
+    let g = hyperelastic_step(
+        f,
+        metric,
+        rot,
+        rotation_iterations,
+        volume,
+        mat,
+        h2,
+        scale,
+        lam,
+        dead_band,
+    );
+    correction_of(&g, rest)
+}
+
+/// The multiplier steps of [`solve_hyperelastic`] for any constraint set whose
+/// deformation gradient is linear in the positions, `F = Σ_j x_j b_jᵀ` (a cluster, a
+/// hexahedral element's centre): returns `G` such that member `j` moves by `w_j G b_j`,
+/// with `metric` = `W = Σ_j w_j b_j b_jᵀ`. Arguments as [`solve_hyperelastic`].
+#[allow(clippy::too_many_arguments)]
+pub fn hyperelastic_step(
+    f: &Mat3,
+    metric: &Metric,
+    rot: &mut Quat,
+    rotation_iterations: u32,
+    volume: f32,
+    mat: &Hyperelastic,
+    h2: f32,
+    scale: f32,
+    lam: &mut Multipliers,
+    dead_band: f32,
+) -> Mat3 {
     // Hydrostatic.
     let mut g = Mat3::ZERO;
     let mut f2 = *f;
@@ -576,7 +628,7 @@ pub fn solve_hyperelastic(
             }
         }
     }
-    correction_of(&g, rest)
+    g
 }
 
 /// `Δx_j = G A_qq⁻¹ q_j` as an affine map of the rest position.

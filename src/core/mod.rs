@@ -6,11 +6,14 @@
 //! * [`hierarchy`] — the particle levels of hierarchical PBD (Müller 2008);
 //! * [`knn`] — uniform grid (counting sort) and exact K nearest neighbours;
 //! * [`constraints`] — shape matching, stable neo-Hookean XPBD, contacts (pure functions);
+//! * [`element`] — hexahedral elements on the lattice (centre gradient + hourglass modes);
 //! * [`colliders`] — kinematic plane, sphere, capsule and box with friction;
 //! * [`colouring`] — cluster colouring for a coloured Gauss–Seidel iteration;
 //! * [`model`] — the batched rest data of all bodies;
 //! * [`skin`] — the render surface embedded in the particles;
 //! * [`solver`] — CPU Gauss–Seidel and Jacobi time stepping;
+//! * [`statics`] — static equilibrium of the linearised energy (accuracy studies);
+//! * [`fem`] — an independent static finite-element reference (quadratic tetrahedra, f64);
 //! * [`procedural`] — shapes made in code (sphere, box, liver).
 //!
 //! ```
@@ -27,7 +30,9 @@
 pub mod colliders;
 pub mod colouring;
 pub mod constraints;
+pub mod element;
 pub mod error;
+pub mod fem;
 pub mod hierarchy;
 pub mod knn;
 pub mod mesh;
@@ -37,5 +42,6 @@ pub mod procedural;
 pub mod sampling;
 pub mod skin;
 pub mod solver;
+pub mod statics;
 
 pub use error::{MeshError, TissueError};

@@ -6,10 +6,11 @@
 //! Model / State / Control split).
 
 use super::constraints::{ClusterRest, init_cluster};
+use super::element::{CORNERS, ElementRest};
 use super::error::{TissueError, in_range, positive};
 use super::hierarchy::{Hierarchy, HierarchyDesc};
 use super::mesh::{Surface, TriMesh};
-use super::sampling::{Resolution, sample};
+use super::sampling::{Resolution, Voxels, sample, voxelize};
 use super::skin::{Skin, embed};
 use glam::{Quat, Vec3};
 
@@ -77,6 +78,25 @@ impl Material {
     }
 }
 
+/// How a body's elastic energy is discretised over its particles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Discretisation {
+    /// The paper's clusters: each particle and its K nearest rest neighbours, sampled
+    /// inside the surface, with a least-squares deformation gradient (a generalised
+    /// tetrahedron; Müller et al. 2005, 2022). Fast and robust, but its hyperelastic
+    /// material is softer than E and ν say and does not converge to them as the
+    /// resolution grows (BENCHMARKS.md, "Accuracy against FEM").
+    #[default]
+    Clusters,
+    /// Hexahedral finite elements on the sampling lattice: the lattice cells whose
+    /// centres are inside the surface, with their corners as particles; each cell's
+    /// centre gradient and hourglass modes as XPBD constraints ([`super::element`]).
+    /// Converges to the material set (a finite-element discretisation with the
+    /// incompatible-mode hexahedron's stiffness). Hyperelastic material only; the CPU
+    /// solver runs it (the GPU world does not yet); no hierarchy.
+    Lattice,
+}
+
 /// A region of the rest shape whose particles are pinned (held at a kinematic target).
 #[derive(Debug, Clone, PartialEq)]
 pub enum PinRegion {
@@ -137,6 +157,8 @@ pub struct BodyDesc {
     /// body. Solved only when the solver's schedule asks for it
     /// ([`super::solver::SolverSettings::coarse_iterations`]).
     pub hierarchy: Option<HierarchyDesc>,
+    /// Clusters (the paper's, with `neighbours` = K) or hexahedral lattice elements.
+    pub discretisation: Discretisation,
 }
 
 impl Default for BodyDesc {
@@ -150,6 +172,7 @@ impl Default for BodyDesc {
             translation: Vec3::ZERO,
             rotation: Quat::IDENTITY,
             hierarchy: None,
+            discretisation: Discretisation::Clusters,
         }
     }
 }
@@ -183,6 +206,8 @@ pub struct BodyInfo {
     pub skin: Skin,
     /// True when the input surface was inside-out and was flipped.
     pub flipped: bool,
+    /// Clusters or lattice elements.
+    pub discretisation: Discretisation,
 }
 
 impl BodyInfo {
@@ -222,6 +247,18 @@ pub struct Model {
     /// Coarse levels of hierarchical PBD, level 1 first (empty: every body is flat). A
     /// body with fewer levels than another is simply absent from the deeper ones.
     pub levels: Vec<Level>,
+    /// Hexahedral elements of [`Discretisation::Lattice`] bodies: each one's eight
+    /// particles (global indices) in [`super::element::corner_sign`] order. The particles
+    /// of such bodies own no cluster (their cluster runs are empty).
+    pub elements: Vec<[u32; CORNERS]>,
+    /// Rest data per element.
+    pub element_rest: Vec<ElementRest>,
+    /// Body of each element.
+    pub element_body: Vec<u32>,
+    /// CSR offsets of each particle's elements.
+    pub inv_element_start: Vec<u32>,
+    /// Elements containing each particle, as `element << 3 | corner`, ascending.
+    pub inv_elements: Vec<u32>,
 }
 
 /// One coarse level of the hierarchy (Müller 2008), batched over all bodies that have it.
@@ -286,6 +323,7 @@ impl Model {
         Self {
             cluster_start: vec![0],
             inv_start: vec![0],
+            inv_element_start: vec![0],
             ..Default::default()
         }
     }
@@ -315,6 +353,9 @@ impl Model {
             });
         }
         let surface = Surface::new(mesh)?;
+        if desc.discretisation == Discretisation::Lattice {
+            return self.add_lattice_body(mesh, &surface, desc);
+        }
         let samples = sample(&surface, desc.resolution)?;
         let n = samples.positions.len();
         let k = desc.neighbours as usize;
@@ -346,30 +387,62 @@ impl Model {
             rotation: desc.rotation,
             skin: Skin::default(),
             flipped: surface.flipped,
+            discretisation: Discretisation::Clusters,
         };
         let mut body = single_body(&rest, vec![m; n], &pinned_local, k, info)?;
         // The hierarchy's coarse levels (built before anything is committed).
         if let Some(hd) = &desc.hierarchy {
             body.levels = build_levels(&body, samples.spacing, &pinned_local, desc, hd)?;
         }
-        // Skin.
-        let bind = embed(&mesh.positions, &rest, 0, samples.spacing);
-        let mut indices = mesh.indices.clone();
-        if surface.flipped {
-            for t in indices.chunks_exact_mut(3) {
-                t.swap(1, 2);
-            }
-        }
-        body.bodies[0].skin = Skin {
-            rest_vertices: mesh.positions.clone(),
-            particles: bind.iter().map(|b| b.0).collect(),
-            weights: bind.iter().map(|b| b.1).collect(),
-            indices,
-            weld_map: surface.weld_map.clone(),
-            welded_count: surface.positions.len() as u32,
-            welded_triangles: surface.triangles.clone(),
-        };
+        body.bodies[0].skin = make_skin(mesh, &surface, &rest, samples.spacing);
         // Commit (nothing above touched self).
+        let id = self.bodies.len();
+        self.append(&body);
+        Ok(id)
+    }
+
+    /// [`Model::add_body`] for a [`Discretisation::Lattice`] body.
+    fn add_lattice_body(
+        &mut self,
+        mesh: &TriMesh,
+        surface: &Surface,
+        desc: &BodyDesc,
+    ) -> Result<BodyId, TissueError> {
+        if !matches!(desc.material, Material::Hyperelastic { .. }) {
+            return Err(TissueError::InvalidParameter {
+                name: "discretisation",
+                value: "Lattice with shape matching".into(),
+                expected: "Lattice with a hyperelastic material (shape matching runs on clusters)",
+            });
+        }
+        if desc.hierarchy.is_some() {
+            return Err(TissueError::InvalidParameter {
+                name: "hierarchy",
+                value: "coarse levels on a Lattice body".into(),
+                expected: "no hierarchy (the hierarchy is built for cluster bodies)",
+            });
+        }
+        let voxels = voxelize(surface, desc.resolution)?;
+        let volume = surface.volume as f32;
+        let (lo, hi) = surface.bounds();
+        let info = BodyInfo {
+            first: 0,
+            count: 0,
+            material: desc.material,
+            neighbours: desc.neighbours,
+            density: desc.density,
+            spacing: voxels.spacing,
+            radius: 0.5 * voxels.spacing,
+            volume,
+            size: (hi - lo).length() as f32,
+            translation: desc.translation,
+            rotation: desc.rotation,
+            skin: Skin::default(),
+            flipped: surface.flipped,
+            discretisation: Discretisation::Lattice,
+        };
+        let mut body = lattice_body(&voxels, desc, info);
+        body.bodies[0].skin = make_skin(mesh, surface, &voxels.nodes, voxels.spacing);
         let id = self.bodies.len();
         self.append(&body);
         Ok(id)
@@ -406,6 +479,29 @@ impl Model {
         self.cluster_volume.extend_from_slice(&other.cluster_volume);
         self.cluster_weight.extend_from_slice(&other.cluster_weight);
         self.pinned.extend(other.pinned.iter().map(|i| i + off));
+        if self.inv_element_start.is_empty() {
+            self.inv_element_start.push(0);
+        }
+        let (e0, ie0) = (self.elements.len() as u32, self.inv_elements.len() as u32);
+        self.elements
+            .extend(other.elements.iter().map(|e| e.map(|j| j + off)));
+        self.element_rest.extend_from_slice(&other.element_rest);
+        self.element_body
+            .extend(other.element_body.iter().map(|b| b + body_off));
+        let other_inv_start: &[u32] = if other.inv_element_start.is_empty() {
+            &[0]
+        } else {
+            &other.inv_element_start
+        };
+        // Particles of `other` without an element run (an empty model's) get empty runs.
+        let runs = other_inv_start.len() - 1;
+        self.inv_element_start
+            .extend(other_inv_start.iter().skip(1).map(|s| s + ie0));
+        let last = *self.inv_element_start.last().unwrap_or(&0);
+        self.inv_element_start
+            .extend(std::iter::repeat_n(last, other.rest.len() - runs));
+        self.inv_elements
+            .extend(other.inv_elements.iter().map(|c| c + (e0 << 3)));
         // Particle offset of each of this model's levels before the append (level 0 first).
         let mut finer_off = vec![off];
         finer_off.extend(self.levels.iter().map(|l| l.model.particle_count() as u32));
@@ -457,6 +553,18 @@ impl Model {
     #[inline]
     pub fn clusters_of(&self, j: usize) -> &[u32] {
         &self.inv_clusters[self.inv_start[j] as usize..self.inv_start[j + 1] as usize]
+    }
+
+    /// Elements containing particle `j`, as `element << 3 | corner`.
+    #[inline]
+    pub fn elements_of(&self, j: usize) -> &[u32] {
+        match (
+            self.inv_element_start.get(j),
+            self.inv_element_start.get(j + 1),
+        ) {
+            (Some(&a), Some(&b)) => &self.inv_elements[a as usize..b as usize],
+            _ => &[],
+        }
     }
 
     /// World position of each particle's rest position under its body's placement.
@@ -593,6 +701,7 @@ fn build_levels(
             rotation: desc.rotation,
             skin: Skin::default(),
             flipped: false,
+            discretisation: Discretisation::Clusters,
         };
         let k = desc.neighbours.min(nc as u32 - 1) as usize;
         let model = single_body(&pts, cm.clone(), &pins, k, info)?;
@@ -642,4 +751,84 @@ fn build_levels(
         fine_mass = cm;
     }
     Ok(out)
+}
+
+/// The render surface `mesh` embedded in the particles `rest` (body frame) of lattice
+/// spacing `spacing` (m), with its triangles' winding fixed if the surface was flipped.
+fn make_skin(mesh: &TriMesh, surface: &Surface, rest: &[Vec3], spacing: f32) -> Skin {
+    let bind = embed(&mesh.positions, rest, 0, spacing);
+    let mut indices = mesh.indices.clone();
+    if surface.flipped {
+        for t in indices.chunks_exact_mut(3) {
+            t.swap(1, 2);
+        }
+    }
+    Skin {
+        rest_vertices: mesh.positions.clone(),
+        particles: bind.iter().map(|b| b.0).collect(),
+        weights: bind.iter().map(|b| b.1).collect(),
+        indices,
+        weld_map: surface.weld_map.clone(),
+        welded_count: surface.positions.len() as u32,
+        welded_triangles: surface.triangles.clone(),
+    }
+}
+
+/// One lattice body (local indices): its cells as hexahedral elements, each standing for
+/// an equal share of the volume the surface encloses (so the body's mass is its
+/// density times that volume), each corner taking an eighth of its cells' masses. The
+/// particles own no clusters.
+fn lattice_body(voxels: &Voxels, desc: &BodyDesc, mut info: BodyInfo) -> Model {
+    let n = voxels.nodes.len();
+    let cells = voxels.cells.len();
+    let v_e = info.volume / cells as f32;
+    let mut mass = vec![0.0f32; n];
+    let mut mult = vec![0u32; n];
+    for cell in &voxels.cells {
+        for &j in cell {
+            mass[j as usize] += desc.density * v_e / CORNERS as f32;
+            mult[j as usize] += 1;
+        }
+    }
+    let rest = voxels.nodes.clone();
+    let pinned: Vec<u32> = (0..n as u32)
+        .filter(|&i| desc.pins.iter().any(|r| r.contains(i, rest[i as usize])))
+        .collect();
+    let mut inv_mass: Vec<f32> = mass.iter().map(|m| 1.0 / m).collect();
+    for &i in &pinned {
+        inv_mass[i as usize] = 0.0;
+    }
+    let mut model = Model::new();
+    let mut inv: Vec<Vec<u32>> = vec![Vec::new(); n];
+    for (e, (cell, &centre)) in voxels.cells.iter().zip(&voxels.centres).enumerate() {
+        let w = cell.map(|j| inv_mass[j as usize]);
+        let m = cell.map(|j| mult[j as usize]);
+        model.elements.push(*cell);
+        model
+            .element_rest
+            .push(ElementRest::new(centre, voxels.spacing, v_e, &w, &m));
+        model.element_body.push(0);
+        for (corner, &j) in cell.iter().enumerate() {
+            inv[j as usize].push(((e as u32) << 3) | corner as u32);
+        }
+    }
+    for list in inv {
+        model.inv_elements.extend_from_slice(&list);
+        model
+            .inv_element_start
+            .push(model.inv_elements.len() as u32);
+    }
+    model.cluster_start = vec![0; n + 1];
+    model.inv_start = vec![0; n + 1];
+    model.cluster_rest = vec![ClusterRest::empty(); n];
+    model.cluster_volume = vec![0.0; n];
+    model.cluster_weight = vec![0.0; n];
+    model.rest = rest;
+    model.mass = mass;
+    model.particle_body = vec![0; n];
+    model.pinned = pinned;
+    info.first = 0;
+    info.count = n as u32;
+    model.bodies.push(info);
+    model
 }

@@ -22,6 +22,9 @@ use super::constraints::{
     ClusterCorrection, ClusterRest, Hyperelastic, Multipliers, cluster_moments,
     iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
 };
+use super::element::{
+    CORNERS, ElementMultipliers, ElementSolve, HexModes, element_gradient, solve_element,
+};
 use super::error::{DivergenceKind, TissueError, in_range, positive};
 use super::model::{Level, Material, Model};
 use super::par;
@@ -197,6 +200,8 @@ pub struct State {
     pub v: Vec<Vec3>,
     /// Each cluster's last rotation (warm start of the rotation extraction).
     pub rot: Vec<Quat>,
+    /// Each hexahedral element's last rotation (same role; [`Model::elements`]).
+    pub element_rot: Vec<Quat>,
     /// Target of each pinned particle (same order as `Model::pinned`), m.
     pub pin_targets: Vec<Vec3>,
     /// Per particle: the grasper holding it, if any ([`ColliderShape::Grasper`](super::colliders::ColliderShape::Grasper)).
@@ -215,8 +220,14 @@ impl State {
             .map(|&b| model.bodies[b as usize].rotation)
             .collect();
         let pin_targets = model.pinned.iter().map(|&i| x[i as usize]).collect();
+        let element_rot = model
+            .element_body
+            .iter()
+            .map(|&b| model.bodies[b as usize].rotation)
+            .collect();
         Self {
             v: vec![Vec3::ZERO; x.len()],
+            element_rot,
             grab: vec![Grab::FREE; x.len()],
             x,
             rot,
@@ -310,6 +321,29 @@ enum BodyConst {
     He { mat: Hyperelastic },
 }
 
+/// One element's XPBD multipliers and, under Jacobi, its last corner corrections.
+#[derive(Debug, Clone, Copy)]
+struct ElementWork {
+    lam: ElementMultipliers,
+    corr: [Vec3; CORNERS],
+}
+
+impl ElementWork {
+    const ZERO: Self = Self {
+        lam: ElementMultipliers::ZERO,
+        corr: [Vec3::ZERO; CORNERS],
+    };
+}
+
+/// The hourglass modes of a body's material, kept while E and ν stay the same.
+#[derive(Debug, Clone)]
+struct BodyModes {
+    youngs_modulus: f32,
+    poisson_ratio: f32,
+    mat: Hyperelastic,
+    modes: HexModes,
+}
+
 /// The CPU solver with its workspace.
 #[derive(Debug, Clone)]
 pub struct Solver {
@@ -337,6 +371,10 @@ pub struct Solver {
     /// Whether the current iteration solves particle contacts
     /// ([`SolverSettings::contact_every`]).
     contacts_now: bool,
+    /// Per hexahedral element: multipliers and Jacobi corrections.
+    element_work: Vec<ElementWork>,
+    /// Per body: its hourglass modes (lattice bodies only).
+    modes: Vec<Option<BodyModes>>,
 }
 
 /// A coarse level's own solver and state, and which of level 0's pin slots each of its
@@ -393,7 +431,39 @@ impl Solver {
             snap: Vec::new(),
             counts: Vec::new(),
             contacts_now: true,
+            element_work: vec![ElementWork::ZERO; model.elements.len()],
+            modes: Vec::new(),
         })
+    }
+
+    /// Refreshes the hourglass modes of every lattice body whose material changed.
+    fn refresh_modes(&mut self, model: &Model) {
+        self.modes.resize(model.bodies.len(), None);
+        for (b, body) in model.bodies.iter().enumerate() {
+            let Material::Hyperelastic {
+                youngs_modulus,
+                poisson_ratio,
+            } = body.material
+            else {
+                self.modes[b] = None;
+                continue;
+            };
+            if body.discretisation != super::model::Discretisation::Lattice {
+                continue;
+            }
+            let fresh = self.modes[b].as_ref().is_some_and(|m| {
+                m.youngs_modulus == youngs_modulus && m.poisson_ratio == poisson_ratio
+            });
+            if !fresh {
+                let mat = Hyperelastic::new(youngs_modulus, poisson_ratio);
+                self.modes[b] = Some(BodyModes {
+                    youngs_modulus,
+                    poisson_ratio,
+                    mat,
+                    modes: HexModes::of(&mat),
+                });
+            }
+        }
     }
 
     fn body_consts(&self, model: &Model) -> Vec<BodyConst> {
@@ -425,7 +495,11 @@ impl Solver {
         let s = self.settings.clone();
         s.validate()?;
         let n = model.particle_count();
-        if state.x.len() != n || state.v.len() != n || state.rot.len() != n || state.grab.len() != n
+        if state.x.len() != n
+            || state.v.len() != n
+            || state.rot.len() != n
+            || state.grab.len() != n
+            || state.element_rot.len() != model.elements.len()
         {
             return Err(TissueError::InvalidParameter {
                 name: "state",
@@ -447,6 +521,10 @@ impl Solver {
             self.timings.knn = ms(t);
         }
         let consts = self.body_consts(model);
+        self.refresh_modes(model);
+        if self.element_work.len() != model.elements.len() {
+            self.element_work = vec![ElementWork::ZERO; model.elements.len()];
+        }
         let h = s.dt / s.substeps as f32;
         self.h = h;
         let t_step = std::time::Instant::now();
@@ -475,6 +553,9 @@ impl Solver {
             }
             // XPBD multipliers start from zero every substep (Macklin et al. 2016).
             self.work.iter_mut().for_each(|w| w.1 = Multipliers::ZERO);
+            self.element_work
+                .iter_mut()
+                .for_each(|w| w.lam = ElementMultipliers::ZERO);
             self.col
                 .iter_mut()
                 .for_each(|d| *d = (Vec3::ZERO, u32::MAX));
@@ -781,6 +862,9 @@ impl Solver {
         lambda: &mut Multipliers,
         rot_iters: u32,
     ) -> ClusterCorrection {
+        if model.cluster_start[c] == model.cluster_start[c + 1] {
+            return ClusterCorrection::ZERO; // a lattice body's particle: no cluster
+        }
         let r = &model.cluster_rest[c];
         let (com, apq, rest_com) =
             cluster_moments(model.members(c), p, &model.rest, &model.mass, r);
@@ -806,6 +890,43 @@ impl Solver {
                     &f, rest_c, metric, rot, rot_iters, v, &mat, h2, scale, lambda, band,
                 )
             }
+        }
+    }
+
+    /// Jacobi pass A for element `e`: solved from positions `p` with each corner's mass
+    /// split among the elements that share it (`w_j → n_j w_j`), multiplier steps relaxed
+    /// by `omega`; the corner corrections (in the true masses, `Δx / n_j`) go to `work`.
+    fn jacobi_element(
+        &self,
+        model: &Model,
+        e: usize,
+        p: &[Vec3],
+        omega: f32,
+        work: &mut ElementWork,
+        rot: &mut Quat,
+    ) {
+        let nodes = model.elements[e];
+        let x0 = nodes.map(|j| p[j as usize]);
+        let mut x = x0;
+        let mult = nodes.map(|j| model.elements_of(j as usize).len().max(1) as f32);
+        let w: [f32; CORNERS] =
+            std::array::from_fn(|k| inv_mass(model, &self.pin_slot, nodes[k] as usize) * mult[k]);
+        work.corr = [Vec3::ZERO; CORNERS];
+        let Some(s) = element_solve(
+            &self.modes,
+            &self.settings,
+            model,
+            e,
+            &x,
+            self.h,
+            omega,
+            true,
+        ) else {
+            return;
+        };
+        solve_element(&mut x, &w, &model.element_rest[e], &s, rot, &mut work.lam);
+        for k in 0..CORNERS {
+            work.corr[k] = (x[k] - x0[k]) / mult[k];
         }
     }
 
@@ -839,6 +960,36 @@ impl Solver {
                 }
                 let pj = self.p[j];
                 self.p[j] = pj + corr.apply(model.rest[j], pj);
+            }
+        }
+        for e in 0..model.elements.len() {
+            let nodes = model.elements[e];
+            let mut x = nodes.map(|j| self.p[j as usize]);
+            let w = nodes.map(|j| inv_mass(model, &self.pin_slot, j as usize));
+            let Some(s) = element_solve(
+                &self.modes,
+                &self.settings,
+                model,
+                e,
+                &x,
+                self.h,
+                1.0,
+                false,
+            ) else {
+                continue;
+            };
+            solve_element(
+                &mut x,
+                &w,
+                &model.element_rest[e],
+                &s,
+                &mut state.element_rot[e],
+                &mut self.element_work[e].lam,
+            );
+            for (k, &j) in nodes.iter().enumerate() {
+                if w[k] != 0.0 {
+                    self.p[j as usize] = x[k];
+                }
             }
         }
         self.timings.clusters += ms(t);
@@ -923,6 +1074,24 @@ impl Solver {
                 },
             );
         }
+        if !model.elements.is_empty() {
+            let mut ework = std::mem::take(&mut self.element_work);
+            {
+                let me = &*self;
+                let p = &self.p;
+                par::for_chunks_mut2(
+                    &mut ework,
+                    &mut state.element_rot,
+                    threads,
+                    |start, work, rot| {
+                        for (k, (wk, r)) in work.iter_mut().zip(rot.iter_mut()).enumerate() {
+                            me.jacobi_element(model, start + k, p, omega, wk, r);
+                        }
+                    },
+                );
+            }
+            self.element_work = ework;
+        }
         self.timings.clusters += ms(t);
         // Pass B: every particle gathers its clusters' corrections.
         let t = std::time::Instant::now();
@@ -930,10 +1099,15 @@ impl Solver {
         {
             let p = &self.p;
             let work = &self.work;
+            let ework = &self.element_work;
             par::for_chunks_mut(&mut out, 1, threads, |start, out| {
                 for (k, o) in out.iter_mut().enumerate() {
                     let j = start + k;
-                    *o = p[j] + gather(model, work, j, p[j]);
+                    let mut d = gather(model, work, j, p[j]);
+                    for &ec in model.elements_of(j) {
+                        d += ework[(ec >> 3) as usize].corr[(ec & 7) as usize];
+                    }
+                    *o = p[j] + d;
                 }
             });
         }
@@ -989,10 +1163,27 @@ impl Solver {
     }
 
     /// Each particle's own cluster's deformation gradient `F = A_pq A_qq⁻¹` at positions `x`
-    /// (what the skinning uses).
+    /// (what the skinning uses). A lattice body's particle gets the mean of its elements' centre gradients.
     pub fn deformation_gradients(model: &Model, x: &[Vec3]) -> Vec<Mat3> {
+        let element_f: Vec<Mat3> = model
+            .elements
+            .iter()
+            .zip(&model.element_rest)
+            .map(|(nodes, r)| element_gradient(&nodes.map(|j| x[j as usize]), r.size))
+            .collect();
         (0..model.particle_count())
             .map(|c| {
+                let elements = model.elements_of(c);
+                if !elements.is_empty() {
+                    let sum: Mat3 = elements
+                        .iter()
+                        .map(|&ec| element_f[(ec >> 3) as usize])
+                        .sum();
+                    return sum * (1.0 / elements.len() as f32);
+                }
+                if model.cluster_start[c] == model.cluster_start[c + 1] {
+                    return Mat3::IDENTITY;
+                }
                 let r = &model.cluster_rest[c];
                 let (_, apq, _) = cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
                 apq * r.aqq_inv
@@ -1049,6 +1240,47 @@ impl Solver {
                 msum += model.mass[j] as f64;
             }
         }
+        let mut modes = self.modes.clone();
+        if modes.len() != model.bodies.len() {
+            let mut me = self.clone();
+            me.refresh_modes(model);
+            modes = me.modes;
+        }
+        for e in 0..model.elements.len() {
+            let nodes = model.elements[e];
+            let x0 = nodes.map(|j| x[j as usize]);
+            let mut xe = x0;
+            let w = nodes.map(|j| inv_mass(model, &self.pin_slot, j as usize));
+            let h = h2.sqrt();
+            let Some(s) = element_solve(&modes, &self.settings, model, e, &xe, h, 1.0, false)
+            else {
+                continue;
+            };
+            let mut lam = self
+                .element_work
+                .get(e)
+                .map_or(ElementMultipliers::ZERO, |w| w.lam);
+            let mut rot = Quat::IDENTITY;
+            let solve = ElementSolve {
+                rotation_iterations: 20,
+                ..s
+            };
+            solve_element(
+                &mut xe,
+                &w,
+                &model.element_rest[e],
+                &solve,
+                &mut rot,
+                &mut lam,
+            );
+            let size = model.bodies[model.element_body[e] as usize].size as f64;
+            for k in 0..CORNERS {
+                let j = nodes[k] as usize;
+                let d = (xe[k] - x0[k]).as_dvec3() / size;
+                sum += model.mass[j] as f64 * d.length_squared() / 8.0;
+                msum += model.mass[j] as f64 / 8.0;
+            }
+        }
         (sum / msum.max(f64::MIN_POSITIVE)).sqrt() as f32
     }
 }
@@ -1067,6 +1299,33 @@ fn gather(model: &Model, work: &[(ClusterCorrection, Multipliers)], j: usize, pj
         acc += work[c as usize].0.goal_part(xr);
     }
     acc.truncate() - acc.w * pj
+}
+
+/// The solve settings of element `e` at corner positions `x` with substep `h` (s),
+/// relaxation `scale` and split masses or not (None: its body has no hourglass modes,
+/// i.e. is not a hyperelastic lattice body).
+fn element_solve<'a>(
+    modes: &'a [Option<BodyModes>],
+    settings: &SolverSettings,
+    model: &Model,
+    e: usize,
+    x: &[Vec3; CORNERS],
+    h: f32,
+    scale: f32,
+    split: bool,
+) -> Option<ElementSolve<'a>> {
+    let b = model.element_body[e] as usize;
+    let m = modes.get(b)?.as_ref()?;
+    let coordinate = x.iter().fold(0.0f32, |a, p| a.max(p.abs().max_element()));
+    Some(ElementSolve {
+        material: &m.mat,
+        modes: &m.modes,
+        h2: h * h,
+        scale,
+        rotation_iterations: settings.rotation_iterations,
+        dead_band: strain_dead_band(coordinate, model.element_rest[e].size),
+        split,
+    })
 }
 
 /// Inverse mass of particle `i`, 1/kg; 0 for a pinned particle (infinite mass).

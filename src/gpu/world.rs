@@ -358,6 +358,13 @@ impl GpuWorld {
         settings: SolverSettings,
         knn_k: u32,
     ) -> Result<Self, TissueError> {
+        if !model.elements.is_empty() {
+            return Err(TissueError::InvalidParameter {
+                name: "discretisation",
+                value: format!("{} lattice elements", model.elements.len()),
+                expected: "cluster bodies only (lattice bodies run on the CPU solver)",
+            });
+        }
         let limits = device.limits();
         Self::check_limits(&limits, model, &settings)?;
         // The neighbour search's candidate store (`spare`) also depends on `knn_k`.
