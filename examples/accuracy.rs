@@ -41,6 +41,7 @@ use std::time::Instant;
 
 struct Args {
     quick: bool,
+    realtime: bool,
     max_across: u32,
     dynamic: bool,
     liver: bool,
@@ -51,6 +52,7 @@ struct Args {
 fn args() -> Args {
     let mut a = Args {
         quick: false,
+        realtime: true,
         max_across: 16,
         dynamic: true,
         liver: true,
@@ -70,6 +72,13 @@ fn args() -> Args {
         match arg.as_str() {
             "--quick" => a.quick = true,
             "--no-dynamic" => a.dynamic = false,
+            "--no-realtime" => a.realtime = false,
+            "--only-realtime" => {
+                a.realtime = true;
+                a.dynamic = false;
+                a.liver = false;
+                a.max_across = 3;
+            }
             "--no-liver" => a.liver = false,
             "--max-across" => {
                 a.max_across = value("--max-across").parse().unwrap_or_else(|_| {
@@ -285,6 +294,10 @@ fn main() {
     if a.dynamic {
         dynamic(&a, &mut md);
     }
+    // 4. The time stepper at real-time budgets.
+    if a.realtime {
+        realtime(&a, &mut md);
+    }
 
     // Slopes and the chart.
     let _ = writeln!(
@@ -446,15 +459,14 @@ fn dynamic(a: &Args, md: &mut String) {
             let model = bar_model(disc, n).unwrap_or_else(|e| fail("cantilever model", e));
             let (stat, _) = bar_static_tip(&model).unwrap_or_else(|e| fail("static", e));
             let t = Instant::now();
-            let (sub, it, secs) = (4, 30, 6.0);
-            let x = settle(
+            let st = Stepping::CONVERGED;
+            let (sub, it, secs) = (st.substeps, st.iterations, 6.0);
+            let (x, _) = settle(
                 &model,
                 Vec3::new(0.0, -BAR_GRAVITY as f32, 0.0),
                 0.0,
                 secs,
-                sub,
-                it,
-                4.0,
+                &st,
             )
             .unwrap_or_else(|e| fail("cantilever settle", e));
             let tip = bar_tip(&model, &displacements(&model, &x));
@@ -474,8 +486,12 @@ fn dynamic(a: &Args, md: &mut String) {
         for (nu, squeeze) in [(0.3f32, 0.05f32), (0.45, 0.05), (0.49, 0.2)] {
             let model = cube_model(disc, cube_n, nu).unwrap_or_else(|e| fail("cube model", e));
             let t = Instant::now();
-            let (sub, it, secs) = (4, 30, 3.0);
-            let x = settle(&model, Vec3::ZERO, squeeze, secs, sub, it, 5.0)
+            let st = Stepping {
+                damping: 5.0,
+                ..Stepping::CONVERGED
+            };
+            let (sub, it, secs) = (st.substeps, st.iterations, 3.0);
+            let (x, _) = settle(&model, Vec3::ZERO, squeeze, secs, &st)
                 .unwrap_or_else(|e| fail("cube settle", e));
             let axial = layer_strain(&model, &x, 1);
             let b = uniaxial_lateral_stretch(CUBE_E as f64, nu as f64, 1.0 + axial);
@@ -502,6 +518,66 @@ fn dynamic(a: &Args, md: &mut String) {
                     t.elapsed().as_secs_f64()
                 );
             }
+        }
+    }
+}
+
+/// The cantilever (lattice, 6 across) settled at real-time budgets — 1/60 s steps of a
+/// few substeps × iterations — against the static answer of the same model, for E from
+/// 1 kPa to 1 MPa (gravity scaled with E, so the strain is the same).
+fn realtime(a: &Args, md: &mut String) {
+    let _ = writeln!(
+        md,
+        "\n## Real-time budgets: the settled cantilever (lattice, 6 across) against its static answer\n"
+    );
+    let _ = writeln!(
+        md,
+        "| E (Pa) | stepping | simulated s | tip / static | ms per step (CPU) |\n|---|---|---|---|---|"
+    );
+    let youngs: &[f32] = if a.quick { &[1e5] } else { &[1e3, 1e5, 1e6] };
+    use bevy_tissue::core::solver::{ElementSolver, Method};
+    let mut steppings = Vec::new();
+    for (method, element_solver) in [
+        (Method::GaussSeidel, ElementSolver::Xpbd),
+        (Method::Jacobi, ElementSolver::Xpbd),
+        (Method::GaussSeidel, ElementSolver::VertexDescent),
+    ] {
+        for (sub, it) in [(1u32, 10u32), (2, 5), (5, 2), (10, 1)] {
+            steppings.push(Stepping {
+                substeps: sub,
+                iterations: it,
+                method,
+                warm_start: false,
+                element_solver,
+                damping: 0.0,
+            });
+        }
+    }
+    if a.quick {
+        steppings.retain(|s| s.substeps == 1 || s.substeps == 10);
+    }
+    for &e in youngs {
+        let model = bar_model_with(Disc::Lattice, 6, e).unwrap_or_else(|err| fail("bar", err));
+        let g = BAR_GRAVITY * e as f64 / BAR_E as f64;
+        let (stat, _) = bar_static_tip_under(&model, g).unwrap_or_else(|err| fail("static", err));
+        // Critically damp the first bending mode and settle for ~8 of its time constants.
+        let w1 = bar_first_mode(e as f64);
+        let secs = (8.0 / w1).clamp(1.0, 20.0) as f32;
+        for st in &steppings {
+            let st = Stepping {
+                damping: (2.0 * w1) as f32,
+                ..*st
+            };
+            eprintln!("real-time cantilever, E = {e}, {} ...", st.label());
+            let gravity = Vec3::new(0.0, -g as f32, 0.0);
+            let row = match settle(&model, gravity, 0.0, secs, &st) {
+                Ok((x, ms)) => {
+                    let tip = bar_tip(&model, &displacements(&model, &x));
+                    format!("{:.4} | {ms:.2}", tip / stat)
+                }
+                Err(err) => format!("diverged ({err}) | -"),
+            };
+            let _ = writeln!(md, "| {e} | {} | {secs:.1} | {row} |", st.label());
         }
     }
 }

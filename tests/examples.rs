@@ -377,3 +377,27 @@ fn kernel_stats_translates_every_kernel() {
         }
     }
 }
+
+/// The accuracy example's quick mode: the FEM reference, the static convergence rows
+/// (every error finite; the lattice cantilever within 10% of the FEM at every
+/// resolution it runs), and the chart.
+#[test]
+fn accuracy_quick_measures_against_fem() {
+    let (out, stdout, _) = run_quick("accuracy");
+    let csv = std::fs::read_to_string(out.join("accuracy.csv")).expect("CSV written");
+    assert!(out.join("accuracy.png").exists(), "PNG written");
+    let mut lattice_bar = 0;
+    for line in csv.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        assert_eq!(f.len(), 7, "row {line}");
+        let err: f64 = f[6].parse().expect("error column");
+        assert!(err.is_finite(), "row {line}");
+        if f[0] == "cantilever" && f[1] == "lattice hexahedra" {
+            assert!(err.abs() < 0.1, "lattice cantilever row {line}");
+            lattice_bar += 1;
+        }
+    }
+    assert!(lattice_bar >= 3, "lattice cantilever rows: {lattice_bar}");
+    assert!(stdout.contains("## FEM reference"), "{stdout}");
+    assert!(stdout.contains("Real-time budgets"), "{stdout}");
+}

@@ -12,7 +12,7 @@ use bevy_tissue::core::mesh::TriMesh;
 use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
+use bevy_tissue::core::solver::{Control, ElementSolver, Method, Solver, SolverSettings, State};
 use bevy_tissue::core::statics::{StaticLoad, solve_static};
 use glam::{DVec3, Quat, Vec3};
 
@@ -93,6 +93,14 @@ impl Disc {
     }
 }
 
+/// The cantilever's first bending frequency (Euler–Bernoulli, clamped–free),
+/// `ω₁ = 1.875² √(E I / (ρ A L⁴))`, rad/s, for Young's modulus `e` (Pa).
+pub fn bar_first_mode(e: f64) -> f64 {
+    let a = BAR_THICKNESS * BAR_THICKNESS;
+    let i = BAR_THICKNESS.powi(4) / 12.0;
+    1.875f64.powi(2) * (e * i / (DENSITY as f64 * a * BAR_LENGTH.powi(4))).sqrt()
+}
+
 /// A box mesh from `lo` to `hi` (m).
 pub fn box_mesh(lo: DVec3, hi: DVec3) -> TriMesh {
     let half = ((hi - lo) * 0.5).as_vec3();
@@ -130,6 +138,11 @@ fn build(
 /// The cantilever with `across` particles across its thickness, clamped at x = 0: the
 /// lattice's nodes on that face, the clusters' first layer of particles.
 pub fn bar_model(disc: Disc, across: u32) -> Result<Model, TissueError> {
+    bar_model_with(disc, across, BAR_E)
+}
+
+/// [`bar_model`] with Young's modulus `youngs_modulus` (Pa).
+pub fn bar_model_with(disc: Disc, across: u32, youngs_modulus: f32) -> Result<Model, TissueError> {
     let t = BAR_THICKNESS;
     let mesh = box_mesh(
         DVec3::new(0.0, -0.5 * t, -0.5 * t),
@@ -145,7 +158,7 @@ pub fn bar_model(disc: Disc, across: u32) -> Result<Model, TissueError> {
         disc,
         s,
         Material::Hyperelastic {
-            youngs_modulus: BAR_E,
+            youngs_modulus,
             poisson_ratio: BAR_NU,
         },
         DENSITY,
@@ -208,12 +221,18 @@ pub fn bar_fem_tip_at(fem: &Solution, model: &Model) -> f64 {
     sum / tip.len() as f64
 }
 
-/// The bar's static tip deflection (m) under the linearised energy of `model`.
+/// The bar's static tip deflection (m) under the linearised energy of `model` and
+/// gravity [`BAR_GRAVITY`].
 pub fn bar_static_tip(model: &Model) -> Result<(f64, usize), TissueError> {
+    bar_static_tip_under(model, BAR_GRAVITY)
+}
+
+/// [`bar_static_tip`] under gravity `g` (m/s², downward).
+pub fn bar_static_tip_under(model: &Model, g: f64) -> Result<(f64, usize), TissueError> {
     let sol = solve_static(
         model,
         &StaticLoad {
-            gravity: DVec3::new(0.0, -BAR_GRAVITY, 0.0),
+            gravity: DVec3::new(0.0, -g, 0.0),
             constraints: vec![],
         },
         1e-9,
@@ -359,33 +378,86 @@ pub fn plates(model: &Model, squeeze: f32, step: usize, steps: usize) -> Vec<Col
     vec![ground, plate]
 }
 
-/// Converged time stepping (Gauss–Seidel, `substeps` × `iterations` per 1/60 s step,
-/// damping `damping` 1/s, no particle contacts) of `model` under `gravity` for
-/// `seconds`, with the compression plates when `squeeze > 0`. Returns the final
-/// positions, or the error of a diverged step.
+/// How a scene is time-stepped: 1/60 s steps of `substeps` × `iterations`, the method,
+/// the consistent multiplier warm start, damping (1/s); no particle contacts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stepping {
+    /// Substeps per 1/60 s step.
+    pub substeps: u32,
+    /// Iterations per substep.
+    pub iterations: u32,
+    /// Gauss–Seidel or Jacobi.
+    pub method: Method,
+    /// [`SolverSettings::warm_start`].
+    pub warm_start: bool,
+    /// XPBD or vertex block descent for lattice elements.
+    pub element_solver: ElementSolver,
+    /// Velocity damping, 1/s.
+    pub damping: f32,
+}
+
+impl Stepping {
+    /// The converged setting of the accuracy study: Gauss–Seidel, 4 × 30, damping 4/s.
+    pub const CONVERGED: Self = Self {
+        substeps: 4,
+        iterations: 30,
+        method: Method::GaussSeidel,
+        warm_start: false,
+        element_solver: ElementSolver::Xpbd,
+        damping: 4.0,
+    };
+
+    /// Label for tables.
+    pub fn label(&self) -> String {
+        format!(
+            "{} {} × {}{}",
+            match (self.element_solver, self.method) {
+                (ElementSolver::VertexDescent, _) => "VBD",
+                (_, Method::GaussSeidel) => "GS",
+                (_, Method::Jacobi) => "Jacobi",
+            },
+            self.substeps,
+            self.iterations,
+            if self.warm_start { ", warm start" } else { "" }
+        )
+    }
+
+    /// The solver settings under `gravity`.
+    pub fn settings(&self, gravity: Vec3) -> SolverSettings {
+        SolverSettings {
+            substeps: self.substeps,
+            iterations: self.iterations,
+            gravity,
+            damping: self.damping,
+            method: self.method,
+            warm_start: self.warm_start,
+            element_solver: self.element_solver,
+            threads: if self.method == Method::GaussSeidel {
+                1
+            } else {
+                0
+            },
+            particle_contacts: false,
+            coarse_iterations: 0,
+            ..Default::default()
+        }
+    }
+}
+
+/// Time-steps `model` under `gravity` for `seconds` with `stepping`, with the
+/// compression plates when `squeeze > 0`. Returns the final positions and the wall
+/// time per step (ms), or the error of a diverged step.
 pub fn settle(
     model: &Model,
     gravity: Vec3,
     squeeze: f32,
     seconds: f32,
-    substeps: u32,
-    iterations: u32,
-    damping: f32,
-) -> Result<Vec<Vec3>, TissueError> {
-    let settings = SolverSettings {
-        substeps,
-        iterations,
-        gravity,
-        damping,
-        method: Method::GaussSeidel,
-        threads: 1,
-        particle_contacts: false,
-        coarse_iterations: 0,
-        ..Default::default()
-    };
-    let mut solver = Solver::new(model, settings)?;
+    stepping: &Stepping,
+) -> Result<(Vec<Vec3>, f64), TissueError> {
+    let mut solver = Solver::new(model, stepping.settings(gravity))?;
     let mut state = State::new(model);
     let steps = (seconds * 60.0).round() as usize;
+    let t = std::time::Instant::now();
     for step in 0..steps {
         let control = Control {
             colliders: if squeeze > 0.0 {
@@ -396,7 +468,10 @@ pub fn settle(
         };
         solver.step(model, &mut state, &control)?;
     }
-    Ok(state.x)
+    Ok((
+        state.x,
+        t.elapsed().as_secs_f64() * 1e3 / steps.max(1) as f64,
+    ))
 }
 
 /// Displacements of positions `x` from the rest positions, m.

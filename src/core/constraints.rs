@@ -617,18 +617,34 @@ pub fn hyperelastic_step(
                 // (exactly, as Σ m (p − c)(A_qq⁻¹ q)ᵀ = F); an anisotropic W leaves a
                 // little in R ΔΛ. Remove it: G' = G − skew(G Fᵀ) F⁻ᵀ makes G' Fᵀ symmetric,
                 // so the correction conserves angular momentum.
-                let mut gd = r * dl;
-                let det = f.determinant();
-                if det.abs() > 1e-3 {
-                    let k = gd * f.transpose();
-                    let skew = (k - k.transpose()) * 0.5;
-                    gd -= skew * (cofactor(f) * (1.0 / det));
-                }
-                g += gd;
+                g += torque_free(r * dl, f);
             }
         }
     }
     g
+}
+
+/// `G − skew(G Fᵀ) F⁻ᵀ`: the part of a correction direction `G` whose member
+/// displacements `G b_j` exert no torque (`G' Fᵀ` symmetric), so that it conserves angular
+/// momentum; `G` itself when `F` is near singular.
+#[inline]
+pub fn torque_free(g: Mat3, f: &Mat3) -> Mat3 {
+    let det = f.determinant();
+    if det.abs() > 1e-3 {
+        let k = g * f.transpose();
+        let skew = (k - k.transpose()) * 0.5;
+        g - skew * (cofactor(f) * (1.0 / det))
+    } else {
+        g
+    }
+}
+
+/// The direction `G` (member `j` moves by `w_j G b_j`) that multipliers `lam` exert on a
+/// constraint set with deformation gradient `f` and rotation `rot`: `λ_H cof F + R Λ`
+/// (the forces of [`hyperelastic_step`]'s constraints, summed).
+pub fn multiplier_direction(f: &Mat3, rot: &Quat, lam: &Multipliers) -> Mat3 {
+    let r = Mat3::from_quat(*rot);
+    cofactor(f) * lam.h + torque_free(r * lam.d_mat(), f)
 }
 
 /// `Δx_j = G A_qq⁻¹ q_j` as an affine map of the rest position.

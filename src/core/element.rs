@@ -30,7 +30,9 @@
 //! mode hexahedron's, `½ uᵀ K u` ([`cube_stiffness`]): a converging finite-element
 //! discretisation of the material E and ν set, rather than a meshless approximation of it.
 
-use super::constraints::{Hyperelastic, Metric, Multipliers, hyperelastic_step, outer};
+use super::constraints::{
+    Hyperelastic, Metric, Multipliers, hyperelastic_step, multiplier_direction, outer,
+};
 use glam::{DMat3, DVec3, Mat3, Quat, Vec3};
 
 /// Corners of a hexahedron.
@@ -539,6 +541,79 @@ pub fn solve_element(
     }
 }
 
+/// The displacement of each corner (m) that multipliers `lam` exert at corner positions
+/// `x` and rotation `rot`: `w_j (G b_j + Σ_m λ_m R g_mj)` with `G` the centre's
+/// [`multiplier_direction`]. Applied at the start of a substep with the previous
+/// substep's multipliers, it makes the static equilibrium the fixed point of the
+/// iteration however few iterations run (a consistent warm start of XPBD: the positions
+/// agree with the multipliers carried over).
+pub fn multiplier_displacement(
+    x: &[Vec3; CORNERS],
+    w: &[f32; CORNERS],
+    rest: &ElementRest,
+    modes: &HexModes,
+    rot: &Quat,
+    lam: &ElementMultipliers,
+) -> [Vec3; CORNERS] {
+    let h = rest.size;
+    let g = multiplier_direction(&element_gradient(x, h), rot, &lam.hyper);
+    let r = Mat3::from_quat(*rot);
+    std::array::from_fn(|j| {
+        let mut d = g * gradient_weight(j, h);
+        for m in 0..HOURGLASS_MODES {
+            d += lam.hourglass[m] * (r * modes.vectors[m][j]);
+        }
+        w[j] * d
+    })
+}
+
+/// The elastic force on corner `corner` (N) and that corner's 3 × 3 stiffness block
+/// (N/m, a positive definite approximation) of one element at corner positions `x`:
+/// the centre's fixed-corotated stress `P = 2μ(F − R) + λ(J − 1) cof F` (Stomakhin et
+/// al. 2012) giving `f_j = −V P b_j`, with block `V (2μ |b_j|² I + λ (cof F b_j)(cof F b_j)ᵀ)`
+/// (R and the cofactor's own change frozen), and the hourglass modes'
+/// `f_j = −Σ_m k_m c_m R g_mj`, block `Σ_m k_m (R g_mj)(R g_mj)ᵀ`. `rot` warm-starts and
+/// receives `R = polar(F)`. What vertex block descent (Chen et al. 2024, "Vertex Block
+/// Descent") needs per element of a vertex.
+pub fn corner_force(
+    x: &[Vec3; CORNERS],
+    corner: usize,
+    rest: &ElementRest,
+    mat: &Hyperelastic,
+    modes: &HexModes,
+    rot: &mut Quat,
+    rotation_iterations: u32,
+) -> (Vec3, Mat3) {
+    let h = rest.size;
+    let f = element_gradient(x, h);
+    super::constraints::extract_rotation(&f, rot, rotation_iterations);
+    let r = Mat3::from_quat(*rot);
+    let cof = super::constraints::cofactor(&f);
+    let j = f.determinant();
+    let p = (f - r) * (2.0 * mat.mu) + cof * (mat.lambda * (j - 1.0));
+    let b = gradient_weight(corner, h);
+    let v = rest.volume;
+    let mut force = -(p * b) * v;
+    let cb = cof * b;
+    let mut hess = Mat3::from_diagonal(Vec3::splat(2.0 * mat.mu * b.length_squared() * v))
+        + outer(cb, cb) * (mat.lambda * v);
+    let scale = rest.hourglass_scale();
+    let rt = r.transpose();
+    let o = x[0];
+    for m in 0..HOURGLASS_MODES {
+        let k = modes.stiffness[m] * scale;
+        let gm = &modes.vectors[m];
+        let mut c = 0.0;
+        for (q, &xq) in x.iter().enumerate() {
+            c += gm[q].dot(rt * (xq - o));
+        }
+        let rg = r * gm[corner];
+        force -= rg * (k * c);
+        hess += outer(rg, rg) * k;
+    }
+    (force, hess)
+}
+
 /// Linearised energy of an element at small displacements `u` (m) of its corners:
 /// `½ V ε:C:ε + ½ Σ_m k_m (V/h²) c_m²` with `ε = sym(Σ_j u_j b_jᵀ)` (J). Equal to
 /// `½ uᵀ (h V/h³) K u` with `K` = [`cube_stiffness`]; for tests and the static solve.
@@ -708,6 +783,48 @@ mod tests {
                 let d = (x[j] - x[k]).length();
                 assert!((d - h).abs() < 1e-3 * h, "edge {j}-{k}: {d}");
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod force_tests {
+    use super::*;
+
+    /// `corner_force` is the negative gradient of the element's energy (small strain:
+    /// the incompatible-mode stiffness times the displacement).
+    #[test]
+    fn corner_force_matches_the_linear_stiffness() {
+        let mat = Hyperelastic::new(1.0e5, 0.3);
+        let modes = HexModes::of(&mat);
+        let h = 0.01f32;
+        let rest = ElementRest::new(Vec3::ZERO, h, h * h * h, &[1.0; CORNERS], &[1; CORNERS]);
+        let k = cube_stiffness(mat.mu as f64, mat.lambda as f64);
+        let u: [Vec3; CORNERS] = std::array::from_fn(|j| {
+            Vec3::new(
+                (j as f32 * 0.37).sin(),
+                (j as f32 * 1.1).cos(),
+                (j as f32 * 0.7).sin(),
+            ) * 1e-5
+        });
+        let x: [Vec3; CORNERS] = std::array::from_fn(|j| corner_sign(j) * 0.5 * h + u[j]);
+        for corner in 0..CORNERS {
+            let mut rot = Quat::IDENTITY;
+            let (f, _) = corner_force(&x, corner, &rest, &mat, &modes, &mut rot, 8);
+            let mut lin = DVec3::ZERO;
+            for q in 0..CORNERS {
+                for i in 0..3 {
+                    for l in 0..3 {
+                        lin[i] += h as f64 * k[(3 * corner + i) * 24 + 3 * q + l] * u[q][l] as f64;
+                    }
+                }
+            }
+            let f = f.as_dvec3();
+            assert!(
+                (f + lin).length() < 0.02 * lin.length(),
+                "corner {corner}: force {f} vs -K u {}",
+                -lin
+            );
         }
     }
 }

@@ -23,7 +23,8 @@ use super::constraints::{
     iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
 };
 use super::element::{
-    CORNERS, ElementMultipliers, ElementSolve, HexModes, element_gradient, solve_element,
+    CORNERS, ElementMultipliers, ElementSolve, HexModes, element_gradient, multiplier_displacement,
+    solve_element,
 };
 use super::error::{DivergenceKind, TissueError, in_range, positive};
 use super::model::{Level, Material, Model};
@@ -40,6 +41,24 @@ pub enum Method {
     GaussSeidel,
     /// Parallel Jacobi with constraint averaging and relaxation.
     Jacobi,
+}
+
+/// How the hexahedral elements of lattice bodies are solved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ElementSolver {
+    /// XPBD constraints (the centre's hyperelastic constraints, the hourglass modes),
+    /// iterated by [`SolverSettings::method`], multipliers from zero each substep (or
+    /// carried over with [`SolverSettings::warm_start`]).
+    #[default]
+    Xpbd,
+    /// Vertex block descent (Chen et al. 2024, "Vertex Block Descent"): each particle in
+    /// turn takes a Newton step on the implicit-Euler energy of its elements,
+    /// `(m/h² + H) Δx = m/h² (x̃ − x) + f`, from an initial guess that is the previous
+    /// positions moved by the velocity and the acceleration of the last substep (their
+    /// adaptive initialisation), so that a body at rest starts at rest and its static
+    /// equilibrium is the iteration's fixed point at any iteration count. Always
+    /// Gauss–Seidel on the CPU.
+    VertexDescent,
 }
 
 /// Time stepping and solver settings.
@@ -111,6 +130,19 @@ pub struct SolverSettings {
     pub coarse_iterations: u32,
     /// The constraints of the coarse levels.
     pub coarse_constraint: CoarseConstraint,
+    /// Carry the XPBD multipliers of lattice elements from one substep to the next,
+    /// applying their displacement at the start of the substep (a consistent warm
+    /// start). Plain XPBD starts every substep from zero multipliers, and a substep whose
+    /// iterations stop short leaves the body softer than its material: its rest under a
+    /// load is not the static equilibrium. With the warm start the static equilibrium is
+    /// the iteration's fixed point at any iteration count; few iterations only slow the
+    /// approach to it.
+    pub warm_start: bool,
+    /// How lattice bodies' elements are solved.
+    pub element_solver: ElementSolver,
+    /// Vertex block descent: start from the last substep's acceleration along gravity
+    /// (Chen et al. 2024's adaptive initialisation) instead of the velocity alone.
+    pub descent_adaptive_init: bool,
 }
 
 /// What the coarse levels of hierarchical PBD solve. Level 0 is solved last in every
@@ -153,6 +185,9 @@ impl Default for SolverSettings {
             trace_residual: false,
             coarse_iterations: 20,
             coarse_constraint: CoarseConstraint::Clusters,
+            warm_start: false,
+            element_solver: ElementSolver::Xpbd,
+            descent_adaptive_init: false,
         }
     }
 }
@@ -375,6 +410,14 @@ pub struct Solver {
     element_work: Vec<ElementWork>,
     /// Per body: its hourglass modes (lattice bodies only).
     modes: Vec<Option<BodyModes>>,
+    /// Vertex block descent: each particle's inertial target `x̃ = x + h v + h² g` of the
+    /// substep, m.
+    target: Vec<Vec3>,
+    /// Vertex block descent: each particle's acceleration over the last substep, m/s².
+    accel: Vec<Vec3>,
+    /// Substep length the element multipliers were made with (a multiplier is a force
+    /// times h², so a warm start rescales them when h changes), s.
+    element_h: f32,
 }
 
 /// A coarse level's own solver and state, and which of level 0's pin slots each of its
@@ -433,6 +476,9 @@ impl Solver {
             contacts_now: true,
             element_work: vec![ElementWork::ZERO; model.elements.len()],
             modes: Vec::new(),
+            element_h: 0.0,
+            target: Vec::new(),
+            accel: vec![Vec3::ZERO; n],
         })
     }
 
@@ -532,9 +578,17 @@ impl Solver {
         for substep in 0..s.substeps {
             // 1. predict
             let t = std::time::Instant::now();
+            let descent =
+                s.element_solver == ElementSolver::VertexDescent && !model.elements.is_empty();
+            if descent {
+                self.backup_substep_velocity(state);
+            }
             for i in 0..n {
                 state.v[i] += s.gravity * h;
                 self.p[i] = state.x[i] + state.v[i] * h;
+            }
+            if descent {
+                self.descent_initial_guess(model, state, h);
             }
             for (slot, &i) in model.pinned.iter().enumerate() {
                 self.p[i as usize] = state.pin_targets[slot];
@@ -553,9 +607,14 @@ impl Solver {
             }
             // XPBD multipliers start from zero every substep (Macklin et al. 2016).
             self.work.iter_mut().for_each(|w| w.1 = Multipliers::ZERO);
-            self.element_work
-                .iter_mut()
-                .for_each(|w| w.lam = ElementMultipliers::ZERO);
+            if s.warm_start && self.element_h > 0.0 {
+                self.warm_start_elements(model, state, h);
+            } else {
+                self.element_work
+                    .iter_mut()
+                    .for_each(|w| w.lam = ElementMultipliers::ZERO);
+            }
+            self.element_h = h;
             self.col
                 .iter_mut()
                 .for_each(|d| *d = (Vec3::ZERO, u32::MAX));
@@ -600,6 +659,11 @@ impl Solver {
             for i in 0..n {
                 state.v[i] = (self.p[i] - state.x[i]) / h * keep;
                 state.x[i] = self.p[i];
+            }
+            if descent {
+                for i in 0..n {
+                    self.accel[i] = (state.v[i] - self.p2[i]) / h;
+                }
             }
             self.timings.finish += ms(t);
         }
@@ -893,6 +957,116 @@ impl Solver {
         }
     }
 
+    /// Keeps each particle's velocity at the start of the substep (in `p2`, free until
+    /// the iterations) for the acceleration of the substep.
+    fn backup_substep_velocity(&mut self, state: &State) {
+        self.p2.clear();
+        self.p2.extend_from_slice(&state.v);
+    }
+
+    /// Vertex block descent's start: the inertial targets `x̃ = p` and, for the particles
+    /// of lattice bodies, the initial guess `x + h v₀ + h² ã` with `ã` the last
+    /// substep's acceleration along gravity, clamped to [0, |g|] (Chen et al. 2024,
+    /// adaptive initialisation).
+    fn descent_initial_guess(&mut self, model: &Model, state: &State, h: f32) {
+        self.target.clone_from(&self.p);
+        let g = self.settings.gravity;
+        let g_len = g.length();
+        let g_dir = if g_len > 0.0 { g / g_len } else { Vec3::ZERO };
+        for i in 0..model.particle_count() {
+            if model.elements_of(i).is_empty() || self.pin_slot[i] != u32::MAX {
+                continue;
+            }
+            let a = if self.settings.descent_adaptive_init {
+                self.accel[i].dot(g_dir).clamp(0.0, g_len)
+            } else {
+                0.0
+            };
+            self.p[i] = state.x[i] + self.p2[i] * h + g_dir * (a * h * h);
+        }
+    }
+
+    /// One Gauss–Seidel sweep of vertex block descent over the particles of lattice
+    /// bodies: each free particle takes the Newton step of its local implicit-Euler
+    /// energy, `(m/h² I + Σ_e H_e) Δx = m/h² (x̃ − x) + Σ_e f_e`
+    /// ([`super::element::corner_force`]).
+    fn descent_sweep(&mut self, model: &Model, state: &mut State) {
+        let h2 = self.h * self.h;
+        let ri = self.settings.rotation_iterations;
+        for j in 0..model.particle_count() {
+            let elements = model.elements_of(j);
+            if elements.is_empty() || self.pin_slot[j] != u32::MAX {
+                continue;
+            }
+            let mh = model.mass[j] / h2;
+            let mut f = (self.target[j] - self.p[j]) * mh;
+            let mut hess = Mat3::from_diagonal(Vec3::splat(mh));
+            for &ec in elements {
+                let (e, corner) = ((ec >> 3) as usize, (ec & 7) as usize);
+                let b = model.element_body[e] as usize;
+                let Some(m) = self.modes.get(b).and_then(|m| m.as_ref()) else {
+                    continue;
+                };
+                let x = model.elements[e].map(|k| self.p[k as usize]);
+                let (fe, he) = super::element::corner_force(
+                    &x,
+                    corner,
+                    &model.element_rest[e],
+                    &m.mat,
+                    &m.modes,
+                    &mut state.element_rot[e],
+                    ri,
+                );
+                f += fe;
+                hess += he;
+            }
+            if hess.determinant().abs() > f32::MIN_POSITIVE {
+                let d = hess.inverse() * f;
+                if d.is_finite() {
+                    self.p[j] += d;
+                }
+            }
+        }
+    }
+
+    /// The consistent warm start of the element multipliers: rescales them to substep
+    /// `h` and moves every free particle by the displacement they exert
+    /// ([`multiplier_displacement`]) from the predicted positions.
+    fn warm_start_elements(&mut self, model: &Model, state: &State, h: f32) {
+        let ratio = (h / self.element_h).powi(2);
+        if ratio != 1.0 {
+            for w in &mut self.element_work {
+                w.lam.hyper.h *= ratio;
+                w.lam.hyper.d.iter_mut().for_each(|d| *d *= ratio);
+                w.lam.hourglass.iter_mut().for_each(|l| *l *= ratio);
+            }
+        }
+        let mut delta = vec![Vec3::ZERO; model.particle_count()];
+        for e in 0..model.elements.len() {
+            let b = model.element_body[e] as usize;
+            let Some(m) = self.modes.get(b).and_then(|m| m.as_ref()) else {
+                continue;
+            };
+            let nodes = model.elements[e];
+            let x = nodes.map(|j| self.p[j as usize]);
+            let w = nodes.map(|j| inv_mass(model, &self.pin_slot, j as usize));
+            let d = multiplier_displacement(
+                &x,
+                &w,
+                &model.element_rest[e],
+                &m.modes,
+                &state.element_rot[e],
+                &self.element_work[e].lam,
+            );
+            for (k, &j) in nodes.iter().enumerate() {
+                delta[j as usize] += d[k];
+            }
+        }
+        for (p, d) in self.p.iter_mut().zip(&delta) {
+            *p += *d;
+        }
+    }
+
     /// Jacobi pass A for element `e`: solved from positions `p` with each corner's mass
     /// split among the elements that share it (`w_j → n_j w_j`), multiplier steps relaxed
     /// by `omega`; the corner corrections (in the true masses, `Δx / n_j`) go to `work`.
@@ -962,7 +1136,13 @@ impl Solver {
                 self.p[j] = pj + corr.apply(model.rest[j], pj);
             }
         }
+        if self.settings.element_solver == ElementSolver::VertexDescent {
+            self.descent_sweep(model, state);
+        }
         for e in 0..model.elements.len() {
+            if self.settings.element_solver == ElementSolver::VertexDescent {
+                break;
+            }
             let nodes = model.elements[e];
             let mut x = nodes.map(|j| self.p[j as usize]);
             let w = nodes.map(|j| inv_mass(model, &self.pin_slot, j as usize));
@@ -1304,6 +1484,7 @@ fn gather(model: &Model, work: &[(ClusterCorrection, Multipliers)], j: usize, pj
 /// The solve settings of element `e` at corner positions `x` with substep `h` (s),
 /// relaxation `scale` and split masses or not (None: its body has no hourglass modes,
 /// i.e. is not a hyperelastic lattice body).
+#[allow(clippy::too_many_arguments)]
 fn element_solve<'a>(
     modes: &'a [Option<BodyModes>],
     settings: &SolverSettings,
