@@ -559,8 +559,20 @@ fn realtime(a: &Args, md: &mut String) {
         (Method::GaussSeidel, ElementSolver::Xpbd),
         (Method::Jacobi, ElementSolver::Xpbd),
         (Method::GaussSeidel, ElementSolver::VertexDescent),
+        (Method::GaussSeidel, ElementSolver::Multigrid),
     ] {
-        for (sub, it) in [(1u32, 10u32), (2, 5), (5, 2), (10, 1)] {
+        for (sub, it) in [
+            (1u32, 10u32),
+            (2, 5),
+            (5, 2),
+            (10, 1),
+            (1, 1),
+            (1, 2),
+            (2, 1),
+        ] {
+            if element_solver != ElementSolver::Multigrid && it * sub < 10 {
+                continue;
+            }
             steppings.push(Stepping {
                 substeps: sub,
                 iterations: it,

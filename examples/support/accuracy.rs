@@ -413,6 +413,7 @@ impl Stepping {
             "{} {} × {}{}",
             match (self.element_solver, self.method) {
                 (ElementSolver::VertexDescent, _) => "VBD",
+                (ElementSolver::Multigrid, _) => "Newton-MG",
                 (_, Method::GaussSeidel) => "GS",
                 (_, Method::Jacobi) => "Jacobi",
             },

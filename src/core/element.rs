@@ -567,10 +567,23 @@ pub fn multiplier_displacement(
     })
 }
 
+/// The first Piola–Kirchhoff stress (Pa) of the fixed-corotated energy at deformation
+/// gradient `f` with rotation `r ≈ polar(F)`: `P = 2μ R (sym(Rᵀ F) − I) + λ (J − 1) cof F`.
+/// With the exact polar rotation this is Stomakhin et al. 2012's `2μ (F − R) + λ (J − 1)
+/// cof F`; taking the symmetric part makes it insensitive (to first order) to an
+/// approximate `R`, whose error would otherwise be a spurious stress as large as the
+/// strain itself at small strains.
+#[inline]
+pub fn corotated_stress(f: &Mat3, r: &Mat3, mat: &Hyperelastic) -> Mat3 {
+    let rtf = r.transpose() * *f;
+    let e = (rtf + rtf.transpose()) * 0.5 - Mat3::IDENTITY;
+    *r * e * (2.0 * mat.mu)
+        + super::constraints::cofactor(f) * (mat.lambda * (f.determinant() - 1.0))
+}
+
 /// The elastic force on corner `corner` (N) and that corner's 3 × 3 stiffness block
 /// (N/m, a positive definite approximation) of one element at corner positions `x`:
-/// the centre's fixed-corotated stress `P = 2μ(F − R) + λ(J − 1) cof F` (Stomakhin et
-/// al. 2012) giving `f_j = −V P b_j`, with block `V (2μ |b_j|² I + λ (cof F b_j)(cof F b_j)ᵀ)`
+/// the centre's fixed-corotated stress ([`corotated_stress`]) giving `f_j = −V P b_j`, with block `V (2μ |b_j|² I + λ (cof F b_j)(cof F b_j)ᵀ)`
 /// (R and the cofactor's own change frozen), and the hourglass modes'
 /// `f_j = −Σ_m k_m c_m R g_mj`, block `Σ_m k_m (R g_mj)(R g_mj)ᵀ`. `rot` warm-starts and
 /// receives `R = polar(F)`. What vertex block descent (Chen et al. 2024, "Vertex Block
@@ -589,8 +602,7 @@ pub fn corner_force(
     super::constraints::extract_rotation(&f, rot, rotation_iterations);
     let r = Mat3::from_quat(*rot);
     let cof = super::constraints::cofactor(&f);
-    let j = f.determinant();
-    let p = (f - r) * (2.0 * mat.mu) + cof * (mat.lambda * (j - 1.0));
+    let p = corotated_stress(&f, &r, mat);
     let b = gradient_weight(corner, h);
     let v = rest.volume;
     let mut force = -(p * b) * v;

@@ -10,6 +10,7 @@
 //! * [`colliders`] — kinematic plane, sphere, capsule and box with friction;
 //! * [`colouring`] — cluster colouring for a coloured Gauss–Seidel iteration;
 //! * [`model`] — the batched rest data of all bodies;
+//! * [`multigrid`] — geometric multigrid on lattice bodies (Newton's linear solve);
 //! * [`skin`] — the render surface embedded in the particles;
 //! * [`solver`] — CPU Gauss–Seidel and Jacobi time stepping;
 //! * [`statics`] — static equilibrium of the linearised energy (accuracy studies);
@@ -37,6 +38,7 @@ pub mod hierarchy;
 pub mod knn;
 pub mod mesh;
 pub mod model;
+pub mod multigrid;
 pub mod par;
 pub mod procedural;
 pub mod sampling;

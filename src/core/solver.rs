@@ -59,6 +59,14 @@ pub enum ElementSolver {
     /// equilibrium is the iteration's fixed point at any iteration count. Always
     /// Gauss–Seidel on the CPU.
     VertexDescent,
+    /// Newton's method on each substep's implicit-Euler equations, each iteration's
+    /// linear solve one multigrid V-cycle on the lattice ([`super::multigrid`]): the
+    /// residual `M/h² (x̃ − y) + f(y)`, the corotated element stiffness, Gauss–Seidel
+    /// smoothing, coarse lattices of 2 × 2 × 2 cells with the same element. Starts from
+    /// the previous positions moved by their velocity, so a body at rest starts at rest
+    /// and its static equilibrium is the fixed point; the coarse levels carry bending
+    /// across the body in one iteration.
+    Multigrid,
 }
 
 /// Time stepping and solver settings.
@@ -415,6 +423,9 @@ pub struct Solver {
     target: Vec<Vec3>,
     /// Vertex block descent: each particle's acceleration over the last substep, m/s².
     accel: Vec<Vec3>,
+    /// Multigrid: the lattice hierarchy (built on first use) and its work space.
+    mg: Option<Box<super::multigrid::LatticeMultigrid>>,
+    mg_work: super::multigrid::MgWork,
     /// Substep length the element multipliers were made with (a multiplier is a force
     /// times h², so a warm start rescales them when h changes), s.
     element_h: f32,
@@ -479,6 +490,8 @@ impl Solver {
             element_h: 0.0,
             target: Vec::new(),
             accel: vec![Vec3::ZERO; n],
+            mg: None,
+            mg_work: Default::default(),
         })
     }
 
@@ -578,8 +591,7 @@ impl Solver {
         for substep in 0..s.substeps {
             // 1. predict
             let t = std::time::Instant::now();
-            let descent =
-                s.element_solver == ElementSolver::VertexDescent && !model.elements.is_empty();
+            let descent = s.element_solver != ElementSolver::Xpbd && !model.elements.is_empty();
             if descent {
                 self.backup_substep_velocity(state);
             }
@@ -977,7 +989,9 @@ impl Solver {
             if model.elements_of(i).is_empty() || self.pin_slot[i] != u32::MAX {
                 continue;
             }
-            let a = if self.settings.descent_adaptive_init {
+            let a = if self.settings.descent_adaptive_init
+                && self.settings.element_solver == ElementSolver::VertexDescent
+            {
                 self.accel[i].dot(g_dir).clamp(0.0, g_len)
             } else {
                 0.0
@@ -1027,6 +1041,68 @@ impl Solver {
                 }
             }
         }
+    }
+
+    /// One Newton iteration of the lattice bodies' substep, its linear solve one
+    /// multigrid V-cycle ([`ElementSolver::Multigrid`]).
+    fn newton_multigrid(&mut self, model: &Model, state: &mut State) {
+        use super::multigrid::{LatticeMultigrid, element_forces};
+        let stale = self.mg.as_ref().is_none_or(|mg| {
+            mg.levels[0].nodes != model.particle_count()
+                || mg.levels[0].elements.len() != model.elements.len()
+        });
+        if stale {
+            self.mg = Some(Box::new(LatticeMultigrid::new(model, 64, 8)));
+        }
+        let Some(mg) = self.mg.take() else {
+            return;
+        };
+        let n = model.particle_count();
+        let h2 = self.h * self.h;
+        let ri = self.settings.rotation_iterations;
+        let mut force = vec![Vec3::ZERO; n];
+        for (e, nodes) in model.elements.iter().enumerate() {
+            let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
+                continue;
+            };
+            let r = &model.element_rest[e];
+            let x = nodes.map(|j| self.p[j as usize]);
+            let f = element_forces(
+                &x,
+                r.size,
+                r.volume,
+                mat,
+                modes,
+                &mut state.element_rot[e],
+                ri,
+            );
+            for (k, &j) in nodes.iter().enumerate() {
+                force[j as usize] += f[k];
+            }
+        }
+        mg.prepare(&state.element_rot, h2, &mut self.mg_work);
+        let fixed = &mg.levels[0].fixed;
+        let rhs = &mut self.mg_work.rhs[0];
+        for j in 0..n {
+            rhs[j] = if fixed[j] || self.pin_slot[j] != u32::MAX {
+                Vec3::ZERO
+            } else {
+                (self.target[j] - self.p[j]) * (model.mass[j] / h2) + force[j]
+            };
+        }
+        self.mg_work.delta[0]
+            .iter_mut()
+            .for_each(|d| *d = Vec3::ZERO);
+        mg.vcycle(0, h2, 2, 2, 30, &mut self.mg_work);
+        for j in 0..n {
+            if !fixed[j] && self.pin_slot[j] == u32::MAX {
+                let d = self.mg_work.delta[0][j];
+                if d.is_finite() {
+                    self.p[j] += d;
+                }
+            }
+        }
+        self.mg = Some(mg);
     }
 
     /// The consistent warm start of the element multipliers: rescales them to substep
@@ -1136,11 +1212,13 @@ impl Solver {
                 self.p[j] = pj + corr.apply(model.rest[j], pj);
             }
         }
-        if self.settings.element_solver == ElementSolver::VertexDescent {
-            self.descent_sweep(model, state);
+        match self.settings.element_solver {
+            ElementSolver::VertexDescent => self.descent_sweep(model, state),
+            ElementSolver::Multigrid => self.newton_multigrid(model, state),
+            ElementSolver::Xpbd => {}
         }
         for e in 0..model.elements.len() {
-            if self.settings.element_solver == ElementSolver::VertexDescent {
+            if self.settings.element_solver != ElementSolver::Xpbd {
                 break;
             }
             let nodes = model.elements[e];
