@@ -398,6 +398,35 @@ pub fn element_forces(
     out
 }
 
+/// The elastic energy (J) of one element at corner positions `x` with its rotation `r`
+/// held: `V (μ ‖sym(Rᵀ F) − I‖² + λ/2 (det F − 1)²) + ½ Σ_m k_m c_m²`, whose gradient
+/// with `R` frozen is [`element_forces`]' negative. For line searches.
+pub fn element_energy(
+    x: &[Vec3; CORNERS],
+    size: f32,
+    volume: f32,
+    mat: &Hyperelastic,
+    modes: &HexModes,
+    r: &Mat3,
+) -> f64 {
+    let f = element_gradient(x, size);
+    let rtf = r.transpose() * f;
+    let e = (rtf + rtf.transpose()) * 0.5 - Mat3::IDENTITY;
+    let ee = e.x_axis.length_squared() + e.y_axis.length_squared() + e.z_axis.length_squared();
+    let j = f.determinant() - 1.0;
+    let mut out =
+        volume as f64 * (mat.mu as f64 * ee as f64 + 0.5 * mat.lambda as f64 * (j * j) as f64);
+    let scale = (volume / (size * size)) as f64;
+    let rt = r.transpose();
+    let o = x[0];
+    for m in 0..HOURGLASS_MODES {
+        let gm = &modes.vectors[m];
+        let c: f32 = (0..CORNERS).map(|q| gm[q].dot(rt * (x[q] - o))).sum();
+        out += 0.5 * modes.stiffness[m] as f64 * scale * (c * c) as f64;
+    }
+    out
+}
+
 /// Work space of the V-cycle, one entry per level.
 #[derive(Debug, Clone, Default)]
 pub struct MgWork {
@@ -461,7 +490,7 @@ impl LatticeMultigrid {
                     for &e in ch {
                         let q = quats[e as usize];
                         let q = if q.dot(first) < 0.0 { -q } else { q };
-                        sum = sum + q;
+                        sum += q;
                     }
                     next.push(sum.normalize());
                 }

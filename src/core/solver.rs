@@ -1094,12 +1094,53 @@ impl Solver {
             .iter_mut()
             .for_each(|d| *d = Vec3::ZERO);
         mg.vcycle(0, h2, 2, 2, 30, &mut self.mg_work);
-        for j in 0..n {
-            if !fixed[j] && self.pin_slot[j] == u32::MAX {
-                let d = self.mg_work.delta[0][j];
-                if d.is_finite() {
-                    self.p[j] += d;
+        // Backtracking line search on the substep's energy
+        // `Σ m/(2h²) |y − x̃|² + Σ_e E_e(y)` (rotations held): the V-cycle's step is
+        // taken whole when it lowers the energy, else halved until it does (Nocedal &
+        // Wright, "Numerical Optimization", §3.1), so that a step far from the solution
+        // (an impact, a squashed body) cannot blow up.
+        let free = |j: usize| !fixed[j] && self.pin_slot[j] == u32::MAX;
+        let rots: Vec<Mat3> = state
+            .element_rot
+            .iter()
+            .map(|q| Mat3::from_quat(*q))
+            .collect();
+        let energy = |alpha: f32, p: &[Vec3], d: &[Vec3]| -> f64 {
+            let at = |j: usize| if free(j) { p[j] + d[j] * alpha } else { p[j] };
+            let mut g = 0.0f64;
+            for j in 0..n {
+                if free(j) {
+                    g += 0.5
+                        * (model.mass[j] / h2) as f64
+                        * (at(j) - self.target[j]).length_squared() as f64;
                 }
+            }
+            for (e, nodes) in model.elements.iter().enumerate() {
+                let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
+                    continue;
+                };
+                let r = &model.element_rest[e];
+                let x = nodes.map(|j| at(j as usize));
+                g += super::multigrid::element_energy(&x, r.size, r.volume, mat, modes, &rots[e]);
+            }
+            g
+        };
+        let d = &self.mg_work.delta[0];
+        let finite = d.iter().all(|v| v.is_finite());
+        let g0 = energy(0.0, &self.p, d);
+        let mut alpha = if finite { 1.0f32 } else { 0.0 };
+        while alpha > 0.0 {
+            if energy(alpha, &self.p, d) <= g0 {
+                break;
+            }
+            alpha *= 0.5;
+            if alpha < 1.0 / 64.0 {
+                alpha = 0.0;
+            }
+        }
+        for (j, dj) in d.iter().enumerate() {
+            if free(j) {
+                self.p[j] += *dj * alpha;
             }
         }
         self.mg = Some(mg);
