@@ -4,8 +4,12 @@
 //!
 //! Methods (rows): shape matching (k = 0.5) and hyperelastic XPBD (fixed-corotated,
 //! E = 100 kPa, ν = 0.45), each with CPU Gauss–Seidel and CPU Jacobi; hyperelastic with a
-//! two-level hierarchy (Müller 2008, Jacobi); and the GPU world (Jacobi on the GPU) with
-//! both materials, where an adapter exists.
+//! two-level hierarchy (Müller 2008, Jacobi); the same material on the lattice
+//! discretisation (hexahedra on the sampling lattice: `Discretisation::Lattice`) with XPBD
+//! Gauss–Seidel and with Newton–multigrid (`ElementSolver::Multigrid`), CPU only; and the
+//! GPU world (Jacobi on the GPU) with both cluster materials, where an adapter exists. The
+//! lattice rows have no `K = 4` column (no neighbourhoods) and no coplanar plate (a plate
+//! thinner than a cell has no cell); they are measured on their own hexahedra.
 //!
 //! Scenarios (columns), on a brick of 12 × 8 × 8 cm sampled with `--particles` particles
 //! (a plate for the coplanar one). Gravity is off, so the rest shape is the only
@@ -54,6 +58,8 @@
 //! (default `stability_out`). CPU cells run in parallel, one per core, each solver on one
 //! thread; GPU cells meanwhile, one at a time.
 
+#[path = "support/accuracy.rs"]
+mod accuracy;
 #[path = "support/bench.rs"]
 mod bench;
 #[path = "support/chart.rs"]
@@ -61,16 +67,17 @@ mod chart;
 
 use bevy_tissue::core::TissueError;
 use bevy_tissue::core::colliders::Collider;
-use bevy_tissue::core::constraints::{extract_rotation, outer, sym_eigen};
+use bevy_tissue::core::constraints::sym_eigen;
+use bevy_tissue::core::element::element_gradient;
 use bevy_tissue::core::hierarchy::HierarchyDesc;
 use bevy_tissue::core::mesh::TriMesh;
-use bevy_tissue::core::model::{BodyDesc, Material, Model};
+use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
+use bevy_tissue::core::solver::{Control, ElementSolver, Method, Solver, SolverSettings, State};
 use bevy_tissue::gpu::world::{read_u32, read_vec3};
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
-use glam::{Mat3, Quat, Vec3};
+use glam::Vec3;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::sync::Mutex;
@@ -210,17 +217,21 @@ enum Row {
     HeGs,
     HeJacobi,
     HeHierarchy,
+    LatticeGs,
+    LatticeMg,
     GpuSm,
     GpuHe,
 }
 
 impl Row {
-    const CPU: [Row; 5] = [
+    const CPU: [Row; 7] = [
         Row::SmGs,
         Row::SmJacobi,
         Row::HeGs,
         Row::HeJacobi,
         Row::HeHierarchy,
+        Row::LatticeGs,
+        Row::LatticeMg,
     ];
     const GPU: [Row; 2] = [Row::GpuSm, Row::GpuHe];
 
@@ -232,6 +243,8 @@ impl Row {
             Row::HeGs => "he_gs",
             Row::HeJacobi => "he_jacobi",
             Row::HeHierarchy => "he_hierarchy_jacobi",
+            Row::LatticeGs => "lattice_xpbd_gs",
+            Row::LatticeMg => "lattice_newton_mg",
             Row::GpuSm => "gpu_sm",
             Row::GpuHe => "gpu_he",
         }
@@ -245,6 +258,8 @@ impl Row {
             Row::HeGs => "hyperelastic, Gauss–Seidel",
             Row::HeJacobi => "hyperelastic, Jacobi",
             Row::HeHierarchy => "hyperelastic + hierarchy, Jacobi",
+            Row::LatticeGs => "lattice hexahedra, XPBD Gauss–Seidel",
+            Row::LatticeMg => "lattice hexahedra, Newton–multigrid",
             Row::GpuSm => "GPU Jacobi, shape matching",
             Row::GpuHe => "GPU Jacobi, hyperelastic",
         }
@@ -258,9 +273,15 @@ impl Row {
     /// CPU method (the GPU always runs Jacobi).
     fn method(self) -> Method {
         match self {
-            Row::SmGs | Row::HeGs => Method::GaussSeidel,
+            Row::SmGs | Row::HeGs | Row::LatticeGs | Row::LatticeMg => Method::GaussSeidel,
             _ => Method::Jacobi,
         }
+    }
+
+    /// The lattice discretisation (hexahedral elements on the sampling lattice), else the
+    /// paper's clusters.
+    fn lattice(self) -> bool {
+        matches!(self, Row::LatticeGs | Row::LatticeMg)
     }
 
     /// Runs on the GPU world.
@@ -415,6 +436,11 @@ fn settings(scenario: Scenario, row: Row, cfg: &Config) -> SolverSettings {
         },
         particle_contacts: false,
         threads: 1,
+        element_solver: if row == Row::LatticeMg {
+            ElementSolver::Multigrid
+        } else {
+            ElementSolver::Xpbd
+        },
         ..Default::default()
     };
     match scenario {
@@ -437,6 +463,11 @@ fn setup(scenario: Scenario, row: Row, cfg: &Config) -> Result<(Model, State, Co
             levels: Some(2),
             ..Default::default()
         }),
+        discretisation: if row.lattice() {
+            Discretisation::Lattice
+        } else {
+            Discretisation::Clusters
+        },
         ..Default::default()
     };
     let mut model = Model::new();
@@ -498,20 +529,34 @@ fn setup(scenario: Scenario, row: Row, cfg: &Config) -> Result<(Model, State, Co
 }
 
 /// What measures the end states of one scenario: a flat model of the same particles with
-/// K = 32, and for each of its flat clusters an orthonormal pair spanning its plane.
+/// K = 32, and for each of its flat clusters an orthonormal pair spanning its plane; for
+/// the lattice rows, the lattice model itself (volume `Σ_e V_e det F_e` over its
+/// hexahedra).
 struct Meter {
     model: Model,
     plane: Vec<Option<(Vec3, Vec3)>>,
 }
 
 impl Meter {
-    /// The measuring model of a scenario's body.
-    fn new(scenario: Scenario, cfg: &Config) -> Result<Self, String> {
+    /// The measuring model of a scenario's body (`lattice`: of its lattice model).
+    fn new(scenario: Scenario, cfg: &Config, lattice: bool) -> Result<Self, String> {
         let (mesh, resolution) = body(scenario, cfg);
         let desc = BodyDesc {
             resolution,
             neighbours: 32,
-            material: Material::ShapeMatching { stiffness: 1.0 },
+            material: if lattice {
+                Material::Hyperelastic {
+                    youngs_modulus: cfg.youngs,
+                    poisson_ratio: 0.45,
+                }
+            } else {
+                Material::ShapeMatching { stiffness: 1.0 }
+            },
+            discretisation: if lattice {
+                Discretisation::Lattice
+            } else {
+                Discretisation::Clusters
+            },
             ..Default::default()
         };
         let mut model = Model::new();
@@ -538,6 +583,18 @@ impl Meter {
     /// Volume of positions `x` relative to the rest volume, and the share of the rest
     /// volume in inverted clusters (det F < 0).
     fn volume(&self, x: &[Vec3]) -> (f32, f32) {
+        if !self.model.elements.is_empty() {
+            let (mut v, mut inv, mut total) = (0.0f64, 0.0f64, 0.0f64);
+            for (nodes, r) in self.model.elements.iter().zip(&self.model.element_rest) {
+                let j = element_gradient(&nodes.map(|k| x[k as usize]), r.size).determinant();
+                v += (r.volume * j) as f64;
+                total += r.volume as f64;
+                if j < 0.0 {
+                    inv += r.volume as f64;
+                }
+            }
+            return ((v / total) as f32, (inv / total) as f32);
+        }
         let f = Solver::deformation_gradients(&self.model, x);
         let (mut v, mut inv, mut total) = (0.0f64, 0.0f64, 0.0f64);
         for ((fc, plane), &vc) in f.iter().zip(&self.plane).zip(&self.model.cluster_volume) {
@@ -557,41 +614,7 @@ impl Meter {
     /// RMS distance of `x` from the rest shape after the best rigid alignment
     /// (mass-weighted), relative to the body size (bounding-box diagonal).
     fn shape_error(&self, x: &[Vec3]) -> f32 {
-        let (rest, mass) = (&self.model.rest, &self.model.mass);
-        let m: f32 = mass.iter().sum();
-        let cx = x.iter().zip(mass).map(|(p, &w)| *p * w).sum::<Vec3>() / m;
-        let cr = rest.iter().zip(mass).map(|(p, &w)| *p * w).sum::<Vec3>() / m;
-        let mut a = Mat3::ZERO;
-        for ((p, r), &w) in x.iter().zip(rest).zip(mass) {
-            a += outer(*p - cx, *r - cr) * w;
-        }
-        let err = |q: Quat| {
-            let r = Mat3::from_quat(q);
-            let s: f32 = x
-                .iter()
-                .zip(rest)
-                .zip(mass)
-                .map(|((p, q0), &w)| w * (*p - cx - r * (*q0 - cr)).length_squared())
-                .sum();
-            (s / m).sqrt()
-        };
-        // The rotation part of A = Σ m (x − c_x)(X − c_X)ᵀ from several starts (the
-        // iteration may stop at a saddle half a turn away), the best kept.
-        let starts = [
-            Quat::IDENTITY,
-            Quat::from_rotation_x(std::f32::consts::PI),
-            Quat::from_rotation_y(std::f32::consts::PI),
-            Quat::from_rotation_z(std::f32::consts::PI),
-        ];
-        let best = starts
-            .iter()
-            .map(|&q0| {
-                let mut q = q0;
-                extract_rotation(&a, &mut q, 200);
-                err(q)
-            })
-            .fold(f32::INFINITY, f32::min);
-        best / self.model.bodies[0].size
+        accuracy::rigid_fit_error(&self.model, x) / self.model.bodies[0].size
     }
 }
 
@@ -703,7 +726,7 @@ fn run_cell(
     scenario: Scenario,
     row: Row,
     cfg: &Config,
-    meter: &Meter,
+    meter: Result<&Meter, String>,
     gpu: Option<&Headless>,
 ) -> Cell {
     let t = Instant::now();
@@ -720,10 +743,22 @@ fn run_cell(
         steps,
         steps_run: 0,
         diverged_at: None,
-        particles: meter.model.particle_count(),
+        particles: meter.as_ref().map_or(0, |m| m.model.particle_count()),
         ms: 0.0,
         note: String::new(),
     };
+    let meter = match meter {
+        Ok(m) => m,
+        Err(e) => {
+            // The one-layer plate has no lattice cell (no cell centre inside it).
+            cell.note = format!("no lattice body: {e}");
+            return cell;
+        }
+    };
+    if scenario == Scenario::SmallK && row.lattice() {
+        cell.note = "the lattice has no neighbourhoods (K)".into();
+        return cell;
+    }
     if scenario == Scenario::OverRelaxed && row.method() == Method::GaussSeidel && !row.gpu() {
         cell.note = "Gauss–Seidel applies each correction in full; this solver's ω is Jacobi's \
                      (no successive over-relaxation)"
@@ -834,8 +869,20 @@ fn main() {
     let t0 = Instant::now();
     let meters: Vec<Meter> = Scenario::ALL
         .iter()
-        .map(|&s| Meter::new(s, &cfg).expect("measuring model"))
+        .map(|&s| Meter::new(s, &cfg, false).expect("measuring model"))
         .collect();
+    // The lattice's (none where the body has no cell: the one-layer plate).
+    let lattice_meters: Vec<Result<Meter, String>> = Scenario::ALL
+        .iter()
+        .map(|&s| Meter::new(s, &cfg, true))
+        .collect();
+    let meter_of = |s: usize, r: Row| -> Result<&Meter, String> {
+        if r.lattice() {
+            lattice_meters[s].as_ref().map_err(|e| e.clone())
+        } else {
+            Ok(&meters[s])
+        }
+    };
     let jobs: Vec<(usize, Row)> = (0..Scenario::ALL.len())
         .flat_map(|s| rows.iter().map(move |&r| (s, r)))
         .collect();
@@ -873,7 +920,7 @@ fn main() {
                 loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&&(s, r)) = cpu.get(i) else { break };
-                    report(run_cell(Scenario::ALL[s], r, &cfg, &meters[s], None));
+                    report(run_cell(Scenario::ALL[s], r, &cfg, meter_of(s, r), None));
                 }
             });
         }
@@ -882,7 +929,7 @@ fn main() {
                 Scenario::ALL[s],
                 r,
                 &cfg,
-                &meters[s],
+                meter_of(s, r),
                 gpu.as_ref(),
             ));
         }

@@ -593,3 +593,38 @@ pub fn liver_static_sag(model: &Model) -> Result<(f64, usize), TissueError> {
     )?;
     Ok((mean_sag(model, &sol.displacement), sol.iterations))
 }
+
+/// RMS distance (m) of positions `x` from `model`'s rest shape after the best rigid
+/// fit (mass-weighted; the rotation of `Σ m (x − c_x)(X − c_X)ᵀ`, taken from four
+/// starts half a turn apart so that the iteration cannot stop at a saddle).
+pub fn rigid_fit_error(model: &Model, x: &[Vec3]) -> f32 {
+    use bevy_tissue::core::constraints::{extract_rotation, outer};
+    let (rest, mass) = (&model.rest, &model.mass);
+    let m: f32 = mass.iter().sum();
+    let cx = x.iter().zip(mass).map(|(p, &w)| *p * w).sum::<Vec3>() / m;
+    let cr = rest.iter().zip(mass).map(|(p, &w)| *p * w).sum::<Vec3>() / m;
+    let mut a = glam::Mat3::ZERO;
+    for ((p, r), &w) in x.iter().zip(rest).zip(mass) {
+        a += outer(*p - cx, *r - cr) * w;
+    }
+    [
+        Quat::IDENTITY,
+        Quat::from_rotation_x(std::f32::consts::PI),
+        Quat::from_rotation_y(std::f32::consts::PI),
+        Quat::from_rotation_z(std::f32::consts::PI),
+    ]
+    .iter()
+    .map(|&q0| {
+        let mut q = q0;
+        extract_rotation(&a, &mut q, 200);
+        let r = glam::Mat3::from_quat(q);
+        let s: f32 = x
+            .iter()
+            .zip(rest)
+            .zip(mass)
+            .map(|((p, q0), &w)| w * (*p - cx - r * (*q0 - cr)).length_squared())
+            .sum();
+        (s / m).sqrt()
+    })
+    .fold(f32::INFINITY, f32::min)
+}

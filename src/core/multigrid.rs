@@ -438,6 +438,11 @@ pub struct MgWork {
     pub delta: Vec<Vec<Vec3>>,
     /// Inverted diagonal blocks per level.
     pub diag_inv: Vec<Vec<Mat3>>,
+    /// Extra node stiffness per level, N/m (contact penalties `k n nᵀ`). The caller fills
+    /// level 0 (one block per node, or leaves it empty for none) before
+    /// [`LatticeMultigrid::prepare`], which lumps it onto the coarser levels
+    /// (`Σ_j w_jc S_j`: exact for a uniform correction).
+    pub extra: Vec<Vec<Mat3>>,
 }
 
 impl LatticeMultigrid {
@@ -450,6 +455,28 @@ impl LatticeMultigrid {
         work.rhs.resize(nl, Vec::new());
         work.delta.resize(nl, Vec::new());
         work.diag_inv.resize(nl, Vec::new());
+        work.extra.resize(nl, Vec::new());
+        if work.extra[0].len() != self.levels[0].nodes {
+            work.extra[0].clear();
+        }
+        for l in 1..nl {
+            let fine = std::mem::take(&mut work.extra[l - 1]);
+            let mut coarse = Vec::new();
+            if !fine.is_empty() {
+                let lv = &self.levels[l - 1];
+                coarse = vec![Mat3::ZERO; self.levels[l].nodes];
+                for (j, s) in fine.iter().enumerate() {
+                    if *s == Mat3::ZERO {
+                        continue;
+                    }
+                    for t in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
+                        coarse[lv.prolong_node[t] as usize] += *s * lv.prolong_weight[t];
+                    }
+                }
+            }
+            work.extra[l - 1] = fine;
+            work.extra[l] = coarse;
+        }
         let mut quats: Vec<Quat> = rot0.to_vec();
         for l in 0..nl {
             let lv = &self.levels[l];
@@ -459,6 +486,9 @@ impl LatticeMultigrid {
                 .iter()
                 .map(|&m| Mat3::from_diagonal(Vec3::splat(m / h2)))
                 .collect();
+            for (d, s) in diag.iter_mut().zip(&work.extra[l]) {
+                *d += *s;
+            }
             for (e, el) in lv.elements.iter().enumerate() {
                 let Some((k, sc)) = self.element_stiffness(l, e) else {
                     continue;
@@ -512,10 +542,14 @@ impl LatticeMultigrid {
         }
     }
 
-    /// `y = A x` on level `l` (`A = M/h² + Σ_e R K Rᵀ`) for node `j` only.
+    /// `y = A x` on level `l` (`A = M/h² + S + Σ_e R K Rᵀ`, `S` the extra node
+    /// stiffness) for node `j` only.
     fn apply_row(&self, l: usize, j: usize, x: &[Vec3], h2: f32, work: &MgWork) -> Vec3 {
         let lv = &self.levels[l];
         let mut y = x[j] * (lv.mass[j] / h2);
+        if let Some(s) = work.extra[l].get(j) {
+            y += *s * x[j];
+        }
         for &ec in &lv.inv[lv.inv_start[j] as usize..lv.inv_start[j + 1] as usize] {
             let (e, a) = ((ec >> 3) as usize, (ec & 7) as usize);
             let Some((k, sc)) = self.element_stiffness(l, e) else {
@@ -559,11 +593,13 @@ impl LatticeMultigrid {
         let lv = &self.levels[l];
         let nc = self.levels[l + 1].nodes;
         let mut rc = vec![Vec3::ZERO; nc];
+        let mut rf = vec![Vec3::ZERO; lv.nodes];
         for j in 0..lv.nodes {
             if lv.fixed[j] {
                 continue;
             }
             let r = work.rhs[l][j] - self.apply_row(l, j, &work.delta[l], h2, work);
+            rf[j] = r;
             for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
                 rc[lv.prolong_node[s] as usize] += r * lv.prolong_weight[s];
             }
@@ -577,16 +613,37 @@ impl LatticeMultigrid {
         work.rhs[l + 1] = rc;
         work.delta[l + 1].iter_mut().for_each(|d| *d = Vec3::ZERO);
         self.vcycle(l + 1, h2, pre, post, coarsest, work);
-        // Prolongate the coarse correction.
+        // Prolongate the coarse correction `e = P δ_c` and take it with the step
+        // `α = eᵀ r / eᵀ A e` that minimises the fine level's energy along it: the coarse
+        // operator (each coarse cell's stiffness turned by one mean rotation) is exact
+        // only where the cell's elements turn alike, and a correction it overestimates is
+        // scaled back instead of spoiling the fine solution (never made worse: α ≥ 0).
+        let mut e = vec![Vec3::ZERO; lv.nodes];
+        for (j, ej) in e.iter_mut().enumerate() {
+            if lv.fixed[j] {
+                continue;
+            }
+            for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
+                *ej += work.delta[l + 1][lv.prolong_node[s] as usize] * lv.prolong_weight[s];
+            }
+        }
+        let (mut num, mut den) = (0.0f64, 0.0f64);
         for j in 0..lv.nodes {
             if lv.fixed[j] {
                 continue;
             }
-            let mut d = Vec3::ZERO;
-            for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
-                d += work.delta[l + 1][lv.prolong_node[s] as usize] * lv.prolong_weight[s];
+            num += rf[j].dot(e[j]) as f64;
+            den += self.apply_row(l, j, &e, h2, work).dot(e[j]) as f64;
+        }
+        let alpha = if den > 0.0 && num > 0.0 {
+            (num / den) as f32
+        } else {
+            0.0
+        };
+        if alpha.is_finite() {
+            for (d, ej) in work.delta[l].iter_mut().zip(&e) {
+                *d += *ej * alpha;
             }
-            work.delta[l][j] += d;
         }
         self.smooth(l, post, h2, work);
     }

@@ -17,9 +17,9 @@
 //! Each step checks for non-finite or exploding state; a bad step is undone and reported
 //! as [`TissueError::Diverged`] instead of spreading NaN.
 
-use super::colliders::{Collider, Grab, grab_target, project_collider, update_grab};
+use super::colliders::{Collider, ColliderShape, Grab, grab_target, project_collider, update_grab};
 use super::constraints::{
-    ClusterCorrection, ClusterRest, Hyperelastic, Multipliers, cluster_moments,
+    ClusterCorrection, ClusterRest, Hyperelastic, Multipliers, cluster_moments, extract_rotation,
     iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
 };
 use super::element::{
@@ -56,8 +56,8 @@ pub enum ElementSolver {
     /// `(m/h² + H) Δx = m/h² (x̃ − x) + f`, from an initial guess that is the previous
     /// positions moved by the velocity and the acceleration of the last substep (their
     /// adaptive initialisation), so that a body at rest starts at rest and its static
-    /// equilibrium is the iteration's fixed point at any iteration count. Always
-    /// Gauss–Seidel on the CPU.
+    /// equilibrium is the iteration's fixed point at any iteration count. A Gauss–Seidel
+    /// sweep over the particles whichever [`Method`] is set.
     VertexDescent,
     /// Newton's method on each substep's implicit-Euler equations, each iteration's
     /// linear solve one multigrid V-cycle on the lattice ([`super::multigrid`]): the
@@ -65,7 +65,12 @@ pub enum ElementSolver {
     /// smoothing, coarse lattices of 2 × 2 × 2 cells with the same element. Starts from
     /// the previous positions moved by their velocity, so a body at rest starts at rest
     /// and its static equilibrium is the fixed point; the coarse levels carry bending
-    /// across the body in one iteration.
+    /// across the body in one iteration. Colliders enter the solve as stiff penalties
+    /// (the contacts of the last substep and any penetration), so a body pressed by a
+    /// collider is solved with the collider's push, not against it; the boundary
+    /// projection then removes what penetration remains and applies friction. Runs the
+    /// same whichever [`Method`] is set (the method still solves the clusters of other
+    /// bodies).
     Multigrid,
 }
 
@@ -426,6 +431,12 @@ pub struct Solver {
     /// Multigrid: the lattice hierarchy (built on first use) and its work space.
     mg: Option<Box<super::multigrid::LatticeMultigrid>>,
     mg_work: super::multigrid::MgWork,
+    /// Per particle: the collider the boundary projection moved it out of in the last
+    /// substep, or `u32::MAX` (multigrid: the contacts that start the next substep
+    /// active).
+    touched: Vec<u32>,
+    /// Multigrid: the next Newton iteration is its substep's first.
+    mg_fresh: bool,
     /// Substep length the element multipliers were made with (a multiplier is a force
     /// times h², so a warm start rescales them when h changes), s.
     element_h: f32,
@@ -492,6 +503,8 @@ impl Solver {
             accel: vec![Vec3::ZERO; n],
             mg: None,
             mg_work: Default::default(),
+            touched: vec![u32::MAX; n],
+            mg_fresh: false,
         })
     }
 
@@ -661,6 +674,7 @@ impl Solver {
             let t = std::time::Instant::now();
             for i in 0..n {
                 let (dp, id) = self.col[i];
+                self.touched[i] = id;
                 if id != u32::MAX {
                     let f = -dp * model.mass[i] / (h * h);
                     stats.collider_forces[id as usize] += f / s.substeps as f32;
@@ -982,6 +996,7 @@ impl Solver {
     /// adaptive initialisation).
     fn descent_initial_guess(&mut self, model: &Model, state: &State, h: f32) {
         self.target.clone_from(&self.p);
+        self.mg_fresh = true;
         let g = self.settings.gravity;
         let g_len = g.length();
         let g_dir = if g_len > 0.0 { g / g_len } else { Vec3::ZERO };
@@ -1045,7 +1060,7 @@ impl Solver {
 
     /// One Newton iteration of the lattice bodies' substep, its linear solve one
     /// multigrid V-cycle ([`ElementSolver::Multigrid`]).
-    fn newton_multigrid(&mut self, model: &Model, state: &mut State) {
+    fn newton_multigrid(&mut self, model: &Model, state: &mut State, control: &Control) {
         use super::multigrid::{LatticeMultigrid, element_forces};
         let stale = self.mg.as_ref().is_none_or(|mg| {
             mg.levels[0].nodes != model.particle_count()
@@ -1060,6 +1075,53 @@ impl Solver {
         let n = model.particle_count();
         let h2 = self.h * self.h;
         let ri = self.settings.rotation_iterations;
+        // Held nodes (pins, grasped particles, nodes outside the lattice) keep their
+        // positions: zero correction.
+        let fixed = &mg.levels[0].fixed;
+        let held: Vec<bool> = (0..n)
+            .map(|j| fixed[j] || self.pin_slot[j] != u32::MAX || state.grab[j].collider != u32::MAX)
+            .collect();
+        if std::mem::take(&mut self.mg_fresh) {
+            // The substep's first iterate: the previous positions moved by the velocity,
+            // `x + s h v`, at the lowest energy of s = 1, ½, ¼, 0. A smooth motion keeps
+            // s = 1 (momentum carried exactly); a violent one (a body flying apart or
+            // through itself within the step) starts from a shape the linearisation can
+            // work from.
+            let x = &state.x;
+            let step: Vec<Vec3> = (0..n).map(|j| self.p[j] - x[j]).collect();
+            let at_s = |s: f32| {
+                let at = |j: usize| {
+                    if held[j] {
+                        self.p[j]
+                    } else {
+                        x[j] + step[j] * s
+                    }
+                };
+                substep_energy(
+                    model,
+                    &mg,
+                    (&held, &self.target),
+                    h2,
+                    (ri, &state.element_rot),
+                    (&[], control),
+                    &at,
+                )
+            };
+            let mut best = (at_s(1.0), 1.0f32);
+            for s in [0.5f32, 0.25, 0.0] {
+                let g = at_s(s);
+                if g < best.0 {
+                    best = (g, s);
+                }
+            }
+            if best.1 < 1.0 {
+                for j in 0..n {
+                    if !held[j] {
+                        self.p[j] = x[j] + step[j] * best.1;
+                    }
+                }
+            }
+        }
         let mut force = vec![Vec3::ZERO; n];
         for (e, nodes) in model.elements.iter().enumerate() {
             let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
@@ -1080,70 +1142,156 @@ impl Solver {
                 force[j as usize] += f[k];
             }
         }
-        mg.prepare(&state.element_rot, h2, &mut self.mg_work);
-        let fixed = &mg.levels[0].fixed;
-        let rhs = &mut self.mg_work.rhs[0];
+        // The residual force without the colliders: inertia and elasticity.
         for j in 0..n {
-            rhs[j] = if fixed[j] || self.pin_slot[j] != u32::MAX {
+            force[j] = if held[j] {
                 Vec3::ZERO
             } else {
                 (self.target[j] - self.p[j]) * (model.mass[j] / h2) + force[j]
             };
         }
+        // Colliders as penalties inside the solve (frictionless; the boundary projection
+        // after it removes what penetration is left and applies friction). Active: any
+        // penetration now, and the contacts the projection made in the last substep (so a
+        // squeezed body is held where the plates are).
+        let contacts = self.newton_contacts(model, control, &held, h2);
+        let extra = &mut self.mg_work.extra;
+        extra.resize(1, Vec::new());
+        extra[0].clear();
+        if !contacts.is_empty() {
+            extra[0].resize(n, Mat3::ZERO);
+        }
+        for c in &contacts {
+            let depth = c.depth(model, control, self.p[c.node]);
+            force[c.node] += c.normal * (c.stiffness * depth);
+            extra[0][c.node] += Mat3::from_cols(
+                c.normal * c.normal.x,
+                c.normal * c.normal.y,
+                c.normal * c.normal.z,
+            ) * c.stiffness;
+        }
+        mg.prepare(&state.element_rot, h2, &mut self.mg_work);
+        self.mg_work.rhs[0].copy_from_slice(&force);
         self.mg_work.delta[0]
             .iter_mut()
             .for_each(|d| *d = Vec3::ZERO);
         mg.vcycle(0, h2, 2, 2, 30, &mut self.mg_work);
         // Backtracking line search on the substep's energy
-        // `Σ m/(2h²) |y − x̃|² + Σ_e E_e(y)` (rotations held): the V-cycle's step is
-        // taken whole when it lowers the energy, else halved until it does (Nocedal &
-        // Wright, "Numerical Optimization", §3.1), so that a step far from the solution
-        // (an impact, a squashed body) cannot blow up.
-        let free = |j: usize| !fixed[j] && self.pin_slot[j] == u32::MAX;
-        let rots: Vec<Mat3> = state
-            .element_rot
-            .iter()
-            .map(|q| Mat3::from_quat(*q))
-            .collect();
+        // `Σ m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²` (active contacts and
+        // the elements' rotations held, so that the forces above are its gradient): the
+        // V-cycle's step, cut to the trust region below, is taken when it lowers the
+        // energy, else halved until it does (Nocedal & Wright, "Numerical Optimization",
+        // §3.1), so that a step far from the solution (an impact, a squashed or inverted
+        // body, a long step) cannot raise it.
+        let rots = &state.element_rot;
         let energy = |alpha: f32, p: &[Vec3], d: &[Vec3]| -> f64 {
-            let at = |j: usize| if free(j) { p[j] + d[j] * alpha } else { p[j] };
-            let mut g = 0.0f64;
-            for j in 0..n {
-                if free(j) {
-                    g += 0.5
-                        * (model.mass[j] / h2) as f64
-                        * (at(j) - self.target[j]).length_squared() as f64;
-                }
-            }
-            for (e, nodes) in model.elements.iter().enumerate() {
-                let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
-                    continue;
-                };
-                let r = &model.element_rest[e];
-                let x = nodes.map(|j| at(j as usize));
-                g += super::multigrid::element_energy(&x, r.size, r.volume, mat, modes, &rots[e]);
-            }
-            g
+            let at = |j: usize| if held[j] { p[j] } else { p[j] + d[j] * alpha };
+            substep_energy(
+                model,
+                &mg,
+                (&held, &self.target),
+                h2,
+                (0, rots),
+                (&contacts, control),
+                &at,
+            )
         };
         let d = &self.mg_work.delta[0];
-        let finite = d.iter().all(|v| v.is_finite());
+        // A trust region: no particle moves more than half its lattice spacing in one
+        // iteration (the linearisation about a badly deformed shape can ask for metres),
+        // then halving until the energy falls.
+        let mut alpha = 1.0f32;
+        for (j, dj) in d.iter().enumerate() {
+            if held[j] || !dj.is_finite() {
+                if !dj.is_finite() {
+                    alpha = 0.0;
+                }
+                continue;
+            }
+            let reach = 0.5 * model.bodies[model.particle_body[j] as usize].spacing;
+            let len = dj.length();
+            if len * alpha > reach {
+                alpha = reach / len;
+            }
+        }
         let g0 = energy(0.0, &self.p, d);
-        let mut alpha = if finite { 1.0f32 } else { 0.0 };
+        let mut halvings = 0;
         while alpha > 0.0 {
             if energy(alpha, &self.p, d) <= g0 {
                 break;
             }
             alpha *= 0.5;
-            if alpha < 1.0 / 64.0 {
+            halvings += 1;
+            if halvings > 12 {
                 alpha = 0.0;
             }
         }
         for (j, dj) in d.iter().enumerate() {
-            if free(j) {
+            if !held[j] {
                 self.p[j] += *dj * alpha;
             }
         }
         self.mg = Some(mg);
+    }
+
+    /// The collider contacts of one Newton iteration of the lattice bodies: every free
+    /// particle inside a collider now, and every free particle the boundary projection
+    /// moved out of a collider in the last substep that is still within a radius of it
+    /// (bilateral at the collider's surface for this iteration). The penalty stiffness is
+    /// `PENALTY` times the particle's own stiffness scale, `m/h² + (λ + 2μ) s` (inertia
+    /// plus the P-wave modulus times the lattice spacing `s`: what its elements hold it
+    /// with), so that it dominates soft and stiff bodies alike.
+    fn newton_contacts(
+        &self,
+        model: &Model,
+        control: &Control,
+        held: &[bool],
+        h2: f32,
+    ) -> Vec<NewtonContact> {
+        /// Penalty stiffness over the particle's stiffness scale.
+        const PENALTY: f32 = 1.0e3;
+        let mut out = Vec::new();
+        if control.colliders.is_empty() {
+            return out;
+        }
+        for j in 0..model.particle_count() {
+            if held[j] || model.elements_of(j).is_empty() {
+                continue;
+            }
+            let body = &model.bodies[model.particle_body[j] as usize];
+            let r = body.radius;
+            let modulus = match body.material {
+                Material::Hyperelastic {
+                    youngs_modulus,
+                    poisson_ratio,
+                } => {
+                    let m = Hyperelastic::new(youngs_modulus, poisson_ratio);
+                    m.lambda + 2.0 * m.mu
+                }
+                Material::ShapeMatching { .. } => 0.0,
+            };
+            let stiffness = PENALTY * (model.mass[j] / h2 + modulus * body.spacing);
+            for (k, col) in control.colliders.iter().enumerate() {
+                if matches!(col.shape, ColliderShape::Grasper { .. }) {
+                    continue;
+                }
+                let (d, normal) = col.distance(self.p[j]);
+                // A contact of the last substep stays active while the particle is
+                // within one radius of touching. (It lets go by itself: a particle the
+                // solve leaves outside the collider is not projected, so not touched.)
+                let active = d < r || (self.touched[j] == k as u32 && d < 2.0 * r);
+                if !active || !d.is_finite() {
+                    continue;
+                }
+                out.push(NewtonContact {
+                    node: j,
+                    collider: k,
+                    normal,
+                    stiffness,
+                });
+            }
+        }
+        out
     }
 
     /// The consistent warm start of the element multipliers: rescales them to substep
@@ -1255,7 +1403,7 @@ impl Solver {
         }
         match self.settings.element_solver {
             ElementSolver::VertexDescent => self.descent_sweep(model, state),
-            ElementSolver::Multigrid => self.newton_multigrid(model, state),
+            ElementSolver::Multigrid => self.newton_multigrid(model, state, control),
             ElementSolver::Xpbd => {}
         }
         for e in 0..model.elements.len() {
@@ -1357,8 +1505,16 @@ impl Solver {
         let omega = self.settings.relaxation;
         let contacts = self.settings.particle_contacts && self.contacts_now;
         let contact_omega = self.settings.contact_relaxation;
-        // Pass A: every cluster from the same positions.
         let t = std::time::Instant::now();
+        // Lattice bodies under a Newton-type element solver: solved first, on their own
+        // (their particles belong to no cluster; the passes below add nothing to them
+        // but particle contacts, colliders and pins).
+        match self.settings.element_solver {
+            ElementSolver::VertexDescent => self.descent_sweep(model, state),
+            ElementSolver::Multigrid => self.newton_multigrid(model, state, control),
+            ElementSolver::Xpbd => {}
+        }
+        // Pass A: every cluster from the same positions.
         {
             let p = &self.p;
             par::for_chunks_mut2(
@@ -1373,7 +1529,7 @@ impl Solver {
                 },
             );
         }
-        if !model.elements.is_empty() {
+        if !model.elements.is_empty() && self.settings.element_solver == ElementSolver::Xpbd {
             let mut ework = std::mem::take(&mut self.element_work);
             {
                 let me = &*self;
@@ -1673,4 +1829,68 @@ fn boundary_at(
         }
     }
     (p, id, total)
+}
+
+/// One collider contact inside a Newton iteration of the lattice bodies: the penalty
+/// energy `k/2 depth²` with `depth = radius − distance` along the collider's normal,
+/// linearised about the iterate (`k n nᵀ`).
+#[derive(Debug, Clone, Copy)]
+struct NewtonContact {
+    node: usize,
+    collider: usize,
+    /// Outward normal of the collider at the start of the iteration.
+    normal: Vec3,
+    /// Penalty stiffness, N/m.
+    stiffness: f32,
+}
+
+impl NewtonContact {
+    /// Penetration of the particle at `p` along the contact's normal, m (negative when
+    /// outside: the bilateral part of an active contact).
+    fn depth(&self, model: &Model, control: &Control, p: Vec3) -> f32 {
+        let r = model.bodies[model.particle_body[self.node] as usize].radius;
+        let (d, _) = control.colliders[self.collider].distance(p);
+        r - d
+    }
+}
+
+/// The implicit-Euler substep energy of the lattice bodies (J) at positions `y(j)`:
+/// `Σ_free m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²`, each element's energy
+/// ([`super::multigrid::element_energy`]) with the rotation `rot.1[e]` refined by
+/// `rot.0` iterations towards `polar(F(y))` (0: held, the energy whose gradient the
+/// Newton step's forces are; more: the fixed-corotated energy itself). `free` = (held
+/// nodes, inertial targets x̃ in m), `contacts` = (the active collider contacts, the
+/// colliders).
+fn substep_energy(
+    model: &Model,
+    mg: &super::multigrid::LatticeMultigrid,
+    free: (&[bool], &[Vec3]),
+    h2: f32,
+    rot: (u32, &[Quat]),
+    contacts: (&[NewtonContact], &Control),
+    y: &dyn Fn(usize) -> Vec3,
+) -> f64 {
+    let (held, target) = free;
+    let mut g = 0.0f64;
+    for j in 0..model.particle_count() {
+        if !held[j] {
+            g += 0.5 * (model.mass[j] / h2) as f64 * (y(j) - target[j]).length_squared() as f64;
+        }
+    }
+    for (e, nodes) in model.elements.iter().enumerate() {
+        let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
+            continue;
+        };
+        let r = &model.element_rest[e];
+        let x = nodes.map(|j| y(j as usize));
+        let mut q = rot.1[e];
+        extract_rotation(&element_gradient(&x, r.size), &mut q, rot.0);
+        g +=
+            super::multigrid::element_energy(&x, r.size, r.volume, mat, modes, &Mat3::from_quat(q));
+    }
+    for c in contacts.0 {
+        let depth = c.depth(model, contacts.1, y(c.node));
+        g += 0.5 * (c.stiffness * depth * depth) as f64;
+    }
+    g
 }
