@@ -527,6 +527,24 @@ fn divergence_is_detected_and_state_restored() {
         "{err}"
     );
     assert!(err.to_string().contains("m/s"));
+    // It names the body, the fastest particle and where it is, and a cause and remedy.
+    let TissueError::Diverged {
+        body,
+        particle,
+        ref region,
+        ref advice,
+        ..
+    } = err
+    else {
+        unreachable!()
+    };
+    assert_eq!((body, particle), (0, 3), "{err}");
+    assert!(
+        region.starts_with("near the ") && region.contains(" m from"),
+        "{region}"
+    );
+    assert!(advice.contains("Remedy"), "{advice}");
+    assert!(err.to_string().contains("body 0") && err.to_string().contains(region));
     assert_eq!(state.x, before.x);
     assert_eq!(state.v, before.v);
 }

@@ -135,10 +135,18 @@ pub enum TissueError {
     Diverged {
         /// Step counter at which it happened.
         step: u64,
-        /// First offending particle.
+        /// The body it happened in (index into `Model::bodies`).
+        body: usize,
+        /// The offending particle: the first non-finite one, else the fastest.
         particle: usize,
+        /// Where in its body, in words (which faces or corner of its rest bounding box
+        /// the particle's rest position is near, and that position from the body's
+        /// centre in m).
+        region: String,
         /// What was detected.
         reason: DivergenceKind,
+        /// The likely cause and the remedy, in words.
+        advice: String,
     },
 }
 
@@ -187,18 +195,24 @@ impl fmt::Display for TissueError {
             ),
             TissueError::Diverged {
                 step,
+                body,
                 particle,
+                region,
                 reason,
-            } => match reason {
-                DivergenceKind::NonFinite => write!(
-                    f,
-                    "simulation diverged at step {step}: particle {particle} became NaN/infinite (state restored)"
-                ),
-                DivergenceKind::Exploding { speed } => write!(
-                    f,
-                    "simulation exploded at step {step}: particle {particle} reached {speed:.3e} m/s (state restored)"
-                ),
-            },
+                advice,
+            } => {
+                match reason {
+                    DivergenceKind::NonFinite => write!(
+                        f,
+                        "body {body} diverged at step {step}: particle {particle} ({region}) became NaN/infinite"
+                    )?,
+                    DivergenceKind::Exploding { speed } => write!(
+                        f,
+                        "body {body} exploded at step {step}: particle {particle} ({region}) reached {speed:.3e} m/s"
+                    )?,
+                }
+                write!(f, " (state restored). {advice}")
+            }
         }
     }
 }

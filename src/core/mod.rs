@@ -9,6 +9,7 @@
 //! * [`element`] — hexahedral elements on the lattice (centre gradient + hourglass modes);
 //! * [`colliders`] — kinematic plane, sphere, capsule and box with friction;
 //! * [`colouring`] — cluster colouring for a coloured Gauss–Seidel iteration;
+//! * [`diagnose`] — where a divergence happened, its likely cause and remedy, in words;
 //! * [`model`] — the batched rest data of all bodies;
 //! * [`multigrid`] — geometric multigrid on lattice bodies (Newton's linear solve);
 //! * [`skin`] — the render surface embedded in the particles;
@@ -31,6 +32,7 @@
 pub mod colliders;
 pub mod colouring;
 pub mod constraints;
+pub mod diagnose;
 pub mod element;
 pub mod error;
 pub mod fem;

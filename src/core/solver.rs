@@ -694,25 +694,42 @@ impl Solver {
             self.timings.finish += ms(t);
         }
         let t = std::time::Instant::now();
-        // 4. divergence check
+        // 4. divergence check: the first non-finite particle, else the fastest over the
+        // limit, reported with its body, region, likely cause and remedy.
+        let mut worst: Option<(usize, DivergenceKind)> = None;
         for i in 0..n {
             let (x, v) = (state.x[i], state.v[i]);
-            let reason = if !x.is_finite() || !v.is_finite() {
-                Some(DivergenceKind::NonFinite)
-            } else if v.length() > s.max_speed {
-                Some(DivergenceKind::Exploding { speed: v.length() })
-            } else {
-                None
-            };
-            if let Some(reason) = reason {
-                state.x.clone_from(&self.backup_x);
-                state.v.clone_from(&self.backup_v);
-                return Err(TissueError::Diverged {
-                    step: state.step,
-                    particle: i,
-                    reason,
-                });
+            if !x.is_finite() || !v.is_finite() {
+                worst = Some((i, DivergenceKind::NonFinite));
+                break;
             }
+            let speed = v.length();
+            let faster = match worst {
+                Some((_, DivergenceKind::Exploding { speed: w })) => speed > w,
+                _ => true,
+            };
+            if speed > s.max_speed && faster {
+                worst = Some((i, DivergenceKind::Exploding { speed }));
+            }
+        }
+        if let Some((i, reason)) = worst {
+            state.x.clone_from(&self.backup_x);
+            state.v.clone_from(&self.backup_v);
+            let body = model.particle_body[i] as usize;
+            let before = model.bodies.get(body).map_or(0.0, |b| {
+                state.v[b.range()]
+                    .iter()
+                    .map(|v| v.length())
+                    .fold(0.0f32, f32::max)
+            });
+            return Err(TissueError::Diverged {
+                step: state.step,
+                body,
+                particle: i,
+                region: super::diagnose::region(model, i),
+                reason,
+                advice: super::diagnose::advice(model, &s, body, before),
+            });
         }
         stats.active_contacts = self.count_active_contacts(model, &state.x);
         self.timings.finish += ms(t);

@@ -210,6 +210,9 @@ pub fn finish_builds(
                     }
                 };
                 let b = &model.bodies[0];
+                if let Some(w) = crate::core::diagnose::implausible(b) {
+                    warn!("soft body {entity}: {w}");
+                }
                 *status = SoftBodyStatus::Ready {
                     particles: b.count,
                     vertices: b.skin.rest_vertices.len() as u32,
