@@ -527,7 +527,8 @@ fn divergence_is_detected_and_state_restored() {
         "{err}"
     );
     assert!(err.to_string().contains("m/s"));
-    // It names the body, the fastest particle and where it is, and a cause and remedy.
+    // It names the body, the fastest particle and where it is, and a cause and remedy
+    // (here fast motion: the body moves thousands of spacings per substep).
     let TissueError::Diverged {
         body,
         particle,
@@ -538,12 +539,16 @@ fn divergence_is_detected_and_state_restored() {
     else {
         unreachable!()
     };
-    assert_eq!((body, particle), (0, 3), "{err}");
+    assert_eq!(body, 0, "{err}");
+    assert!(particle < model.particle_count(), "{err}");
     assert!(
         region.starts_with("near the ") && region.contains(" m from"),
         "{region}"
     );
-    assert!(advice.contains("Remedy"), "{advice}");
+    assert!(
+        advice.contains("fast motion") && advice.contains("Remedy"),
+        "{advice}"
+    );
     assert!(err.to_string().contains("body 0") && err.to_string().contains(region));
     assert_eq!(state.x, before.x);
     assert_eq!(state.v, before.v);

@@ -10,7 +10,7 @@ use glam::Vec3;
 
 /// Where particle `particle` lies in its body, in words: the faces of the body's rest
 /// bounding box its rest position is near (within the outer quarter of the half extent
-/// on each axis; "the interior" when none), and that rest position from the body's
+/// on each axis; "in the interior" when none), and that rest position from the body's
 /// centre, m. An empty string for an index outside the model.
 pub fn region(model: &Model, particle: usize) -> String {
     let Some(&b) = model.particle_body.get(particle) else {
@@ -34,13 +34,13 @@ pub fn region(model: &Model, particle: usize) -> String {
         }
     }
     let place = match sides.len() {
-        0 => "the interior".to_string(),
-        1 => format!("the {} face", sides[0]),
-        2 => format!("the {} edge", sides.join(" ")),
-        _ => format!("the {} corner", sides.join(" ")),
+        0 => "in the interior".to_string(),
+        1 => format!("near the {} face", sides[0]),
+        2 => format!("near the {} edge", sides.join(" ")),
+        _ => format!("near the {} corner", sides.join(" ")),
     };
     format!(
-        "near {place}, rest position ({:.3}, {:.3}, {:.3}) m from the body's centre",
+        "{place}, rest position ({:.3}, {:.3}, {:.3}) m from the body's centre",
         at.x, at.y, at.z
     )
 }

@@ -694,24 +694,26 @@ impl Solver {
             self.timings.finish += ms(t);
         }
         let t = std::time::Instant::now();
-        // 4. divergence check: the first non-finite particle, else the fastest over the
-        // limit, reported with its body, region, likely cause and remedy.
-        let mut worst: Option<(usize, DivergenceKind)> = None;
+        // 4. divergence check: the fastest particle over the speed limit, else the first
+        // non-finite one, reported with its body, region, likely cause and remedy.
+        let mut fastest: Option<(usize, f32)> = None;
+        let mut non_finite = None;
         for i in 0..n {
             let (x, v) = (state.x[i], state.v[i]);
             if !x.is_finite() || !v.is_finite() {
-                worst = Some((i, DivergenceKind::NonFinite));
-                break;
+                non_finite = non_finite.or(Some(i));
+                continue;
             }
             let speed = v.length();
-            let faster = match worst {
-                Some((_, DivergenceKind::Exploding { speed: w })) => speed > w,
-                _ => true,
-            };
-            if speed > s.max_speed && faster {
-                worst = Some((i, DivergenceKind::Exploding { speed }));
+            if speed > s.max_speed && fastest.is_none_or(|(_, w)| speed > w) {
+                fastest = Some((i, speed));
             }
         }
+        let worst = match (fastest, non_finite) {
+            (Some((i, speed)), _) => Some((i, DivergenceKind::Exploding { speed })),
+            (None, Some(i)) => Some((i, DivergenceKind::NonFinite)),
+            (None, None) => None,
+        };
         if let Some((i, reason)) = worst {
             state.x.clone_from(&self.backup_x);
             state.v.clone_from(&self.backup_v);
