@@ -22,9 +22,9 @@ pub mod prelude {
     pub use crate::interact::{DragGrasper, TissueDragPlugin, TissuePointer};
     pub use crate::plugin::components::{
         ColliderForce, ColliderKind, ParticlePositions, PinShape, Pinned, ReadbackParticles,
-        ResetSoftBody, SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueClock,
-        TissueCollider, TissueHierarchy, TissueMaterial, TissueQuality, TissueResolution,
-        TissueSettings,
+        ResetSoftBody, SoftBody, SoftBodyError, SoftBodyReady, SoftBodyStatus, TissueBackend,
+        TissueClock, TissueCollider, TissueDiscretisation, TissueHierarchy, TissueMaterial,
+        TissueQuality, TissueResolution, TissueSettings,
     };
     pub use crate::plugin::sleep::{BodyMotion, Sleeping, TissueSleep};
     pub use crate::plugin::{TissuePlugin, TissueSet};

@@ -112,14 +112,21 @@ fn draw_mesh(source: &Mesh) -> Mesh {
 ///
 /// The hierarchy ([`SoftBody::hierarchy`]) is decided on the requested particle count;
 /// under `Auto` a body given by spacing gets coarse levels when they keep at least 128
-/// particles.
+/// particles. A lattice body never has one.
 pub fn body_desc(body: &SoftBody, pinned: Option<&Pinned>, to_world: &GlobalTransform) -> BodyDesc {
     let particles = match body.resolution {
         TissueResolution::Particles(n) => n,
         TissueResolution::Spacing(_) => u32::MAX,
     };
+    let lattice = body.discretisation == TissueDiscretisation::Lattice;
     BodyDesc {
-        hierarchy: body.hierarchy.to_core(particles, &body.material),
+        // Lattice bodies have no cluster levels (their solver is a multigrid of its own).
+        hierarchy: if lattice {
+            None
+        } else {
+            body.hierarchy.to_core(particles, &body.material)
+        },
+        discretisation: body.discretisation.to_core(),
         resolution: body.resolution.to_core(),
         density: body.density,
         neighbours: body.neighbours,

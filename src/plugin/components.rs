@@ -4,9 +4,9 @@
 pub use super::quality::TissueQuality;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::hierarchy::HierarchyDesc;
-use crate::core::model::{Material, PinRegion};
+use crate::core::model::{Discretisation, Material, PinRegion};
 use crate::core::sampling::Resolution;
-use crate::core::solver::{Method, SolverSettings};
+use crate::core::solver::{ElementSolver, Method, SolverSettings};
 use bevy::prelude::*;
 
 /// The elastic model of a body (SPEC §2), in SI units.
@@ -53,6 +53,44 @@ impl TissueMaterial {
             },
         }
     }
+}
+
+/// How a body's elasticity is discretised over its particles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
+pub enum TissueDiscretisation {
+    /// The paper's clusters: each particle and its K nearest rest neighbours (runs on the
+    /// GPU). Softer than its E and ν say, and it does not converge to them with
+    /// resolution.
+    #[default]
+    Clusters,
+    /// Hexahedral elements on the sampling lattice (the cells whose centres are inside
+    /// the surface; the particles are their corners). Converges to the material set
+    /// (against an independent finite-element reference). Hyperelastic material only;
+    /// simulated on the CPU by Newton–multigrid ([`TissueSettings::newton_iterations`]).
+    Lattice,
+}
+
+impl TissueDiscretisation {
+    /// The core's discretisation.
+    pub fn to_core(self) -> Discretisation {
+        match self {
+            TissueDiscretisation::Clusters => Discretisation::Clusters,
+            TissueDiscretisation::Lattice => Discretisation::Lattice,
+        }
+    }
+}
+
+/// Where bodies are simulated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
+pub enum TissueBackend {
+    /// On the GPU (the render graph's compute passes), except what it cannot run yet:
+    /// lattice bodies ([`TissueDiscretisation::Lattice`]) step on the CPU.
+    #[default]
+    Auto,
+    /// Every body on the CPU, by the core's solver on the main thread (Jacobi for
+    /// clusters, Newton–multigrid for lattice bodies), its mesh written each frame.
+    /// Slower; needs no compute-capable adapter.
+    Cpu,
 }
 
 /// How finely a body is sampled with particles.
@@ -171,8 +209,10 @@ pub struct SoftBody {
     pub neighbours: u32,
     /// Particle sampling.
     pub resolution: TissueResolution,
-    /// Hierarchical PBD levels.
+    /// Hierarchical PBD levels (clusters only).
     pub hierarchy: TissueHierarchy,
+    /// Clusters (the paper's, on the GPU) or lattice hexahedra (accurate, on the CPU).
+    pub discretisation: TissueDiscretisation,
     /// Accuracy level: when not [`TissueQuality::Custom`] (the default), it sets the
     /// world's iterations and substeps (the most demanding body's; see
     /// [`super::quality`]).
@@ -187,6 +227,7 @@ impl Default for SoftBody {
             neighbours: 32,
             resolution: TissueResolution::default(),
             hierarchy: TissueHierarchy::default(),
+            discretisation: TissueDiscretisation::default(),
             quality: TissueQuality::default(),
         }
     }
@@ -480,6 +521,14 @@ pub struct TissueSettings {
     /// Most steps per frame (the accumulator drops time beyond it, so a slow frame does
     /// not snowball).
     pub max_steps_per_frame: u32,
+    /// Where bodies are simulated (GPU, with the CPU for what it cannot run; or all on
+    /// the CPU).
+    pub backend: TissueBackend,
+    /// Newton iterations per substep of lattice bodies (each one multigrid V-cycle;
+    /// default 2). Their accuracy does not hang on it the way XPBD's hangs on
+    /// `iterations`: 1 or 2 land within a few percent of the static answer of a
+    /// cantilever from 100 kPa to 1 MPa (BENCHMARKS.md, "Newton–multigrid").
+    pub newton_iterations: u32,
 }
 
 impl Default for TissueSettings {
@@ -504,6 +553,8 @@ impl Default for TissueSettings {
             contact_every: Self::PLUGIN_CONTACT_EVERY,
             contact_relaxation: Self::PLUGIN_CONTACT_RELAXATION,
             max_steps_per_frame: 4,
+            backend: TissueBackend::default(),
+            newton_iterations: Self::NEWTON_ITERATIONS,
         }
     }
 }
@@ -521,6 +572,21 @@ impl TissueSettings {
     /// The plugin's default [`Self::contact_relaxation`], ω_c = 2 (see
     /// [`Self::PLUGIN_CONTACT_EVERY`]).
     pub const PLUGIN_CONTACT_RELAXATION: f32 = 2.0;
+    /// The default [`Self::newton_iterations`]: 2.
+    pub const NEWTON_ITERATIONS: u32 = 2;
+
+    /// The core solver settings of the CPU path ([`super::cpu`]): [`Self::to_core`] with
+    /// Newton–multigrid for lattice bodies at [`Self::newton_iterations`] per substep
+    /// when the world has lattice bodies (`lattice`), on every core.
+    pub fn to_core_cpu(&self, lattice: bool) -> SolverSettings {
+        let mut s = self.to_core();
+        s.element_solver = ElementSolver::Multigrid;
+        if lattice {
+            s.iterations = self.newton_iterations.max(1);
+        }
+        s.threads = 0;
+        s
+    }
 
     /// The core solver settings (Jacobi: the GPU's method).
     pub fn to_core(&self) -> SolverSettings {

@@ -23,6 +23,7 @@
 
 pub mod build;
 pub mod components;
+pub mod cpu;
 pub mod quality;
 pub mod render;
 pub mod sleep;
@@ -42,13 +43,17 @@ pub enum TissueSet {
     Build,
     /// Advance the clock (how many steps this frame takes).
     Clock,
+    /// Step the bodies simulated on the CPU ([`cpu`]) and write their meshes.
+    Cpu,
     /// Deliver readback results to entities.
     Readback,
 }
 
 /// Adds soft bodies to an app: register the components, build bodies, simulate them on
-/// the GPU and draw them from the simulation. Needs Bevy's render plugins
-/// (`DefaultPlugins`); without a render sub-app it only builds bodies.
+/// the GPU and draw them from the simulation; lattice bodies (and, under
+/// [`TissueBackend::Cpu`], every body) step on the CPU and are written into their meshes
+/// ([`cpu`]). The GPU path needs Bevy's render plugins (`DefaultPlugins`); without a
+/// render sub-app only the CPU bodies are simulated.
 #[derive(Debug, Clone, Default)]
 pub struct TissuePlugin {
     /// Initial settings (also editable later as the [`TissueSettings`] resource).
@@ -66,6 +71,8 @@ impl Plugin for TissuePlugin {
             .add_message::<SoftBodyReady>()
             .add_message::<ResetSoftBody>()
             .register_type::<SoftBody>()
+            .register_type::<TissueDiscretisation>()
+            .register_type::<TissueBackend>()
             .register_type::<Pinned>()
             .register_type::<TissueCollider>()
             .register_type::<ColliderForce>()
@@ -80,7 +87,13 @@ impl Plugin for TissuePlugin {
             .register_type::<sleep::BodyMotion>()
             .configure_sets(
                 Update,
-                (TissueSet::Build, TissueSet::Clock, TissueSet::Readback).chain(),
+                (
+                    TissueSet::Build,
+                    TissueSet::Clock,
+                    TissueSet::Cpu,
+                    TissueSet::Readback,
+                )
+                    .chain(),
             )
             .add_systems(
                 Update,
@@ -94,6 +107,7 @@ impl Plugin for TissuePlugin {
                         .chain()
                         .in_set(TissueSet::Build),
                     render::advance_clock.in_set(TissueSet::Clock),
+                    cpu::step_cpu_bodies.in_set(TissueSet::Cpu),
                     (render::receive_readbacks, sleep::update_sleep)
                         .chain()
                         .in_set(TissueSet::Readback),

@@ -202,8 +202,10 @@ pub fn extract_tissue(
     clock: Extract<Res<TissueClock>>,
     time: Extract<Res<Time>>,
 ) {
+    // Bodies the CPU steps (`super::cpu`) are not the GPU's.
     let mut list: Vec<ExtractedBody> = bodies
         .iter()
+        .filter(|(_, b, ..)| !super::cpu::runs_on_cpu(&b.model, &settings))
         .map(|(e, b, t, r, asleep)| ExtractedBody {
             entity: e,
             model: b.model.clone(),
@@ -220,19 +222,7 @@ pub fn extract_tissue(
     let mut cols: Vec<(Entity, Collider, bool)> = colliders
         .iter()
         .map(|(e, c, t, last, force, latch)| {
-            let pos = t.translation();
-            let vel = last
-                .and_then(|l| l.0)
-                .map_or(Vec3::ZERO, |p| (pos - p) / dt);
-            let mut core = c.to_core(t, vel);
-            // A grasper takes particles in the steps right after it closed, then holds.
-            if let ColliderShape::Grasper { mode, .. } = &mut core.shape
-                && *mode == GraspMode::Capture
-                && latch.is_some_and(|l| l.0)
-            {
-                *mode = GraspMode::Hold;
-            }
-            (e, core, force.is_some())
+            (e, core_collider(c, t, last, latch, dt), force.is_some())
         })
         .collect();
     // Spawn order (entity index), stable: colliders act in sequence within a projection
@@ -244,6 +234,31 @@ pub fn extract_tissue(
         settings: settings.clone(),
         steps: clock.steps_this_frame,
     });
+}
+
+/// A scene collider as the core sees it: its pose, its velocity from its motion over
+/// the last frame (`dt`, s), and a grasper that has had its capture steps holding
+/// instead of capturing.
+pub fn core_collider(
+    c: &TissueCollider,
+    t: &GlobalTransform,
+    last: Option<&LastPose>,
+    latch: Option<&GraspLatch>,
+    dt: f32,
+) -> Collider {
+    let pos = t.translation();
+    let vel = last
+        .and_then(|l| l.0)
+        .map_or(Vec3::ZERO, |p| (pos - p) / dt);
+    let mut core = c.to_core(t, vel);
+    // A grasper takes particles in the steps right after it closed, then holds.
+    if let ColliderShape::Grasper { mode, .. } = &mut core.shape
+        && *mode == GraspMode::Capture
+        && latch.is_some_and(|l| l.0)
+    {
+        *mode = GraspMode::Hold;
+    }
+    core
 }
 
 /// Whether a closed grasper has had its capture steps (it then only holds).

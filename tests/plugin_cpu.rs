@@ -1,0 +1,239 @@
+//! The plugin's CPU path in an app without a renderer: a lattice body (hexahedral
+//! elements, Newton–multigrid) steps on the CPU and equals the core solver run directly
+//! on the same model, its draw mesh holds the CPU skinning of its particles, a forced
+//! CPU backend runs a cluster body the same way, and a diverging body is put back at rest
+//! with an error that says where, why and what to change.
+
+use bevy::asset::AssetPlugin;
+use bevy::prelude::*;
+use bevy_tissue::core::model::Model;
+use bevy_tissue::core::solver::{Control, Solver, State};
+use bevy_tissue::plugin::build::{BuiltBody, body_desc, tri_mesh};
+use bevy_tissue::plugin::cpu::CpuBody;
+use bevy_tissue::prelude::*;
+mod common;
+
+/// An app with the plugin and no render sub-app; the clock takes exactly one step per
+/// frame once unpaused.
+fn app(settings: TissueSettings) -> App {
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        AssetPlugin::default(),
+        TransformPlugin,
+        TissuePlugin { settings },
+    ))
+    .init_asset::<Mesh>();
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    app.finish();
+    app.cleanup();
+    app
+}
+
+fn box_mesh() -> Mesh {
+    Cuboid::new(0.12, 0.05, 0.05).mesh().build()
+}
+
+fn lattice_body() -> (SoftBody, Pinned) {
+    (
+        SoftBody {
+            resolution: TissueResolution::Particles(400),
+            material: TissueMaterial::Hyperelastic {
+                youngs_modulus: 50_000.0,
+                poisson_ratio: 0.4,
+            },
+            discretisation: TissueDiscretisation::Lattice,
+            ..default()
+        },
+        Pinned::region(PinShape::HalfSpace {
+            point: Vec3::new(-0.05, 0.0, 0.0),
+            normal: -Vec3::X,
+        }),
+    )
+}
+
+fn spawn(app: &mut App, at: Vec3, body: SoftBody, pinned: Pinned) -> Entity {
+    let mesh = app
+        .world_mut()
+        .resource_mut::<Assets<Mesh>>()
+        .add(box_mesh());
+    app.world_mut()
+        .spawn((
+            Mesh3d(mesh),
+            Transform::from_translation(at),
+            body,
+            pinned,
+            ReadbackParticles { continuous: true },
+        ))
+        .id()
+}
+
+/// Updates until the body is built (at most 200 frames).
+fn until_built(app: &mut App, e: Entity) {
+    for _ in 0..200 {
+        app.update();
+        if app.world().get::<BuiltBody>(e).is_some() && app.world().get::<CpuBody>(e).is_some() {
+            return;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    panic!("body not built: {:?}", app.world().get::<SoftBodyStatus>(e));
+}
+
+/// Takes `steps` steps (one per frame) and returns the body's particle positions.
+fn run(app: &mut App, e: Entity, steps: u32) -> ParticlePositions {
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    for _ in 0..steps {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    app.update();
+    app.world()
+        .get::<ParticlePositions>(e)
+        .expect("particle positions")
+        .clone()
+}
+
+/// The same body built and stepped on the core directly with the CPU path's settings.
+fn core_reference(
+    body: &SoftBody,
+    pinned: &Pinned,
+    at: Vec3,
+    settings: &TissueSettings,
+    steps: u32,
+) -> (Model, Vec<Vec3>) {
+    let to_world = GlobalTransform::from(Transform::from_translation(at));
+    let tri = tri_mesh(&box_mesh(), &to_world).unwrap();
+    let mut model = Model::new();
+    model
+        .add_body(&tri, &body_desc(body, Some(pinned), &to_world))
+        .unwrap();
+    let lattice = !model.elements.is_empty();
+    let mut solver = Solver::new(&model, settings.to_core_cpu(lattice)).unwrap();
+    let mut state = State::new(&model);
+    for _ in 0..steps {
+        solver
+            .step(&model, &mut state, &Control::default())
+            .unwrap();
+    }
+    (model, state.x)
+}
+
+#[test]
+fn a_lattice_body_steps_on_the_cpu_like_the_core_and_is_drawn() {
+    let settings = TissueSettings::default();
+    let mut app = app(settings.clone());
+    let at = Vec3::new(0.0, 0.3, 0.0);
+    let (body, pinned) = lattice_body();
+    let e = spawn(&mut app, at, body.clone(), pinned.clone());
+    until_built(&mut app, e);
+    let built = app.world().get::<BuiltBody>(e).unwrap().clone();
+    assert!(
+        !built.model.elements.is_empty(),
+        "a lattice body has elements"
+    );
+    let read = run(&mut app, e, 30);
+    let (model, x) = core_reference(&body, &pinned, at, &settings, 30);
+    assert_eq!(read.positions.len(), x.len());
+    let worst = read
+        .positions
+        .iter()
+        .zip(&x)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-6, "plugin and core differ by {worst} m");
+    // It moved (the free end sags under gravity) and stayed finite.
+    let sag = x
+        .iter()
+        .zip(&model.rest)
+        .map(|(p, r)| r.y - p.y)
+        .fold(0.0f32, f32::max);
+    assert!(sag > 1e-4, "no sag: {sag} m");
+    // The draw mesh holds the CPU skinning of these particles, in the entity's frame.
+    let skinned = common::skinned(&model, &x);
+    let meshes = app.world().resource::<Assets<Mesh>>();
+    let mesh = meshes.get(&built.draw_mesh).expect("draw mesh");
+    let Some(bevy::mesh::VertexAttributeValues::Float32x3(pos)) =
+        mesh.attribute(Mesh::ATTRIBUTE_POSITION)
+    else {
+        panic!("positions")
+    };
+    assert_eq!(pos.len(), skinned.len());
+    let off = pos
+        .iter()
+        .zip(&skinned)
+        .map(|(p, s)| (Vec3::from_array(*p) + at).distance(*s))
+        .fold(0.0f32, f32::max);
+    assert!(off < 1e-5, "draw mesh off the skinned surface by {off} m");
+}
+
+#[test]
+fn the_cpu_backend_runs_cluster_bodies_like_the_core() {
+    let settings = TissueSettings {
+        backend: TissueBackend::Cpu,
+        ..default()
+    };
+    let mut app = app(settings.clone());
+    let at = Vec3::new(0.0, 0.3, 0.0);
+    let (mut body, pinned) = lattice_body();
+    body.discretisation = TissueDiscretisation::Clusters;
+    body.neighbours = 16;
+    let e = spawn(&mut app, at, body.clone(), pinned.clone());
+    until_built(&mut app, e);
+    let read = run(&mut app, e, 10);
+    let (_, x) = core_reference(&body, &pinned, at, &settings, 10);
+    let worst = read
+        .positions
+        .iter()
+        .zip(&x)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-6, "plugin and core differ by {worst} m");
+}
+
+#[test]
+fn a_diverging_cpu_body_is_put_back_at_rest_with_a_diagnosis() {
+    // One step of a whole second of an extremely stiff body under XPBD blows up.
+    let settings = TissueSettings {
+        backend: TissueBackend::Cpu,
+        dt: 1.0,
+        gravity: Vec3::new(0.0, -2000.0, 0.0),
+        max_steps_per_frame: 1,
+        ..default()
+    };
+    let mut app = app(settings);
+    let (mut body, pinned) = lattice_body();
+    body.discretisation = TissueDiscretisation::Clusters;
+    body.neighbours = 16;
+    body.material = TissueMaterial::Hyperelastic {
+        youngs_modulus: 1e9,
+        poisson_ratio: 0.49,
+    };
+    let e = spawn(&mut app, Vec3::ZERO, body, pinned);
+    until_built(&mut app, e);
+    let mut errors: Vec<SoftBodyError> = Vec::new();
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    for _ in 0..5 {
+        app.update();
+        let msgs = app.world().resource::<Messages<SoftBodyError>>();
+        errors.extend(msgs.iter_current_update_messages().cloned());
+    }
+    let Some(err) = errors.iter().find(|m| m.entity == e) else {
+        panic!("no divergence reported");
+    };
+    assert!(
+        err.error.contains("Remedy") && err.error.contains("put back at rest"),
+        "{}",
+        err.error
+    );
+    let state = &app.world().get::<CpuBody>(e).unwrap().state;
+    assert!(state.x.iter().all(|p| p.is_finite()));
+}
