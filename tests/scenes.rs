@@ -221,3 +221,24 @@ fn drop_runs_in_a_window_and_exits() {
     };
     assert!(text.contains("ready"), "the bodies were built:\n{text}");
 }
+
+/// The main example as a new user runs it on a machine without a GPU (lavapipe, under
+/// Xvfb): no flags but a frame limit. It starts (MSAA from what the adapter supports),
+/// builds the liver and exits cleanly.
+#[test]
+fn liver_starts_with_default_flags() {
+    if !have_xvfb() {
+        return;
+    }
+    let Some(text) = run("liver", false, &["--frames", "8"]) else {
+        return;
+    };
+    assert!(
+        text.contains("MSAA: "),
+        "MSAA chosen from the adapter:\n{text}"
+    );
+    assert!(
+        !text.to_lowercase().contains("validation error"),
+        "wgpu validation errors:\n{text}"
+    );
+}

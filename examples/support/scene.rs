@@ -15,7 +15,8 @@
 //! --lite              no shadow maps, no MSAA (software rasterisers, CI)
 //! --no-sleep          bodies never sleep (to measure what sleeping saves)
 //! --sleep-speed V     bodies sleep below V m/s (TissueSleep::speed)
-//! --msaa N            MSAA samples, 1, 2 or 4 (default 2; --lite: 1)
+//! --msaa N            MSAA samples, 1, 2 or 4 (default: 4 where the adapter can
+//!                     multisample the scene's formats 4x, else 1; --lite: 1)
 //! --pause             start with the simulation paused (what drawing alone costs)
 //! --profile           where a frame's time goes: the main world's update, the render
 //!                     world's stages, and CPU and GPU ms per render pass
@@ -55,8 +56,8 @@ pub struct SceneArgs {
     pub no_sleep: bool,
     /// Sleep threshold, m/s (`TissueSleep::speed`; `None`: the plugin's default).
     pub sleep_speed: Option<f32>,
-    /// MSAA samples (1, 2 or 4).
-    pub msaa: u32,
+    /// MSAA samples (1, 2 or 4); `None`: what the adapter supports ([`adapter_msaa`]).
+    pub msaa: Option<u32>,
     /// Start with the simulation clock paused.
     pub pause: bool,
     /// Report where a frame's time goes.
@@ -100,13 +101,13 @@ impl SceneArgs {
             sleep_speed: args
                 .text("--sleep-speed")
                 .map(|_| args.num("--sleep-speed", 0.0)),
-            msaa: match args.num("--msaa", 2u32) {
+            msaa: args.text("--msaa").map(|_| match args.num("--msaa", 0u32) {
                 m @ (1 | 2 | 4) => m,
                 m => {
                     eprintln!("--msaa takes 1, 2 or 4, got {m}");
                     std::process::exit(2)
                 }
-            },
+            }),
             pause: args.flag("--pause"),
             profile: args.flag("--profile"),
         }
@@ -218,10 +219,35 @@ fn aim_camera(
     }
 }
 
+/// MSAA samples the adapter can take for the scenes' targets: 4 when it multisamples
+/// their colour formats (sRGB for the window or image, `Rgba16Float` for HDR) and the
+/// depth format 4x — every WebGPU adapter must, lavapipe included — else 1. 2 is not
+/// offered: WebGPU does not guarantee it and lavapipe refuses it.
+pub fn adapter_msaa(adapter: Option<&bevy::render::renderer::RenderAdapter>) -> u32 {
+    let Some(adapter) = adapter else {
+        return 1;
+    };
+    let four = [
+        TextureFormat::Rgba8UnormSrgb,
+        TextureFormat::Bgra8UnormSrgb,
+        TextureFormat::Rgba16Float,
+        TextureFormat::Depth32Float,
+    ]
+    .iter()
+    .all(|f| {
+        adapter
+            .get_texture_format_features(*f)
+            .flags
+            .sample_count_supported(4)
+    });
+    if four { 4 } else { 1 }
+}
+
 /// `--lite`: directional lights cast no shadows and the camera takes one sample a pixel;
-/// `--msaa`: the camera's samples.
+/// `--msaa`: the camera's samples (default: [`adapter_msaa`]).
 fn lite_lights(
     args: Res<SceneArgs>,
+    adapter: Option<Res<bevy::render::renderer::RenderAdapter>>,
     mut lights: Query<&mut DirectionalLight, Added<DirectionalLight>>,
     cameras: Query<Entity, Added<SceneCamera>>,
     mut commands: Commands,
@@ -231,11 +257,20 @@ fn lite_lights(
             l.shadow_maps_enabled = false;
         }
     }
-    let msaa = match (args.lite, args.msaa) {
+    if cameras.is_empty() {
+        return;
+    }
+    let samples = args
+        .msaa
+        .unwrap_or_else(|| adapter_msaa(adapter.as_deref()));
+    let msaa = match (args.lite, samples) {
         (true, _) | (false, 1) => Msaa::Off,
         (false, 4) => Msaa::Sample4,
         _ => Msaa::Sample2,
     };
+    if args.msaa.is_none() {
+        eprintln!("MSAA: {samples} samples (what the adapter supports; --msaa N to choose)");
+    }
     for e in &cameras {
         commands.entity(e).insert(msaa);
     }
@@ -371,7 +406,8 @@ fn finish(
 /// pays for every pixel and every shadow-map texel: the shadow map is one cascade of
 /// 1024² reaching twice the camera's distance to `target` (these scenes are small and
 /// seen from one side; Bevy's default is four cascades of 2048² out to 150 m), filtered
-/// with one hardware 2×2 lookup, and the camera takes 2 samples a pixel (`--msaa`).
+/// with one hardware 2×2 lookup, and the camera takes 4 samples a pixel where the adapter
+/// can (`--msaa`).
 pub fn spawn_view(commands: &mut Commands, eye: Vec3, target: Vec3, sun: Vec3, illuminance: f32) {
     commands.spawn((
         SceneCamera,
