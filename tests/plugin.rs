@@ -843,3 +843,82 @@ fn a_body_at_rest_sleeps_without_gpu_work_and_wakes_on_settings_and_contact() {
         .fold(0.0, f32::max);
     assert!(moved > 1e-3, "the woken body did not give way ({moved} m)");
 }
+
+/// A device with WebGPU's default limits (8 storage buffers per stage) cannot run the
+/// kernels as they are bound today: the plugin says so once, moves every body to the
+/// CPU (`TissueBackend::Cpu`) and the body simulates there, exactly as the core does.
+#[test]
+fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings {
+        constrained_limits: Some(bevy::render::settings::WgpuLimits::default()),
+        ..default()
+    });
+    let (body, pinned) = body_spec();
+    let at = Vec3::new(0.0, 0.5, 0.0);
+    let e = spawn_body(&mut app, at, body, Some(pinned));
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles { continuous: true });
+    let built = until(&mut app, 600, |app| {
+        app.world()
+            .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
+            .is_some()
+    });
+    assert!(built, "the body never reached the CPU path");
+    assert_eq!(
+        app.world().resource::<TissueSettings>().backend,
+        TissueBackend::Cpu
+    );
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    for _ in 0..20 {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    app.update();
+    let read = app.world().get::<ParticlePositions>(e).unwrap().clone();
+    let settings = app.world().resource::<TissueSettings>().clone();
+    let steps = app
+        .world()
+        .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
+        .unwrap()
+        .state
+        .step;
+    // The core, stepped as often with the CPU path's settings, lands on the same particles.
+    let (body, pinned) = body_spec();
+    let to_world = GlobalTransform::from(Transform::from_translation(at));
+    let tri = tri_mesh(&box_mesh(), &to_world).unwrap();
+    let mut model = Model::new();
+    model
+        .add_body(&tri, &body_desc(&body, Some(&pinned), &to_world))
+        .unwrap();
+    let mut solver = Solver::new(&model, settings.to_core_cpu(false)).unwrap();
+    let mut state = State::new(&model);
+    for _ in 0..steps {
+        solver
+            .step(&model, &mut state, &Control::default())
+            .unwrap();
+    }
+    assert!(steps >= 20, "{steps} steps");
+    let worst = read
+        .positions
+        .iter()
+        .zip(&state.x)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-6, "plugin and core differ by {worst} m");
+    let sag = state
+        .x
+        .iter()
+        .zip(&model.rest)
+        .map(|(p, r)| r.y - p.y)
+        .fold(0.0f32, f32::max);
+    assert!(sag > 1e-4, "the body did not move: {sag} m");
+}

@@ -64,6 +64,9 @@ pub enum ReadbackResult {
     /// A body's particle bounds (world frame, m), for culling, whether any of its
     /// particles diverged (and was held), and its fastest particle's speed (m/s).
     Bounds(Entity, Vec3, Vec3, bool, f32),
+    /// The adapter cannot run the simulation's kernels (why): the main world moves every
+    /// body to the CPU ([`TissueBackend::Cpu`]).
+    GpuUnavailable(String),
 }
 
 /// What a readback item is.
@@ -298,7 +301,7 @@ pub fn prepare_tissue(
     if gpu.kernels.is_none() {
         gpu.kernels = Some(Kernels::new(&device).map_err(|e| e.to_string()));
         if let Some(Err(e)) = &gpu.kernels {
-            error!("bevy_tissue: the GPU cannot run the simulation: {e}");
+            let _ = sender.0.send(ReadbackResult::GpuUnavailable(e.clone()));
         }
     }
     let Some(Ok(_)) = &gpu.kernels else { return };
@@ -712,11 +715,13 @@ const RECOVERY_QUIET_FRAMES: u64 = 8;
 /// Main world: delivers readback results to their entities. A body whose step diverged
 /// (the GPU held the offending particles and flagged it) is put back at rest and
 /// reported, up to [`MAX_RECOVERIES`] times per build; then it is left held, reported
-/// once more.
+/// once more. When the adapter cannot run the kernels, every body moves to the CPU
+/// ([`TissueBackend::Cpu`], one warning).
 #[allow(clippy::too_many_arguments)]
 pub fn receive_readbacks(
     mut commands: Commands,
     rx: Res<ReadbackReceiver>,
+    mut settings: ResMut<TissueSettings>,
     mut bodies: Query<(&mut BuiltBody, &GlobalTransform)>,
     reported: Query<&DivergenceReported>,
     requests: Query<&ReadbackParticles>,
@@ -795,6 +800,13 @@ pub fn receive_readbacks(
                 if let Ok(mut ec) = commands.get_entity(e) {
                     ec.insert(Aabb::from_min_max(l, h));
                 }
+            }
+            ReadbackResult::GpuUnavailable(why) => {
+                warn!(
+                    "bevy_tissue: the GPU cannot run the simulation ({why}); every soft body \
+                     is simulated on the CPU instead (slower; TissueSettings::backend is now Cpu)"
+                );
+                settings.backend = TissueBackend::Cpu;
             }
             ReadbackResult::Error(e, error) => {
                 if let Ok(mut s) = status.get_mut(e) {
