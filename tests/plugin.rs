@@ -887,9 +887,9 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     let settings = app.world().resource::<TissueSettings>().clone();
     let steps = app
         .world()
-        .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
+        .resource::<bevy_tissue::plugin::cpu::CpuWorld>()
+        .state()
         .unwrap()
-        .state
         .step;
     // The core, stepped as often with the CPU path's settings, lands on the same particles.
     let (body, pinned) = body_spec();
@@ -899,7 +899,7 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     model
         .add_body(&tri, &body_desc(&body, Some(&pinned), &to_world))
         .unwrap();
-    let mut solver = Solver::new(&model, settings.to_core_cpu(false)).unwrap();
+    let mut solver = Solver::new(&model, settings.to_core_cpu()).unwrap();
     let mut state = State::new(&model);
     for _ in 0..steps {
         solver

@@ -9,7 +9,7 @@ use bevy::prelude::*;
 use bevy_tissue::core::model::Model;
 use bevy_tissue::core::solver::{Control, Solver, State};
 use bevy_tissue::plugin::build::{BuiltBody, body_desc, tri_mesh};
-use bevy_tissue::plugin::cpu::CpuBody;
+use bevy_tissue::plugin::cpu::{CpuBody, CpuWorld};
 use bevy_tissue::prelude::*;
 mod common;
 
@@ -112,8 +112,7 @@ fn core_reference(
     model
         .add_body(&tri, &body_desc(body, Some(pinned), &to_world))
         .unwrap();
-    let lattice = !model.elements.is_empty();
-    let mut solver = Solver::new(&model, settings.to_core_cpu(lattice)).unwrap();
+    let mut solver = Solver::new(&model, settings.to_core_cpu()).unwrap();
     let mut state = State::new(&model);
     for _ in 0..steps {
         solver
@@ -234,6 +233,68 @@ fn a_diverging_cpu_body_is_put_back_at_rest_with_a_diagnosis() {
         "{}",
         err.error
     );
-    let state = &app.world().get::<CpuBody>(e).unwrap().state;
-    assert!(state.x.iter().all(|p| p.is_finite()));
+    let world = app.world().resource::<CpuWorld>();
+    assert!(world.state().unwrap().x.iter().all(|p| p.is_finite()));
+}
+
+/// Two lattice bodies on the CPU share one world: the upper one, dropped onto the lower
+/// (held whole) one, rests on it through particle contacts instead of passing through, and
+/// each body's particles are its own slice of the world. (Contacts found every step:
+/// at the default `knn_every` of 10 a body falling from 1 cm crosses the contact reach
+/// between two searches, on the GPU as here.)
+#[test]
+fn cpu_bodies_touch_each_other() {
+    let mut app = app(TissueSettings {
+        knn_every: 1,
+        ..default()
+    });
+    let (body, _) = lattice_body();
+    // The lower body held whole (every particle pinned): a fixed shelf.
+    let shelf = Pinned::region(PinShape::HalfSpace {
+        point: Vec3::new(0.0, 1.0, 0.0),
+        normal: -Vec3::Y,
+    });
+    let low = spawn(&mut app, Vec3::ZERO, body.clone(), shelf);
+    // The upper body, free, above the lower one: the boxes are 5 cm tall and their
+    // lattices reach up to half a cell (6 mm) past the surface, so 10 cm apart leaves a
+    // gap of about 4 cm.
+    let mesh = app
+        .world_mut()
+        .resource_mut::<Assets<Mesh>>()
+        .add(box_mesh());
+    let high = app
+        .world_mut()
+        .spawn((
+            Mesh3d(mesh),
+            Transform::from_xyz(0.0, 0.10, 0.0),
+            body,
+            ReadbackParticles { continuous: true },
+        ))
+        .id();
+    until_built(&mut app, low);
+    until_built(&mut app, high);
+    let read = run(&mut app, high, 60);
+    let world = app.world().resource::<CpuWorld>();
+    assert_eq!(world.entities().count(), 2);
+    let lower = app.world().get::<CpuBody>(low).unwrap().particles.clone();
+    let state = world.state().unwrap();
+    let top_of_low = state.x[lower]
+        .iter()
+        .map(|p| p.y)
+        .fold(f32::NEG_INFINITY, f32::max);
+    let bottom_of_high = read
+        .positions
+        .iter()
+        .map(|p| p.y)
+        .fold(f32::INFINITY, f32::min);
+    // Fallen onto the lower body (it started about 4 cm above) but held above its top
+    // layer.
+    assert!(
+        bottom_of_high < top_of_low + 0.02,
+        "did not fall: {bottom_of_high} m"
+    );
+    assert!(
+        bottom_of_high > top_of_low,
+        "passed into the lower body: its bottom {bottom_of_high} m, the lower top {top_of_low} m"
+    );
 }

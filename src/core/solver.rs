@@ -153,6 +153,11 @@ pub struct SolverSettings {
     pub warm_start: bool,
     /// How lattice bodies' elements are solved.
     pub element_solver: ElementSolver,
+    /// [`ElementSolver::Multigrid`]: Newton iterations per substep, taken in the first
+    /// iterations of the substep (0: one in every iteration). Lets a world of lattice
+    /// and cluster bodies give the clusters their `iterations` and the lattice the few
+    /// Newton iterations it needs.
+    pub newton_iterations: u32,
     /// Vertex block descent: start from the last substep's acceleration along gravity
     /// (Chen et al. 2024's adaptive initialisation) instead of the velocity alone.
     pub descent_adaptive_init: bool,
@@ -200,6 +205,7 @@ impl Default for SolverSettings {
             coarse_constraint: CoarseConstraint::Clusters,
             warm_start: false,
             element_solver: ElementSolver::Xpbd,
+            newton_iterations: 0,
             descent_adaptive_init: false,
         }
     }
@@ -437,6 +443,8 @@ pub struct Solver {
     touched: Vec<u32>,
     /// Multigrid: the next Newton iteration is its substep's first.
     mg_fresh: bool,
+    /// Multigrid: this iteration takes a Newton step ([`SolverSettings::newton_iterations`]).
+    newton_now: bool,
     /// Substep length the element multipliers were made with (a multiplier is a force
     /// times h², so a warm start rescales them when h changes), s.
     element_h: f32,
@@ -505,6 +513,7 @@ impl Solver {
             mg_work: Default::default(),
             touched: vec![u32::MAX; n],
             mg_fresh: false,
+            newton_now: true,
         })
     }
 
@@ -667,6 +676,7 @@ impl Solver {
             for it in 0..s.iterations {
                 self.contacts_now =
                     (it + 1).is_multiple_of(s.contact_every) || it + 1 == s.iterations;
+                self.newton_now = s.newton_iterations == 0 || it < s.newton_iterations;
                 self.iterate(model, state, control, &consts);
                 trace(self, it + 1, &state.rot);
             }
@@ -1181,13 +1191,24 @@ impl Solver {
             extra[0].resize(n, Mat3::ZERO);
         }
         for c in &contacts {
-            let depth = c.depth(model, control, self.p[c.node]);
-            force[c.node] += c.normal * (c.stiffness * depth);
-            extra[0][c.node] += Mat3::from_cols(
+            let p = &self.p;
+            let depth = c.depth(model, control, &|j| p[j]);
+            let nn = Mat3::from_cols(
                 c.normal * c.normal.x,
                 c.normal * c.normal.y,
                 c.normal * c.normal.z,
             ) * c.stiffness;
+            force[c.node] += c.normal * (c.stiffness * depth);
+            match c.other {
+                // Both particles move: each takes half (its block counts the pair twice,
+                // the coupling the V-cycle does not see), the energy stays the pair's.
+                ContactWith::Particle(j) if !held[j] => {
+                    force[j] -= c.normal * (c.stiffness * depth);
+                    extra[0][c.node] += nn * 2.0;
+                    extra[0][j] += nn * 2.0;
+                }
+                _ => extra[0][c.node] += nn,
+            }
         }
         mg.prepare(&state.element_rot, h2, &mut self.mg_work);
         self.mg_work.rhs[0].copy_from_slice(&force);
@@ -1253,10 +1274,12 @@ impl Solver {
         self.mg = Some(mg);
     }
 
-    /// The collider contacts of one Newton iteration of the lattice bodies: every free
-    /// particle inside a collider now, and every free particle the boundary projection
-    /// moved out of a collider in the last substep that is still within a radius of it
-    /// (bilateral at the collider's surface for this iteration). The penalty stiffness is
+    /// The contacts of one Newton iteration of the lattice bodies: every free particle
+    /// inside a collider now; every free particle the boundary projection moved out of a
+    /// collider in the last substep that is still within a radius of it (bilateral at
+    /// the collider's surface for this iteration); with particle contacts on, every pair
+    /// of the contact lists (another body's particle) closer than their radii. The
+    /// penalty stiffness is
     /// `PENALTY` times the particle's own stiffness scale, `m/h² + (λ + 2μ) s` (inertia
     /// plus the P-wave modulus times the lattice spacing `s`: what its elements hold it
     /// with), so that it dominates soft and stiff bodies alike.
@@ -1270,7 +1293,8 @@ impl Solver {
         /// Penalty stiffness over the particle's stiffness scale.
         const PENALTY: f32 = 1.0e3;
         let mut out = Vec::new();
-        if control.colliders.is_empty() {
+        let pairs = self.settings.particle_contacts && !self.contact_list.is_empty();
+        if control.colliders.is_empty() && !pairs {
             return out;
         }
         for j in 0..model.particle_count() {
@@ -1304,8 +1328,26 @@ impl Solver {
                 }
                 out.push(NewtonContact {
                     node: j,
-                    collider: k,
+                    other: ContactWith::Collider(k),
                     normal,
+                    stiffness,
+                });
+            }
+            if !pairs {
+                continue;
+            }
+            for s in self.contact_start[j]..self.contact_start[j + 1] {
+                let i = self.contact_list[s as usize] as usize;
+                let reach = r + model.bodies[model.particle_body[i] as usize].radius;
+                let d = self.p[j] - self.p[i];
+                let len = d.length();
+                if len >= reach || len <= 1e-12 {
+                    continue;
+                }
+                out.push(NewtonContact {
+                    node: j,
+                    other: ContactWith::Particle(i),
+                    normal: d / len,
                     stiffness,
                 });
             }
@@ -1422,7 +1464,10 @@ impl Solver {
         }
         match self.settings.element_solver {
             ElementSolver::VertexDescent => self.descent_sweep(model, state),
-            ElementSolver::Multigrid => self.newton_multigrid(model, state, control),
+            ElementSolver::Multigrid if self.newton_now => {
+                self.newton_multigrid(model, state, control)
+            }
+            ElementSolver::Multigrid => {}
             ElementSolver::Xpbd => {}
         }
         for e in 0..model.elements.len() {
@@ -1530,7 +1575,10 @@ impl Solver {
         // but particle contacts, colliders and pins).
         match self.settings.element_solver {
             ElementSolver::VertexDescent => self.descent_sweep(model, state),
-            ElementSolver::Multigrid => self.newton_multigrid(model, state, control),
+            ElementSolver::Multigrid if self.newton_now => {
+                self.newton_multigrid(model, state, control)
+            }
+            ElementSolver::Multigrid => {}
             ElementSolver::Xpbd => {}
         }
         // Pass A: every cluster from the same positions.
@@ -1850,26 +1898,44 @@ fn boundary_at(
     (p, id, total)
 }
 
-/// One collider contact inside a Newton iteration of the lattice bodies: the penalty
-/// energy `k/2 depth²` with `depth = radius − distance` along the collider's normal,
-/// linearised about the iterate (`k n nᵀ`).
+/// One contact inside a Newton iteration of the lattice bodies, with a collider or
+/// another body's particle: the penalty energy `k/2 depth²` (`depth` the overlap of
+/// radii), linearised about the iterate along its normal (`k n nᵀ`).
 #[derive(Debug, Clone, Copy)]
 struct NewtonContact {
     node: usize,
-    collider: usize,
-    /// Outward normal of the collider at the start of the iteration.
+    other: ContactWith,
+    /// Outward normal (the collider's, or from the other particle to this one) at the
+    /// start of the iteration.
     normal: Vec3,
     /// Penalty stiffness, N/m.
     stiffness: f32,
 }
 
+/// What a [`NewtonContact`] is with.
+#[derive(Debug, Clone, Copy)]
+enum ContactWith {
+    /// A collider, by index.
+    Collider(usize),
+    /// Another body's particle, by index.
+    Particle(usize),
+}
+
 impl NewtonContact {
-    /// Penetration of the particle at `p` along the contact's normal, m (negative when
-    /// outside: the bilateral part of an active contact).
-    fn depth(&self, model: &Model, control: &Control, p: Vec3) -> f32 {
-        let r = model.bodies[model.particle_body[self.node] as usize].radius;
-        let (d, _) = control.colliders[self.collider].distance(p);
-        r - d
+    /// Penetration at positions `y` (m): the particle's radius less its distance to the
+    /// collider, or the two particles' radii less their distance (negative when apart:
+    /// the bilateral part of an active contact).
+    fn depth(&self, model: &Model, control: &Control, y: &dyn Fn(usize) -> Vec3) -> f32 {
+        let radius = |i: usize| model.bodies[model.particle_body[i] as usize].radius;
+        match self.other {
+            ContactWith::Collider(k) => {
+                let (d, _) = control.colliders[k].distance(y(self.node));
+                radius(self.node) - d
+            }
+            ContactWith::Particle(i) => {
+                radius(self.node) + radius(i) - (y(self.node) - y(i)).length()
+            }
+        }
     }
 }
 
@@ -1908,7 +1974,7 @@ fn substep_energy(
             super::multigrid::element_energy(&x, r.size, r.volume, mat, modes, &Mat3::from_quat(q));
     }
     for c in contacts.0 {
-        let depth = c.depth(model, contacts.1, y(c.node));
+        let depth = c.depth(model, contacts.1, y);
         g += 0.5 * (c.stiffness * depth * depth) as f64;
     }
     g

@@ -576,16 +576,15 @@ impl TissueSettings {
     pub const NEWTON_ITERATIONS: u32 = 2;
 
     /// The core solver settings of the CPU path ([`super::cpu`]): [`Self::to_core`] with
-    /// Newton–multigrid for lattice bodies at [`Self::newton_iterations`] per substep
-    /// when the world has lattice bodies (`lattice`), on every core.
-    pub fn to_core_cpu(&self, lattice: bool) -> SolverSettings {
-        let mut s = self.to_core();
-        s.element_solver = ElementSolver::Multigrid;
-        if lattice {
-            s.iterations = self.newton_iterations.max(1);
+    /// Newton–multigrid for lattice bodies, [`Self::newton_iterations`] of them in each
+    /// substep (cluster bodies keep `iterations`), on every core.
+    pub fn to_core_cpu(&self) -> SolverSettings {
+        SolverSettings {
+            element_solver: ElementSolver::Multigrid,
+            newton_iterations: self.newton_iterations.max(1),
+            threads: 0,
+            ..self.to_core()
         }
-        s.threads = 0;
-        s
     }
 
     /// The core solver settings (Jacobi: the GPU's method).

@@ -1,22 +1,27 @@
 //! Bodies simulated on the CPU, in the main world: lattice bodies (which the GPU cannot
-//! run yet) and, under [`TissueBackend::Cpu`], every body. Each such body keeps its own
-//! core [`Solver`] and [`State`]; every frame it takes the clock's steps against the
-//! scene's colliders, then its render surface is skinned on the CPU and written into its
-//! draw mesh (positions and normals, in the entity's frame). The render world leaves
-//! these bodies alone ([`runs_on_cpu`]).
+//! run yet) and, under [`TissueBackend::Cpu`] (chosen, or switched to when the adapter
+//! cannot run the kernels), every body. They are batched into one core model, state and
+//! [`Solver`] (so they touch each other through particle contacts, as on the GPU); every
+//! frame the world takes the clock's steps against the scene's colliders, then each
+//! body's render surface is skinned on the CPU and written into its draw mesh
+//! (positions and normals, in the entity's frame). The render world leaves these bodies
+//! alone ([`runs_on_cpu`]).
 //!
-//! What the CPU path does not do (yet): particle contacts between bodies, collider
-//! forces ([`ColliderForce`] reports only the GPU's bodies) and sleeping.
+//! Not done on the CPU path (yet): sleeping, and [`ColliderForce`] while some bodies
+//! are on the GPU (it is written when every built body is on the CPU).
 
 use super::build::BuiltBody;
 use super::components::*;
 use super::render::{GraspLatch, LastPose, core_collider};
+use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::Model;
 use crate::core::skin::{skin_normals, skin_positions};
-use crate::core::solver::{Control, Solver, State};
+use crate::core::solver::{Control, Solver, SolverSettings, State};
+use bevy::camera::primitives::Aabb;
 use bevy::mesh::VertexAttributeValues;
 use bevy::prelude::*;
+use std::ops::Range;
 
 /// Whether a built body steps on the CPU: every body under [`TissueBackend::Cpu`], and
 /// lattice bodies (hexahedral elements) under [`TissueBackend::Auto`].
@@ -24,21 +29,108 @@ pub fn runs_on_cpu(model: &Model, settings: &TissueSettings) -> bool {
     settings.backend == TissueBackend::Cpu || !model.elements.is_empty()
 }
 
-/// A body stepping on the CPU: its solver and state, for the [`BuiltBody`] generation
-/// they were made from.
-#[derive(Component)]
+/// Marks a body stepped on the CPU, and where its particles are in [`CpuWorld`].
+#[derive(Component, Debug, Clone, PartialEq)]
 pub struct CpuBody {
-    /// The [`BuiltBody::generation`] the state belongs to.
-    pub generation: u64,
-    /// The body's particles (the same order as the model's).
-    pub state: State,
-    solver: Solver,
+    /// Its body index in the CPU world's model.
+    pub index: usize,
+    /// Its particles in the CPU world's state.
+    pub particles: Range<usize>,
+}
+
+/// The CPU bodies batched: one model (the bodies appended in entity order), its state
+/// and its solver.
+#[derive(Resource, Default)]
+pub struct CpuWorld {
+    /// (entity, [`BuiltBody::generation`]) of each body, in the model's order.
+    keys: Vec<(Entity, u64)>,
+    model: Model,
+    state: Option<State>,
+    solver: Option<Solver>,
+    settings: Option<SolverSettings>,
+    /// Particle range and element range of each body.
+    ranges: Vec<(Range<usize>, Range<usize>)>,
     positions: Vec<Vec3>,
     normals: Vec<Vec3>,
 }
 
+impl CpuWorld {
+    /// The batched model of the CPU bodies.
+    pub fn model(&self) -> &Model {
+        &self.model
+    }
+
+    /// The batched state (`None` before the first CPU body).
+    pub fn state(&self) -> Option<&State> {
+        self.state.as_ref()
+    }
+
+    /// The entities of the CPU bodies, in the model's body order.
+    pub fn entities(&self) -> impl Iterator<Item = Entity> + '_ {
+        self.keys.iter().map(|k| k.0)
+    }
+
+    /// Rebuilds the batched model for `bodies` (entity order), keeping the state of the
+    /// bodies that were simulated before and are the same particles: unchanged ones,
+    /// and rebuilt ones that do not ask to start at rest (a material change resamples
+    /// nothing).
+    fn rebuild(
+        &mut self,
+        bodies: &[(Entity, &BuiltBody)],
+        settings: SolverSettings,
+    ) -> Result<(), TissueError> {
+        let mut model = Model::new();
+        let mut ranges = Vec::with_capacity(bodies.len());
+        for (_, b) in bodies {
+            let (p0, e0) = (model.particle_count(), model.elements.len());
+            model.append(&b.model);
+            ranges.push((p0..model.particle_count(), e0..model.elements.len()));
+        }
+        let mut state = State::new(&model);
+        if let Some(old) = &self.state {
+            for ((entity, b), (p, e)) in bodies.iter().zip(&ranges) {
+                let Some(k) = self.keys.iter().position(|k| k.0 == *entity) else {
+                    continue;
+                };
+                let (op, oe) = &self.ranges[k];
+                let same = self.keys[k].1 == b.generation
+                    || (!b.reset && op.len() == p.len() && oe.len() == e.len());
+                if !same {
+                    continue;
+                }
+                state.x[p.clone()].copy_from_slice(&old.x[op.clone()]);
+                state.v[p.clone()].copy_from_slice(&old.v[op.clone()]);
+                state.rot[p.clone()].copy_from_slice(&old.rot[op.clone()]);
+                state.element_rot[e.clone()].copy_from_slice(&old.element_rot[oe.clone()]);
+            }
+            state.step = old.step;
+        }
+        self.solver = Some(Solver::new(&model, settings.clone())?);
+        self.settings = Some(settings);
+        self.keys = bodies.iter().map(|(e, b)| (*e, b.generation)).collect();
+        self.model = model;
+        self.state = Some(state);
+        self.ranges = ranges;
+        Ok(())
+    }
+
+    /// Puts body `index` back at rest (its particles at their rest positions, still).
+    fn reset_body(&mut self, index: usize) {
+        let (Some(state), Some((p, e))) = (self.state.as_mut(), self.ranges.get(index)) else {
+            return;
+        };
+        let rest = State::new(&self.model);
+        state.x[p.clone()].copy_from_slice(&rest.x[p.clone()]);
+        state.v[p.clone()].copy_from_slice(&rest.v[p.clone()]);
+        state.rot[p.clone()].copy_from_slice(&rest.rot[p.clone()]);
+        state.grab[p.clone()].copy_from_slice(&rest.grab[p.clone()]);
+        state.element_rot[e.clone()].copy_from_slice(&rest.element_rot[e.clone()]);
+    }
+}
+
 /// The scene's colliders as the core sees them, in spawn order (the same list the GPU
-/// path builds), with velocities from their motion over the last frame (`dt`, s).
+/// path builds), with their entities and velocities from their motion over the last
+/// frame (`dt`, s).
 pub fn scene_colliders(
     colliders: &Query<(
         Entity,
@@ -48,30 +140,32 @@ pub fn scene_colliders(
         Option<&GraspLatch>,
     )>,
     dt: f32,
-) -> Vec<Collider> {
+) -> Vec<(Entity, Collider)> {
     let mut list: Vec<(Entity, Collider)> = colliders
         .iter()
         .map(|(e, c, t, last, latch)| (e, core_collider(c, t, last, latch, dt)))
         .collect();
     list.sort_by_key(|c| c.0.index_u32());
-    list.into_iter().map(|c| c.1).collect()
+    list
 }
 
-/// Steps the CPU bodies by the clock's steps of this frame, writes their meshes and, where
-/// asked, their particle positions. A body whose step diverges is put back at rest and
-/// reported ([`SoftBodyError`], with the core's diagnosis: where, why, what to change).
+/// Steps the CPU bodies by the clock's steps of this frame, writes their meshes and
+/// culling boxes and, where asked, their particle positions. A body whose step diverges
+/// is put back at rest and reported ([`SoftBodyError`], with the core's diagnosis:
+/// where, why, what to change); the others go on.
 #[allow(clippy::type_complexity, clippy::too_many_arguments)]
 pub fn step_cpu_bodies(
     mut commands: Commands,
+    mut world: ResMut<CpuWorld>,
     clock: Res<TissueClock>,
     settings: Res<TissueSettings>,
     time: Res<Time>,
     mut meshes: ResMut<Assets<Mesh>>,
-    mut bodies: Query<(
+    bodies: Query<(
         Entity,
         &BuiltBody,
         &GlobalTransform,
-        Option<&mut CpuBody>,
+        Option<&CpuBody>,
         Option<&ReadbackParticles>,
     )>,
     colliders: Query<(
@@ -81,130 +175,169 @@ pub fn step_cpu_bodies(
         Option<&LastPose>,
         Option<&GraspLatch>,
     )>,
+    forces: Query<(), With<ColliderForce>>,
     mut errors: MessageWriter<SoftBodyError>,
 ) {
-    let control = Control {
-        colliders: scene_colliders(&colliders, time.delta_secs().max(1e-6)),
-    };
-    for (entity, built, to_world, cpu, readback) in &mut bodies {
-        let model = &built.model;
-        if !runs_on_cpu(model, &settings) {
-            if cpu.is_some() {
+    let mut cpu: Vec<(Entity, &BuiltBody)> = Vec::new();
+    let mut all_cpu = true;
+    for (entity, built, _, marker, _) in &bodies {
+        if runs_on_cpu(&built.model, &settings) {
+            cpu.push((entity, built));
+        } else {
+            all_cpu = false;
+            if marker.is_some() {
                 commands.entity(entity).remove::<CpuBody>();
             }
-            continue;
         }
-        let core = settings.to_core_cpu(!model.elements.is_empty());
-        let mut fresh = None;
-        let body = match cpu {
-            Some(b) if b.generation == built.generation => b.into_inner(),
-            old => {
-                // A new build: keep the simulated pose across a rebuild of the same
-                // particles (a material change), start at rest otherwise.
-                let mut state = State::new(model);
-                if let Some(old) = old
-                    && !built.reset
-                    && old.state.x.len() == state.x.len()
-                {
-                    state.x.clone_from(&old.state.x);
-                    state.v.clone_from(&old.state.v);
-                }
-                let solver = match Solver::new(model, core.clone()) {
-                    Ok(s) => s,
-                    Err(e) => {
-                        let error = e.to_string();
-                        warn!("soft body {entity}: {error}");
-                        errors.write(SoftBodyError { entity, error });
-                        continue;
-                    }
-                };
-                let vertices = model
-                    .bodies
-                    .first()
-                    .map_or(0, |b| b.skin.rest_vertices.len());
-                fresh.insert(CpuBody {
-                    generation: built.generation,
-                    state,
-                    solver,
-                    positions: vec![Vec3::ZERO; vertices],
-                    normals: vec![Vec3::Y; vertices],
-                })
+    }
+    cpu.sort_by_key(|b| b.0.index_u32());
+    let core = settings.to_core_cpu();
+    let keys: Vec<(Entity, u64)> = cpu.iter().map(|(e, b)| (*e, b.generation)).collect();
+    if keys != world.keys || world.settings.as_ref() != Some(&core) {
+        if let Err(e) = world.rebuild(&cpu, core) {
+            let error = e.to_string();
+            warn!("bevy_tissue: the CPU bodies cannot be simulated: {error}");
+            for (entity, _) in &cpu {
+                errors.write(SoftBodyError {
+                    entity: *entity,
+                    error: error.clone(),
+                });
             }
-        };
-        body.solver.settings = core;
-        for _ in 0..clock.steps_this_frame {
-            if let Err(e) = body.solver.step(model, &mut body.state, &control) {
-                let error = format!("{e}; the body was put back at rest");
-                warn!("soft body {entity}: {error}");
-                errors.write(SoftBodyError { entity, error });
-                body.state = State::new(model);
+            *world = CpuWorld::default();
+            return;
+        }
+        for (i, (entity, _)) in cpu.iter().enumerate() {
+            let marker = CpuBody {
+                index: i,
+                particles: world.ranges[i].0.clone(),
+            };
+            if bodies.get(*entity).ok().and_then(|b| b.3) != Some(&marker) {
+                commands.entity(*entity).insert(marker);
+            }
+        }
+    }
+    if cpu.is_empty() {
+        return;
+    }
+    let cols = scene_colliders(&colliders, time.delta_secs().max(1e-6));
+    let control = Control {
+        colliders: cols.iter().map(|c| c.1).collect(),
+    };
+    let mut force = vec![Vec3::ZERO; cols.len()];
+    let w = &mut *world;
+    let (Some(solver), Some(state)) = (w.solver.as_mut(), w.state.as_mut()) else {
+        return;
+    };
+    let mut diverged = None;
+    for _ in 0..clock.steps_this_frame {
+        match solver.step(&w.model, state, &control) {
+            Ok(stats) => {
+                for (f, s) in force.iter_mut().zip(&stats.collider_forces) {
+                    *f = *s;
+                }
+            }
+            Err(e) => {
+                diverged = Some(e);
                 break;
             }
         }
-        write_mesh(model, body, to_world, &built.draw_mesh, &mut meshes);
-        // The entity-local box of the particles, grown by the skin's reach past them.
-        if let Some((lo, hi)) = crate::core::mesh::bounds_of(&body.state.x) {
-            let spacing = model.bodies.first().map_or(0.0, |b| b.spacing);
-            let m = Vec3::splat(3.0 * spacing);
-            let (l, h) = transform_box(&to_world.affine().inverse(), lo - m, hi + m);
-            commands
-                .entity(entity)
-                .insert(bevy::camera::primitives::Aabb::from_min_max(l, h));
+    }
+    if let Some(e) = diverged {
+        let body = match &e {
+            TissueError::Diverged { body, .. } => *body,
+            _ => 0,
+        };
+        if let Some(&(entity, _)) = w.keys.get(body) {
+            let error = format!("{e}; the body was put back at rest");
+            warn!("soft body {entity}: {error}");
+            errors.write(SoftBodyError { entity, error });
         }
-        if readback.is_some() {
-            let mut e = commands.entity(entity);
-            e.insert(ParticlePositions {
-                positions: body.state.x.clone(),
-                step: clock.steps,
-            });
-            if readback.is_some_and(|r| !r.continuous) {
-                e.remove::<ReadbackParticles>();
+        w.reset_body(body);
+    }
+    if all_cpu && clock.steps_this_frame > 0 {
+        for ((entity, _), f) in cols.iter().zip(&force) {
+            if forces.contains(*entity) {
+                commands.entity(*entity).insert(ColliderForce(*f));
             }
         }
-        if let Some(b) = fresh {
-            commands.entity(entity).insert(b);
+    }
+    let Some(state) = w.state.as_ref() else {
+        return;
+    };
+    let f = Solver::deformation_gradients(&w.model, &state.x);
+    for (i, (entity, built)) in cpu.iter().enumerate() {
+        let Ok((_, _, to_world, _, readback)) = bodies.get(*entity) else {
+            continue;
+        };
+        let p = w.ranges[i].0.clone();
+        write_mesh(
+            &w.model,
+            i,
+            state,
+            &f,
+            (&mut w.positions, &mut w.normals),
+            to_world,
+            &built.draw_mesh,
+            &mut meshes,
+        );
+        // The entity-local box of the particles, grown by the skin's reach past them.
+        if let Some((lo, hi)) = crate::core::mesh::bounds_of(&state.x[p.clone()]) {
+            let spacing = w.model.bodies[i].spacing;
+            let m = Vec3::splat(3.0 * spacing);
+            let (l, h) = transform_box(&to_world.affine().inverse(), lo - m, hi + m);
+            commands.entity(*entity).insert(Aabb::from_min_max(l, h));
+        }
+        if let Some(r) = readback {
+            let mut e = commands.entity(*entity);
+            e.insert(ParticlePositions {
+                positions: state.x[p].to_vec(),
+                step: clock.steps,
+            });
+            if !r.continuous {
+                e.remove::<ReadbackParticles>();
+            }
         }
     }
 }
 
-/// Skins `body`'s render surface on the CPU and writes positions and normals (entity
-/// frame) into its draw mesh.
+/// Skins body `index`'s render surface on the CPU (particle positions and deformation
+/// gradients of the whole batch) and writes positions and normals (entity frame) into
+/// its draw mesh.
+#[allow(clippy::too_many_arguments)]
 fn write_mesh(
     model: &Model,
-    body: &mut CpuBody,
+    index: usize,
+    state: &State,
+    f: &[Mat3],
+    scratch: (&mut Vec<Vec3>, &mut Vec<Vec3>),
     to_world: &GlobalTransform,
     mesh: &Handle<Mesh>,
     meshes: &mut Assets<Mesh>,
 ) {
-    let Some(info) = model.bodies.first() else {
+    let Some(info) = model.bodies.get(index) else {
         return;
     };
-    let f = Solver::deformation_gradients(model, &body.state.x);
-    skin_positions(
-        &info.skin,
-        &body.state.x,
-        &model.rest,
-        &f,
-        &mut body.positions,
-    );
-    skin_normals(&info.skin, &body.positions, &mut body.normals);
+    let (positions, normals) = scratch;
+    let vertices = info.skin.rest_vertices.len();
+    positions.resize(vertices, Vec3::ZERO);
+    normals.resize(vertices, Vec3::Y);
+    skin_positions(&info.skin, &state.x, &model.rest, f, positions);
+    skin_normals(&info.skin, positions, normals);
     let Some(mut m) = meshes.get_mut(mesh) else {
         return;
     };
-    if m.count_vertices() != body.positions.len() {
+    if m.count_vertices() != vertices {
         return;
     }
     let to_local = to_world.affine().inverse();
     // Normals go back by the transpose of the entity's linear part (the inverse
     // transpose of world-from-local's inverse).
     let normal_to_local = to_world.affine().matrix3.transpose();
-    let pos: Vec<[f32; 3]> = body
-        .positions
+    let pos: Vec<[f32; 3]> = positions
         .iter()
         .map(|p| to_local.transform_point3(*p).to_array())
         .collect();
-    let nrm: Vec<[f32; 3]> = body
-        .normals
+    let nrm: Vec<[f32; 3]> = normals
         .iter()
         .map(|n| (normal_to_local * *n).normalize_or_zero().to_array())
         .collect();

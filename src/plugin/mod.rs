@@ -66,6 +66,7 @@ impl Plugin for TissuePlugin {
         app.insert_resource(self.settings.clone())
             .init_resource::<TissueClock>()
             .init_resource::<sleep::TissueSleep>()
+            .init_resource::<cpu::CpuWorld>()
             .insert_resource(render::ReadbackReceiver(Mutex::new(rx)))
             .add_message::<SoftBodyError>()
             .add_message::<SoftBodyReady>()
