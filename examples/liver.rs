@@ -7,7 +7,13 @@
 //! cargo run --release --example liver
 //! cargo run --release --example liver -- --particles 8000          # lighter
 //! cargo run --release --example liver -- --headless --frames 600   # frame rate, no window
+//! cargo run --release --example liver -- --lattice                  # accurate, on the CPU
 //! ```
+//!
+//! `--lattice` builds the liver from hexahedral elements on its sampling lattice, which
+//! converge to the E and ν set (the paper's clusters, the default, are softer than
+//! they say), stepped on the CPU by Newton–multigrid at one 1/60 s step a frame
+//! (default 3,000 particles: the CPU's budget, where the GPU's clusters take 37,982).
 //!
 //! Controls: probe W/A/S/D (across), Q/E (down/up); grasper I/J/K/L, U/O, G closes and
 //! opens it; left mouse drags the tissue; R puts the liver back at rest; Space pauses.
@@ -30,6 +36,8 @@ use scene::SceneArgs;
 
 /// Particles of the liver (the paper's largest model, Table 1).
 const DEFAULT_PARTICLES: u32 = 37_982;
+/// Particles of the liver as a lattice body (`--lattice`, stepped on the CPU).
+const DEFAULT_LATTICE_PARTICLES: u32 = 3_000;
 /// Where the liver's centre sits, m (the tray is at y = 0).
 const LIVER_AT: Vec3 = Vec3::new(0.0, 0.05, 0.0);
 /// Tool speed under the keys, m/s.
@@ -51,18 +59,32 @@ struct Jaw(f32);
 #[derive(Resource)]
 struct Particles(u32);
 
+/// The liver is a lattice body (hexahedral elements, on the CPU).
+#[derive(Resource)]
+struct Lattice(bool);
+
 fn main() {
     let args = bench::Args::new();
     let scene = SceneArgs::parse(&args);
-    let particles = args.num("--particles", DEFAULT_PARTICLES);
+    let lattice = args.flag("--lattice");
+    let particles = args.num(
+        "--particles",
+        if lattice {
+            DEFAULT_LATTICE_PARTICLES
+        } else {
+            DEFAULT_PARTICLES
+        },
+    );
     // Steps of 1/240 s, one substep each: a step for every frame of a 240 Hz display,
     // and a step small enough for the hyperelastic Jacobi solve of this pinned liver,
     // which is not stable at one substep of 1/60 s (BENCHMARKS.md, "Stability"). Steps
     // of 1/120 s are stable too and halve the GPU work per simulated second, but leave
     // the surface visibly wrinkled (less converged); on a smaller GPU, fewer particles
     // (`--particles 8000`) are the better saving.
+    // Lattice bodies step by Newton–multigrid, stable and within a few percent of the
+    // material at a step of 1/60 s (BENCHMARKS.md, "Newton–multigrid").
     let settings = TissueSettings {
-        dt: 1.0 / 240.0,
+        dt: if lattice { 1.0 / 60.0 } else { 1.0 / 240.0 },
         substeps: 1,
         ..default()
     };
@@ -72,6 +94,7 @@ fn main() {
         app.add_plugins(TissueUiPlugin::default());
     }
     app.insert_resource(Particles(particles))
+        .insert_resource(Lattice(lattice))
         .insert_resource(ClearColor(Color::srgb(0.06, 0.07, 0.09)))
         .add_systems(Startup, setup)
         .add_systems(Update, (report, jaws));
@@ -101,6 +124,7 @@ fn setup(
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
     particles: Res<Particles>,
+    lattice: Res<Lattice>,
 ) {
     scene::spawn_view(
         &mut commands,
@@ -144,6 +168,11 @@ fn setup(
                 poisson_ratio: 0.45,
             },
             resolution: TissueResolution::Particles(particles.0),
+            discretisation: if lattice.0 {
+                TissueDiscretisation::Lattice
+            } else {
+                TissueDiscretisation::Clusters
+            },
             ..default()
         },
         Pinned::region(PinShape::Box { min: lo, max: hi }),

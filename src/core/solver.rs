@@ -443,6 +443,10 @@ pub struct Solver {
     touched: Vec<u32>,
     /// Multigrid: the next Newton iteration is its substep's first.
     mg_fresh: bool,
+    /// Multigrid: per particle, the force on a collider (its penalty) or a grasper (the
+    /// pull it holds against) in the last Newton iteration, N, and which (`u32::MAX`:
+    /// none).
+    newton_force: Vec<(Vec3, u32)>,
     /// Multigrid: this iteration takes a Newton step ([`SolverSettings::newton_iterations`]).
     newton_now: bool,
     /// Substep length the element multipliers were made with (a multiplier is a force
@@ -513,6 +517,7 @@ impl Solver {
             mg_work: Default::default(),
             touched: vec![u32::MAX; n],
             mg_fresh: false,
+            newton_force: Vec::new(),
             newton_now: true,
         })
     }
@@ -652,6 +657,7 @@ impl Solver {
             self.col
                 .iter_mut()
                 .for_each(|d| *d = (Vec3::ZERO, u32::MAX));
+            self.newton_force.clear();
             self.timings.predict += ms(t);
             // 2. constraints: the hierarchy's coarse levels, coarsest first, then level 0.
             if s.coarse_iterations > 0 && !model.levels.is_empty() {
@@ -688,6 +694,14 @@ impl Solver {
                 if id != u32::MAX {
                     let f = -dp * model.mass[i] / (h * h);
                     stats.collider_forces[id as usize] += f / s.substeps as f32;
+                }
+                // Newton–multigrid's colliders push through penalties and its graspers
+                // hold without corrections: their forces of the substep's last iteration.
+                if let Some(&(f, id)) = self.newton_force.get(i)
+                    && id != u32::MAX
+                    && let Some(c) = stats.collider_forces.get_mut(id as usize)
+                {
+                    *c += f / s.substeps as f32;
                 }
             }
             // 3. velocity update and damping
@@ -1091,6 +1105,9 @@ impl Solver {
     /// multigrid V-cycle ([`ElementSolver::Multigrid`]).
     fn newton_multigrid(&mut self, model: &Model, state: &mut State, control: &Control) {
         use super::multigrid::{LatticeMultigrid, element_forces};
+        if model.elements.is_empty() || self.target.len() != model.particle_count() {
+            return; // no lattice body
+        }
         let stale = self.mg.as_ref().is_none_or(|mg| {
             mg.levels[0].nodes != model.particle_count()
                 || mg.levels[0].elements.len() != model.elements.len()
@@ -1171,13 +1188,17 @@ impl Solver {
                 force[j as usize] += f[k];
             }
         }
-        // The residual force without the colliders: inertia and elasticity.
+        // The residual force without the colliders: inertia and elasticity. On a grasped
+        // particle it is what the grasper holds against: the tissue's pull on it.
+        self.newton_force.clear();
+        self.newton_force.resize(n, (Vec3::ZERO, u32::MAX));
         for j in 0..n {
-            force[j] = if held[j] {
-                Vec3::ZERO
-            } else {
-                (self.target[j] - self.p[j]) * (model.mass[j] / h2) + force[j]
-            };
+            let r = (self.target[j] - self.p[j]) * (model.mass[j] / h2) + force[j];
+            let grasper = state.grab[j].collider;
+            if grasper != u32::MAX && self.pin_slot[j] == u32::MAX && !fixed[j] {
+                self.newton_force[j] = (r, grasper);
+            }
+            force[j] = if held[j] { Vec3::ZERO } else { r };
         }
         // Colliders as penalties inside the solve (frictionless; the boundary projection
         // after it removes what penetration is left and applies friction). Active: any
@@ -1269,6 +1290,17 @@ impl Solver {
         for (j, dj) in d.iter().enumerate() {
             if !held[j] {
                 self.p[j] += *dj * alpha;
+            }
+        }
+        // The colliders' penalty forces at the new positions: the tissue presses on a
+        // collider with `−k depth n`.
+        for c in &contacts {
+            if let ContactWith::Collider(k) = c.other {
+                let p = &self.p;
+                let depth = c.depth(model, control, &|j| p[j]);
+                if depth > 0.0 {
+                    self.newton_force[c.node] = (-c.normal * (c.stiffness * depth), k as u32);
+                }
             }
         }
         self.mg = Some(mg);

@@ -12,9 +12,9 @@
 
 use super::build::BuiltBody;
 use super::components::*;
-use super::render::{GraspLatch, LastPose, core_collider};
+use super::render::{LastPose, core_collider};
 use crate::core::TissueError;
-use crate::core::colliders::Collider;
+use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::model::Model;
 use crate::core::skin::{skin_normals, skin_positions};
 use crate::core::solver::{Control, Solver, SolverSettings, State};
@@ -52,6 +52,8 @@ pub struct CpuWorld {
     ranges: Vec<(Range<usize>, Range<usize>)>,
     positions: Vec<Vec3>,
     normals: Vec<Vec3>,
+    /// Graspers that have had a CPU step while closed (they then hold, not capture).
+    captured: Vec<Entity>,
 }
 
 impl CpuWorld {
@@ -130,20 +132,14 @@ impl CpuWorld {
 
 /// The scene's colliders as the core sees them, in spawn order (the same list the GPU
 /// path builds), with their entities and velocities from their motion over the last
-/// frame (`dt`, s).
+/// frame (`dt`, s); closed graspers capture (the CPU world latches them itself).
 pub fn scene_colliders(
-    colliders: &Query<(
-        Entity,
-        &TissueCollider,
-        &GlobalTransform,
-        Option<&LastPose>,
-        Option<&GraspLatch>,
-    )>,
+    colliders: &Query<(Entity, &TissueCollider, &GlobalTransform, Option<&LastPose>)>,
     dt: f32,
 ) -> Vec<(Entity, Collider)> {
     let mut list: Vec<(Entity, Collider)> = colliders
         .iter()
-        .map(|(e, c, t, last, latch)| (e, core_collider(c, t, last, latch, dt)))
+        .map(|(e, c, t, last)| (e, core_collider(c, t, last, None, dt)))
         .collect();
     list.sort_by_key(|c| c.0.index_u32());
     list
@@ -168,13 +164,7 @@ pub fn step_cpu_bodies(
         Option<&CpuBody>,
         Option<&ReadbackParticles>,
     )>,
-    colliders: Query<(
-        Entity,
-        &TissueCollider,
-        &GlobalTransform,
-        Option<&LastPose>,
-        Option<&GraspLatch>,
-    )>,
+    colliders: Query<(Entity, &TissueCollider, &GlobalTransform, Option<&LastPose>)>,
     forces: Query<(), With<ColliderForce>>,
     mut errors: MessageWriter<SoftBodyError>,
 ) {
@@ -219,10 +209,31 @@ pub fn step_cpu_bodies(
     if cpu.is_empty() {
         return;
     }
-    let cols = scene_colliders(&colliders, time.delta_secs().max(1e-6));
+    let mut cols = scene_colliders(&colliders, time.delta_secs().max(1e-6));
+    // A grasper captures in the CPU steps right after it closed (whether it closed
+    // before or after this system in the frame), then holds.
+    for (entity, c) in &mut cols {
+        if let ColliderShape::Grasper { mode, .. } = &mut c.shape {
+            let seen = world.captured.contains(entity);
+            match mode {
+                GraspMode::Open => world.captured.retain(|e| e != entity),
+                _ if seen => *mode = GraspMode::Hold,
+                _ => {}
+            }
+        }
+    }
     let control = Control {
         colliders: cols.iter().map(|c| c.1).collect(),
     };
+    if clock.steps_this_frame > 0 {
+        for (entity, c) in &cols {
+            if matches!(c.shape, ColliderShape::Grasper { mode, .. } if mode != GraspMode::Open)
+                && !world.captured.contains(entity)
+            {
+                world.captured.push(*entity);
+            }
+        }
+    }
     let mut force = vec![Vec3::ZERO; cols.len()];
     let w = &mut *world;
     let (Some(solver), Some(state)) = (w.solver.as_mut(), w.state.as_mut()) else {
