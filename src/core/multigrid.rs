@@ -594,12 +594,12 @@ impl LatticeMultigrid {
         let nc = self.levels[l + 1].nodes;
         let mut rc = vec![Vec3::ZERO; nc];
         let mut rf = vec![Vec3::ZERO; lv.nodes];
-        for j in 0..lv.nodes {
+        for (j, rfj) in rf.iter_mut().enumerate() {
             if lv.fixed[j] {
                 continue;
             }
             let r = work.rhs[l][j] - self.apply_row(l, j, &work.delta[l], h2, work);
-            rf[j] = r;
+            *rfj = r;
             for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
                 rc[lv.prolong_node[s] as usize] += r * lv.prolong_weight[s];
             }

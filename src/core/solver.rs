@@ -1329,8 +1329,8 @@ impl Solver {
         if control.colliders.is_empty() && !pairs {
             return out;
         }
-        for j in 0..model.particle_count() {
-            if held[j] || model.elements_of(j).is_empty() {
+        for (j, &held_j) in held.iter().enumerate() {
+            if held_j || model.elements_of(j).is_empty() {
                 continue;
             }
             let body = &model.bodies[model.particle_body[j] as usize];
