@@ -18,6 +18,7 @@ use bevy_tissue::plugin::build::{BuiltBody, body_desc, tri_mesh};
 use bevy_tissue::plugin::render::TissueGpu;
 use bevy_tissue::prelude::*;
 use std::sync::Mutex;
+mod common;
 
 /// Bevy apps in one process one at a time.
 static ONE_APP: Mutex<()> = Mutex::new(());
@@ -893,32 +894,10 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
         .step;
     // The core, stepped as often with the CPU path's settings, lands on the same particles.
     let (body, pinned) = body_spec();
-    let to_world = GlobalTransform::from(Transform::from_translation(at));
-    let tri = tri_mesh(&box_mesh(), &to_world).unwrap();
-    let mut model = Model::new();
-    model
-        .add_body(&tri, &body_desc(&body, Some(&pinned), &to_world))
-        .unwrap();
-    let mut solver = Solver::new(&model, settings.to_core_cpu()).unwrap();
-    let mut state = State::new(&model);
-    for _ in 0..steps {
-        solver
-            .step(&model, &mut state, &Control::default())
-            .unwrap();
-    }
+    let (model, x) = common::cpu_path_reference(&body, &pinned, &box_mesh(), at, &settings, steps);
     assert!(steps >= 20, "{steps} steps");
-    let worst = read
-        .positions
-        .iter()
-        .zip(&state.x)
-        .map(|(a, b)| a.distance(*b))
-        .fold(0.0f32, f32::max);
+    let worst = common::max_distance(&read.positions, &x);
     assert!(worst < 1e-6, "plugin and core differ by {worst} m");
-    let sag = state
-        .x
-        .iter()
-        .zip(&model.rest)
-        .map(|(p, r)| r.y - p.y)
-        .fold(0.0f32, f32::max);
+    let sag = common::max_sag(&x, &model.rest);
     assert!(sag > 1e-4, "the body did not move: {sag} m");
 }

@@ -106,20 +106,7 @@ fn core_reference(
     settings: &TissueSettings,
     steps: u32,
 ) -> (Model, Vec<Vec3>) {
-    let to_world = GlobalTransform::from(Transform::from_translation(at));
-    let tri = tri_mesh(&box_mesh(), &to_world).unwrap();
-    let mut model = Model::new();
-    model
-        .add_body(&tri, &body_desc(body, Some(pinned), &to_world))
-        .unwrap();
-    let mut solver = Solver::new(&model, settings.to_core_cpu()).unwrap();
-    let mut state = State::new(&model);
-    for _ in 0..steps {
-        solver
-            .step(&model, &mut state, &Control::default())
-            .unwrap();
-    }
-    (model, state.x)
+    common::cpu_path_reference(body, pinned, &box_mesh(), at, settings, steps as u64)
 }
 
 #[test]
@@ -138,19 +125,10 @@ fn a_lattice_body_steps_on_the_cpu_like_the_core_and_is_drawn() {
     let read = run(&mut app, e, 30);
     let (model, x) = core_reference(&body, &pinned, at, &settings, 30);
     assert_eq!(read.positions.len(), x.len());
-    let worst = read
-        .positions
-        .iter()
-        .zip(&x)
-        .map(|(a, b)| a.distance(*b))
-        .fold(0.0f32, f32::max);
+    let worst = common::max_distance(&read.positions, &x);
     assert!(worst < 1e-6, "plugin and core differ by {worst} m");
     // It moved (the free end sags under gravity) and stayed finite.
-    let sag = x
-        .iter()
-        .zip(&model.rest)
-        .map(|(p, r)| r.y - p.y)
-        .fold(0.0f32, f32::max);
+    let sag = common::max_sag(&x, &model.rest);
     assert!(sag > 1e-4, "no sag: {sag} m");
     // The draw mesh holds the CPU skinning of these particles, in the entity's frame.
     let skinned = common::skinned(&model, &x);
@@ -185,12 +163,7 @@ fn the_cpu_backend_runs_cluster_bodies_like_the_core() {
     until_built(&mut app, e);
     let read = run(&mut app, e, 10);
     let (_, x) = core_reference(&body, &pinned, at, &settings, 10);
-    let worst = read
-        .positions
-        .iter()
-        .zip(&x)
-        .map(|(a, b)| a.distance(*b))
-        .fold(0.0f32, f32::max);
+    let worst = common::max_distance(&read.positions, &x);
     assert!(worst < 1e-6, "plugin and core differ by {worst} m");
 }
 

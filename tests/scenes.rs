@@ -156,13 +156,16 @@ fn liver_runs_in_a_window_with_scripted_tools_and_drag() {
     assert_eq!(mask.len(), 640 * 360, "a 640x360 frame");
 }
 
-#[test]
-fn liver_headless_frames_show_the_organ_and_its_deformation() {
-    let dir = out_dir("liver_headless");
+/// Runs the scripted liver headless with `extra` options, checks the run
+/// ([`check_liver_run`]) and that frames 35 and 195 show the organ and the grasped lobe
+/// moving.
+fn check_liver_frames(test: &str, extra: &[&str]) {
+    let dir = out_dir(test);
     let (rest, deformed) = (dir.join("rest.png"), dir.join("deformed.png"));
     let s1 = format!("35:{}", rest.display());
     let s2 = format!("195:{}", deformed.display());
     let mut args = LIVER_ARGS.to_vec();
+    args.extend(extra);
     args.extend(["--no-ui", "--shot", &s1, "--shot", &s2]);
     let Some(text) = run("liver", true, &args) else {
         return;
@@ -170,7 +173,7 @@ fn liver_headless_frames_show_the_organ_and_its_deformation() {
     check_liver_run(&text);
     let (c0, m0) = liver_pixels(&rest);
     let (c1, m1) = liver_pixels(&deformed);
-    eprintln!("liver pixels: rest {c0:.4}, deformed {c1:.4}");
+    eprintln!("{test}: liver pixels: rest {c0:.4}, deformed {c1:.4}");
     for c in [c0, c1] {
         assert!(c > 0.01 && c < 0.7, "liver covers {c} of the frame");
     }
@@ -179,6 +182,11 @@ fn liver_headless_frames_show_the_organ_and_its_deformation() {
         changed > 0.002,
         "the grasped lobe moved: {changed} of the pixels changed"
     );
+}
+
+#[test]
+fn liver_headless_frames_show_the_organ_and_its_deformation() {
+    check_liver_frames("liver_headless", &[]);
 }
 
 #[test]
@@ -249,25 +257,5 @@ fn liver_starts_with_default_flags() {
 /// lobe moving.
 #[test]
 fn liver_lattice_on_the_cpu_feels_the_tools_and_is_drawn() {
-    let dir = out_dir("liver_lattice");
-    let (rest, deformed) = (dir.join("rest.png"), dir.join("deformed.png"));
-    let s1 = format!("35:{}", rest.display());
-    let s2 = format!("195:{}", deformed.display());
-    let mut args = LIVER_ARGS.to_vec();
-    args.extend(["--lattice", "--no-ui", "--shot", &s1, "--shot", &s2]);
-    let Some(text) = run("liver", true, &args) else {
-        return;
-    };
-    check_liver_run(&text);
-    let (c0, m0) = liver_pixels(&rest);
-    let (c1, m1) = liver_pixels(&deformed);
-    eprintln!("lattice liver pixels: rest {c0:.4}, deformed {c1:.4}");
-    for c in [c0, c1] {
-        assert!(c > 0.01 && c < 0.7, "liver covers {c} of the frame");
-    }
-    let changed = m0.iter().zip(&m1).filter(|(a, b)| a != b).count() as f64 / m0.len() as f64;
-    assert!(
-        changed > 0.002,
-        "the grasped lobe moved: {changed} of the pixels changed"
-    );
+    check_liver_frames("liver_lattice", &["--lattice"]);
 }

@@ -1387,6 +1387,20 @@ impl Solver {
         out
     }
 
+    /// The lattice bodies' elements under a Newton-type element solver (vertex block
+    /// descent's sweep, or a Newton–multigrid iteration where
+    /// [`SolverSettings::newton_iterations`] allows one); nothing under XPBD, whose
+    /// elements the iteration solves with the clusters.
+    fn newton_type_elements(&mut self, model: &Model, state: &mut State, control: &Control) {
+        match self.settings.element_solver {
+            ElementSolver::VertexDescent => self.descent_sweep(model, state),
+            ElementSolver::Multigrid if self.newton_now => {
+                self.newton_multigrid(model, state, control)
+            }
+            ElementSolver::Multigrid | ElementSolver::Xpbd => {}
+        }
+    }
+
     /// The consistent warm start of the element multipliers: rescales them to substep
     /// `h` and moves every free particle by the displacement they exert
     /// ([`multiplier_displacement`]) from the predicted positions.
@@ -1494,14 +1508,7 @@ impl Solver {
                 self.p[j] = pj + corr.apply(model.rest[j], pj);
             }
         }
-        match self.settings.element_solver {
-            ElementSolver::VertexDescent => self.descent_sweep(model, state),
-            ElementSolver::Multigrid if self.newton_now => {
-                self.newton_multigrid(model, state, control)
-            }
-            ElementSolver::Multigrid => {}
-            ElementSolver::Xpbd => {}
-        }
+        self.newton_type_elements(model, state, control);
         for e in 0..model.elements.len() {
             if self.settings.element_solver != ElementSolver::Xpbd {
                 break;
@@ -1605,14 +1612,7 @@ impl Solver {
         // Lattice bodies under a Newton-type element solver: solved first, on their own
         // (their particles belong to no cluster; the passes below add nothing to them
         // but particle contacts, colliders and pins).
-        match self.settings.element_solver {
-            ElementSolver::VertexDescent => self.descent_sweep(model, state),
-            ElementSolver::Multigrid if self.newton_now => {
-                self.newton_multigrid(model, state, control)
-            }
-            ElementSolver::Multigrid => {}
-            ElementSolver::Xpbd => {}
-        }
+        self.newton_type_elements(model, state, control);
         // Pass A: every cluster from the same positions.
         {
             let p = &self.p;

@@ -190,3 +190,49 @@ pub fn example(name: &str) -> PathBuf {
 pub fn ci() -> bool {
     std::env::var("CI").is_ok_and(|v| v == "true")
 }
+
+/// The largest distance between corresponding points of `a` and `b`, m.
+pub fn max_distance(a: &[Vec3], b: &[Vec3]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| p.distance(*q))
+        .fold(0.0f32, f32::max)
+}
+
+/// The largest drop of any point of `x` below its rest position `rest` (m, along −y).
+pub fn max_sag(x: &[Vec3], rest: &[Vec3]) -> f32 {
+    x.iter()
+        .zip(rest)
+        .map(|(p, r)| r.y - p.y)
+        .fold(0.0f32, f32::max)
+}
+
+/// A plugin body (`body`, `pinned`, built from `mesh` placed at `at`) built and stepped
+/// `steps` times on the core directly with the plugin's CPU-path settings
+/// (`TissueSettings::to_core_cpu`): what the plugin's CPU path must reproduce.
+pub fn cpu_path_reference(
+    body: &bevy_tissue::prelude::SoftBody,
+    pinned: &bevy_tissue::prelude::Pinned,
+    mesh: &bevy::prelude::Mesh,
+    at: Vec3,
+    settings: &bevy_tissue::prelude::TissueSettings,
+    steps: u64,
+) -> (bevy_tissue::core::model::Model, Vec<Vec3>) {
+    use bevy::prelude::{GlobalTransform, Transform};
+    use bevy_tissue::core::solver::{Control, Solver, State};
+    use bevy_tissue::plugin::build::{body_desc, tri_mesh};
+    let to_world = GlobalTransform::from(Transform::from_translation(at));
+    let tri = tri_mesh(mesh, &to_world).expect("a triangle mesh");
+    let mut model = bevy_tissue::core::model::Model::new();
+    model
+        .add_body(&tri, &body_desc(body, Some(pinned), &to_world))
+        .expect("the body builds");
+    let mut solver = Solver::new(&model, settings.to_core_cpu()).expect("settings");
+    let mut state = State::new(&model);
+    for _ in 0..steps {
+        solver
+            .step(&model, &mut state, &Control::default())
+            .expect("a step");
+    }
+    (model, state.x)
+}
