@@ -1,8 +1,8 @@
 //! Graph colouring of clusters for a coloured Gauss–Seidel iteration: clusters of one
 //! colour share no particle, so they can be solved in parallel and applied at once.
 //!
-//! SPEC §3 asks whether coloured Gauss–Seidel converges faster per millisecond than
-//! Jacobi on the GPU. The colour count decides the cost side: one dispatch per colour
+//! Whether coloured Gauss–Seidel converges faster per millisecond than Jacobi on the
+//! GPU is a measured question. The colour count decides the cost side: one dispatch per colour
 //! per iteration instead of Jacobi's two (BENCHMARKS.md, "Coloured Gauss–Seidel").
 
 use super::model::Model;

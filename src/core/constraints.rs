@@ -19,7 +19,7 @@
 
 use glam::{Mat3, Mat3A, Quat, Vec3, Vec3A, Vec4};
 
-/// Rest data of one cluster (SPEC §2).
+/// Rest data of one cluster.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ClusterRest {
     /// Rest centre of mass `X_cm`, m.

@@ -7,7 +7,7 @@
 //! as `1/(d + s/2)²`, `s` the coarse spacing, as in the skin).
 //!
 //! This module builds the hierarchy and checks it; the coarse-level constraints and the
-//! coarse-to-fine schedule build on it (issue 4).
+//! coarse-to-fine schedule build on it.
 
 use super::error::TissueError;
 use super::knn::Grid;

@@ -17,7 +17,7 @@ use glam::{Quat, Vec3};
 /// Largest neighbour count K supported.
 pub const MAX_NEIGHBOURS: u32 = 128;
 
-/// The elastic model of a body (SPEC §2).
+/// The elastic model of a body.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Material {
     /// Shape matching (Müller et al. 2005), the paper's model.

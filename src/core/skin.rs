@@ -1,6 +1,6 @@
 //! Surface embedding: every render-mesh vertex is bound once to its nearest particles
 //! with weights, and deformed each step from the particles' positions and their clusters'
-//! deformation gradients (SPEC §2 "Surface"):
+//! deformation gradients:
 //!
 //! `v = Σ_i w_i (x_i + F_i (V − X_i))`, `Σ_i w_i = 1`,
 //!

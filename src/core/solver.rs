@@ -1,4 +1,4 @@
-//! The CPU reference solver (SPEC §3): fixed dt, substeps, iterations;
+//! The CPU reference solver: fixed dt, substeps, iterations;
 //! predict → neighbours → constraints → velocity update and damping.
 //!
 //! Two methods:

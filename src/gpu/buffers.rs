@@ -2,8 +2,8 @@
 //! structs in `kernels/common.wgsl`, and [`Packed`], the host-side arrays an upload
 //! copies (built without a device, so the packing is testable on the CPU).
 //!
-//! Every body of the world lives in the same arrays (SPEC §4: one dispatch per kernel
-//! for all bodies). Particles keep the core's order: Morton (Z-curve) order inside each
+//! Every body of the world lives in the same arrays (one dispatch per kernel for all
+//! bodies). Particles keep the core's order: Morton (Z-curve) order inside each
 //! body, which is the spatial reordering the kernels' gathers rely on for coherent reads.
 
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};

@@ -1,4 +1,4 @@
-//! The GPU side (SPEC §3–4): the batched buffers ([`buffers`]), one `.rs` + `.wgsl` pair
+//! The GPU side: the batched buffers ([`buffers`]), one `.rs` + `.wgsl` pair
 //! per kernel ([`kernels`]), and [`world::GpuWorld`], which records time steps and the
 //! draw path into a command encoder. The plugin (`crate::plugin`) drives it from Bevy's
 //! render graph; tests and benchmarks drive it standalone on a [`headless`] device.

@@ -9,7 +9,7 @@ use crate::core::sampling::Resolution;
 use crate::core::solver::{ElementSolver, Method, SolverSettings};
 use bevy::prelude::*;
 
-/// The elastic model of a body (SPEC §2), in SI units.
+/// The elastic model of a body, in SI units.
 #[derive(Debug, Clone, Copy, PartialEq, Reflect)]
 pub enum TissueMaterial {
     /// Shape matching (Müller et al. 2005), the paper's model: stiffness `k` in (0, 1]
@@ -33,7 +33,7 @@ impl Default for TissueMaterial {
     /// Jacobi iteration each cluster's correction is averaged over the ~K clusters that
     /// share a particle, so softer k collapse bodies under gravity (k = 0.5 flattened a
     /// dropped ball), and the hyperelastic model still blows up on impacts there
-    /// (BENCHMARKS.md, "GPU"): the hierarchy (issue 4) is the cure for both.
+    /// (BENCHMARKS.md, "GPU"): the hierarchy is the cure for both.
     fn default() -> Self {
         TissueMaterial::ShapeMatching { stiffness: 1.0 }
     }
@@ -480,7 +480,7 @@ pub struct SoftBodyReady {
     pub particles: u32,
 }
 
-/// Global simulation settings (SPEC §3), in SI units.
+/// Global simulation settings, in SI units.
 #[derive(Resource, Debug, Clone, PartialEq, Reflect)]
 #[reflect(Resource, Default)]
 pub struct TissueSettings {

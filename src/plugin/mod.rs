@@ -1,4 +1,4 @@
-//! The Bevy plugin (SPEC §1, §4): components a scene puts on entities, the systems that
+//! The Bevy plugin: components a scene puts on entities, the systems that
 //! build bodies off the main thread, and the render-world systems that run every step on
 //! the GPU (in the render sub-app's `RenderGraph` schedule, before `camera_driver`) and
 //! skin each body straight into its mesh's vertex buffer.

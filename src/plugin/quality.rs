@@ -1,4 +1,4 @@
-//! Quality presets (SPEC §6, "model no more than a scene needs"): a body asks for an
+//! Quality presets: a body asks for an
 //! accuracy level ([`TissueQuality`]) instead of iteration and substep counts, and the
 //! world runs the cheapest setting on the measured Pareto front that gives every body at
 //! least what it asked for.

@@ -85,7 +85,7 @@ pub struct ReadbackReceiver(pub Mutex<mpsc::Receiver<ReadbackResult>>);
 #[derive(Resource, Clone)]
 pub struct ReadbackSender(pub mpsc::Sender<ReadbackResult>);
 
-/// Host ↔ GPU traffic of the last frame (SPEC §4: state stays on the GPU).
+/// Host ↔ GPU traffic of the last frame.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct FrameTraffic {
     /// Bytes written from the host (settings, colliders, draw records).

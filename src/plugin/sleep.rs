@@ -1,4 +1,4 @@
-//! Sleeping (SPEC §6, "model no more than a scene needs"): a body whose particles have
+//! Sleeping: a body whose particles have
 //! all been slower than [`TissueSleep::speed`] for [`TissueSleep::frames`] frames gets
 //! [`Sleeping`], and the GPU skips its particles and clusters (no prediction, no cluster
 //! solve, no gathering, no velocity update); when every body of the world sleeps, no step

@@ -1,4 +1,4 @@
-//! Uniform (hashed) grid by counting sort: counts, multi-level prefix sum, scatter (SPEC §3 step 2).
+//! Uniform (hashed) grid by counting sort: counts, multi-level prefix sum, scatter.
 //!
 //! Source: `grid.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
 

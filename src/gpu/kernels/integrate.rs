@@ -1,4 +1,4 @@
-//! Predict and finish: the explicit parts of a substep (SPEC §3 steps 1 and 4).
+//! Predict and finish: the explicit parts of a substep.
 //!
 //! Source: `integrate.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
 
