@@ -7,8 +7,7 @@
 use bevy::asset::AssetPlugin;
 use bevy::prelude::*;
 use bevy_tissue::core::model::Model;
-use bevy_tissue::core::solver::{Control, Solver, State};
-use bevy_tissue::plugin::build::{BuiltBody, body_desc, tri_mesh};
+use bevy_tissue::plugin::build::BuiltBody;
 use bevy_tissue::plugin::cpu::{CpuBody, CpuWorld};
 use bevy_tissue::prelude::*;
 mod common;
