@@ -570,3 +570,38 @@ fn multigrid_real_meshes_rest_and_hang() {
         }
     }
 }
+
+/// The liver (`liver2.msh`, lattice, 16 particles across its height) at a real-time
+/// budget (Newton–multigrid, 1/60 s steps of 1 substep × 2 iterations), settled under
+/// gravity with damping: its mean sag is within 10% of the static answer of the same
+/// model, which is itself within 10% of the FEM (`lattice_liver_sag_against_fem`).
+#[test]
+fn multigrid_real_time_liver() {
+    let Some(dir) = common::meshes_dir() else {
+        return;
+    };
+    let text = std::fs::read_to_string(dir.join("liver2.msh")).unwrap();
+    let tets = liver_tets(&text).unwrap();
+    let (lo, hi) = tets.bounds();
+    let model = liver_model(&tets, Disc::Lattice, Disc::Lattice.spacing(hi.y - lo.y, 16)).unwrap();
+    let (stat, _) = liver_static_sag(&model).unwrap();
+    let st = Stepping {
+        substeps: 1,
+        iterations: 2,
+        element_solver: ElementSolver::Multigrid,
+        damping: 20.0,
+        ..Stepping::CONVERGED
+    };
+    let gravity = Vec3::new(0.0, -LIVER_GRAVITY as f32, 0.0);
+    let (x, ms) = settle(&model, gravity, 0.0, 2.0, &st).unwrap();
+    let sag = mean_sag(&model, &displacements(&model, &x));
+    eprintln!(
+        "liver, {} particles: real-time sag {sag} m, static {stat} m, ratio {:.4} ({ms:.1} ms a step)",
+        model.particle_count(),
+        sag / stat
+    );
+    assert!(
+        (sag / stat - 1.0).abs() < 0.10,
+        "real-time sag {sag} m against static {stat} m"
+    );
+}
