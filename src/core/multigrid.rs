@@ -53,6 +53,9 @@ pub struct MgLevel {
     /// stiff as that part. Empty on level 0 (its elements use the body's unit-cube
     /// stiffness times `scale`).
     pub stiffness: Vec<f32>,
+    /// `stiffness` as 3 × 3 blocks, 64 per element (corner `a`, corner `b` at
+    /// `64 e + 8 a + b`): what the V-cycle reads.
+    pub blocks: Vec<Mat3>,
     /// For each element of the next coarser level, the elements of this level inside it
     /// (CSR: `child_start`, `child`); their rotations average to the coarse one.
     pub child_start: Vec<u32>,
@@ -68,6 +71,8 @@ pub struct LatticeMultigrid {
     /// Per body: the unit-cube stiffness (24 × 24, N/m) of its material, if a lattice
     /// body.
     pub unit: Vec<Option<Vec<f32>>>,
+    /// `unit` as 3 × 3 blocks (64 per body, `8 a + b`).
+    pub unit_blocks: Vec<Option<Vec<Mat3>>>,
     /// Per body: its material's Lamé parameters and hourglass modes.
     pub material: Vec<Option<(Hyperelastic, HexModes)>>,
 }
@@ -164,12 +169,25 @@ impl LatticeMultigrid {
                 break;
             }
         }
+        for lv in &mut levels {
+            lv.blocks = to_blocks(&lv.stiffness);
+        }
+        let unit_blocks = unit.iter().map(|k| k.as_deref().map(to_blocks)).collect();
         Self {
             levels,
             unit,
+            unit_blocks,
             material,
         }
     }
+}
+
+/// Row-major 24 × 24 stiffness matrices (one after another) as 3 × 3 blocks, 64 per
+/// matrix (corner `a`, corner `b` at `8 a + b`).
+fn to_blocks(k: &[f32]) -> Vec<Mat3> {
+    k.chunks_exact(576)
+        .flat_map(|m| (0..64).map(move |ab| block(m, ab / 8, ab % 8)))
+        .collect()
 }
 
 /// The next coarser level of `fine` (whose cells have lowest-corner coordinates
@@ -495,7 +513,7 @@ impl LatticeMultigrid {
                 };
                 let r = work.rot[l][e];
                 for (a, &j) in el.iter().enumerate() {
-                    let kb = block(k, a, a) * sc;
+                    let kb = k[9 * a] * sc;
                     diag[j as usize] += r * kb * r.transpose();
                 }
             }
@@ -529,16 +547,16 @@ impl LatticeMultigrid {
         }
     }
 
-    /// Element `e` of level `l`: its unrotated 24 × 24 stiffness and the factor it is
-    /// scaled by.
-    fn element_stiffness(&self, l: usize, e: usize) -> Option<(&[f32], f32)> {
+    /// Element `e` of level `l`: its unrotated stiffness as 64 blocks (`8 a + b`) and
+    /// the factor it is scaled by.
+    fn element_stiffness(&self, l: usize, e: usize) -> Option<(&[Mat3], f32)> {
         let lv = &self.levels[l];
-        if lv.stiffness.is_empty() {
-            self.unit[lv.body[e] as usize]
+        if lv.blocks.is_empty() {
+            self.unit_blocks[lv.body[e] as usize]
                 .as_deref()
                 .map(|k| (k, lv.scale[e]))
         } else {
-            Some((&lv.stiffness[e * 576..(e + 1) * 576], 1.0))
+            Some((&lv.blocks[e * 64..(e + 1) * 64], 1.0))
         }
     }
 
@@ -558,8 +576,8 @@ impl LatticeMultigrid {
             let r = work.rot[l][e];
             let rt = r.transpose();
             let mut acc = Vec3::ZERO;
-            for (b, &q) in lv.elements[e].iter().enumerate() {
-                acc += block(k, a, b) * (rt * x[q as usize]);
+            for (kab, &q) in k[8 * a..8 * a + 8].iter().zip(&lv.elements[e]) {
+                acc += *kab * (rt * x[q as usize]);
             }
             y += r * acc * sc;
         }
