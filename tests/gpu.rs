@@ -908,3 +908,26 @@ fn grasper_take_hold_and_release_match_the_cpu() {
         }
     }
 }
+
+/// An adapter held to WebGPU's default limits (8 storage buffers per shader stage)
+/// cannot run the kernels as they are bound today: creating them fails with an error
+/// that names the limit, what the kernels need and what the adapter allows (the plugin
+/// then falls back to the CPU).
+#[test]
+fn kernels_name_the_limit_an_adapter_lacks() {
+    if gpu().is_none() {
+        return;
+    }
+    let err = match bevy_tissue::gpu::headless_with(bevy::render::settings::WgpuSettings {
+        constrained_limits: Some(bevy::render::settings::WgpuLimits::default()),
+        ..Default::default()
+    }) {
+        Ok(_) => panic!("the kernels were created under WebGPU's default limits"),
+        Err(e) => e,
+    };
+    assert!(
+        err.contains("cannot run the simulation's kernels")
+            && err.contains("storage buffers per shader stage needs 32, the adapter allows 8"),
+        "{err}"
+    );
+}

@@ -131,6 +131,16 @@ pub enum TissueError {
         /// What the adapter allows.
         limit: u64,
     },
+    /// The adapter cannot run the simulation's kernels at all, whatever the model: a
+    /// limit of the device is below what they need.
+    GpuUnsupported {
+        /// The device limit, by name.
+        what: &'static str,
+        /// What the kernels need.
+        needed: u64,
+        /// What the adapter allows.
+        limit: u64,
+    },
     /// The simulation produced NaN/inf or exploded; the state was restored to before the step.
     Diverged {
         /// Step counter at which it happened.
@@ -192,6 +202,14 @@ impl fmt::Display for TissueError {
             } => write!(
                 f,
                 "model too big for the GPU: {what} needs {needed}, the adapter allows {limit}; lower the resolution or split the body"
+            ),
+            TissueError::GpuUnsupported {
+                what,
+                needed,
+                limit,
+            } => write!(
+                f,
+                "the adapter cannot run the simulation's kernels: {what} needs {needed}, the adapter allows {limit}"
             ),
             TissueError::Diverged {
                 step,

@@ -803,8 +803,8 @@ pub fn receive_readbacks(
             }
             ReadbackResult::GpuUnavailable(why) => {
                 warn!(
-                    "bevy_tissue: the GPU cannot run the simulation ({why}); every soft body \
-                     is simulated on the CPU instead (slower; TissueSettings::backend is now Cpu)"
+                    "bevy_tissue: {why}; every soft body is simulated on the CPU instead \
+                     (slower; TissueSettings::backend is now Cpu)"
                 );
                 settings.backend = TissueBackend::Cpu;
             }

@@ -149,12 +149,12 @@ impl Kernels {
             .unwrap_or(knn::SLOT_COUNTS.len() - 1)
     }
 
-    /// Compiles every kernel for `device`. Fails with [`TissueError::GpuLimit`] if the
-    /// adapter cannot bind the storage buffers the kernels need.
+    /// Compiles every kernel for `device`. Fails with [`TissueError::GpuUnsupported`] if
+    /// the adapter cannot bind the storage buffers the kernels need.
     pub fn new(device: &RenderDevice) -> Result<Self, TissueError> {
         let limits = device.limits();
         if limits.max_storage_buffers_per_shader_stage < STORAGE_BUFFERS_NEEDED {
-            return Err(TissueError::GpuLimit {
+            return Err(TissueError::GpuUnsupported {
                 what: "storage buffers per shader stage",
                 needed: STORAGE_BUFFERS_NEEDED as u64,
                 limit: limits.max_storage_buffers_per_shader_stage as u64,
