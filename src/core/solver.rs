@@ -20,7 +20,8 @@
 use super::colliders::{Collider, ColliderShape, Grab, grab_target, project_collider, update_grab};
 use super::constraints::{
     ClusterCorrection, ClusterRest, Hyperelastic, Multipliers, cluster_moments, extract_rotation,
-    iteration_stiffness, solve_contact, solve_hyperelastic, solve_shape_matching, strain_dead_band,
+    iteration_stiffness, outer, solve_contact, solve_hyperelastic, solve_shape_matching,
+    strain_dead_band,
 };
 use super::element::{
     CORNERS, ElementMultipliers, ElementSolve, HexModes, element_gradient, multiplier_displacement,
@@ -1214,11 +1215,7 @@ impl Solver {
         for c in &contacts {
             let p = &self.p;
             let depth = c.depth(model, control, &|j| p[j]);
-            let nn = Mat3::from_cols(
-                c.normal * c.normal.x,
-                c.normal * c.normal.y,
-                c.normal * c.normal.z,
-            ) * c.stiffness;
+            let nn = outer(c.normal, c.normal) * c.stiffness;
             force[c.node] += c.normal * (c.stiffness * depth);
             match c.other {
                 // Both particles move: each takes half (its block counts the pair twice,
@@ -1311,10 +1308,10 @@ impl Solver {
     /// collider in the last substep that is still within a radius of it (bilateral at
     /// the collider's surface for this iteration); with particle contacts on, every pair
     /// of the contact lists (another body's particle) closer than their radii. The
-    /// penalty stiffness is
-    /// `PENALTY` times the particle's own stiffness scale, `m/h² + (λ + 2μ) s` (inertia
-    /// plus the P-wave modulus times the lattice spacing `s`: what its elements hold it
-    /// with), so that it dominates soft and stiff bodies alike.
+    /// penalty stiffness is `PENALTY` times the particle's own stiffness scale,
+    /// `m/h² + (λ + 2μ) s` (inertia plus the P-wave modulus times the lattice spacing
+    /// `s`: what its elements hold it with), so that it dominates soft and stiff bodies
+    /// alike.
     fn newton_contacts(
         &self,
         model: &Model,

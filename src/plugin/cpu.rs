@@ -146,7 +146,8 @@ pub fn scene_colliders(
 }
 
 /// Steps the CPU bodies by the clock's steps of this frame, writes their meshes and
-/// culling boxes and, where asked, their particle positions. A body whose step diverges
+/// culling boxes (when they stepped, were rebuilt or moved) and, where asked, their
+/// particle positions. A body whose step diverges
 /// is put back at rest and reported ([`SoftBodyError`], with the core's diagnosis:
 /// where, why, what to change); the others go on.
 #[allow(clippy::type_complexity, clippy::too_many_arguments)]
@@ -160,7 +161,7 @@ pub fn step_cpu_bodies(
     bodies: Query<(
         Entity,
         &BuiltBody,
-        &GlobalTransform,
+        Ref<GlobalTransform>,
         Option<&CpuBody>,
         Option<&ReadbackParticles>,
     )>,
@@ -183,7 +184,10 @@ pub fn step_cpu_bodies(
     cpu.sort_by_key(|b| b.0.index_u32());
     let core = settings.to_core_cpu();
     let keys: Vec<(Entity, u64)> = cpu.iter().map(|(e, b)| (*e, b.generation)).collect();
+    // Whether the particles may differ from what the meshes show (a rebuild or a step).
+    let mut dirty = clock.steps_this_frame > 0;
     if keys != world.keys || world.settings.as_ref() != Some(&core) {
+        dirty = true;
         if let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();
             warn!("bevy_tissue: the CPU bodies cannot be simulated: {error}");
@@ -275,19 +279,40 @@ pub fn step_cpu_bodies(
     let Some(state) = w.state.as_ref() else {
         return;
     };
-    let f = Solver::deformation_gradients(&w.model, &state.x);
+    // Meshes are written only where something changed: a paused world re-uploads nothing.
+    let moved = cpu
+        .iter()
+        .any(|(e, _)| bodies.get(*e).is_ok_and(|b| b.2.is_changed()));
+    let f = if dirty || moved {
+        Solver::deformation_gradients(&w.model, &state.x)
+    } else {
+        Vec::new()
+    };
     for (i, (entity, built)) in cpu.iter().enumerate() {
         let Ok((_, _, to_world, _, readback)) = bodies.get(*entity) else {
             continue;
         };
         let p = w.ranges[i].0.clone();
+        if let Some(r) = readback {
+            let mut e = commands.entity(*entity);
+            e.insert(ParticlePositions {
+                positions: state.x[p.clone()].to_vec(),
+                step: clock.steps,
+            });
+            if !r.continuous {
+                e.remove::<ReadbackParticles>();
+            }
+        }
+        if !(dirty || to_world.is_changed()) {
+            continue;
+        }
         write_mesh(
             &w.model,
             i,
             state,
             &f,
             (&mut w.positions, &mut w.normals),
-            to_world,
+            &to_world,
             &built.draw_mesh,
             &mut meshes,
         );
@@ -297,16 +322,6 @@ pub fn step_cpu_bodies(
             let m = Vec3::splat(3.0 * spacing);
             let (l, h) = transform_box(&to_world.affine().inverse(), lo - m, hi + m);
             commands.entity(*entity).insert(Aabb::from_min_max(l, h));
-        }
-        if let Some(r) = readback {
-            let mut e = commands.entity(*entity);
-            e.insert(ParticlePositions {
-                positions: state.x[p].to_vec(),
-                step: clock.steps,
-            });
-            if !r.continuous {
-                e.remove::<ReadbackParticles>();
-            }
         }
     }
 }
