@@ -61,6 +61,36 @@ pub struct MgLevel {
     pub child_start: Vec<u32>,
     /// See `child_start`.
     pub child: Vec<u32>,
+    /// The level's nodes in Gauss–Seidel order: by colour (the parity of the node's
+    /// lattice coordinates, `x & 1 | (y & 1) << 1 | (z & 1) << 2`), ascending within a
+    /// colour. Two nodes of one colour never share an element, so a colour's updates are
+    /// independent: the GPU smooths a colour at once and gets the same answer.
+    pub order: Vec<u32>,
+    /// Where each colour starts in `order` (colour `c`: `colour_start[c]..colour_start[c + 1]`).
+    pub colour_start: [u32; COLOURS + 1],
+}
+
+/// Gauss–Seidel colours of a hexahedral lattice (node coordinate parities).
+pub const COLOURS: usize = 8;
+
+/// `order` and `colour_start` of [`MgLevel`] for nodes at lattice coordinates `coords`.
+fn colour_order(coords: &[IVec3]) -> (Vec<u32>, [u32; COLOURS + 1]) {
+    let colour = |c: &IVec3| (c.x & 1 | (c.y & 1) << 1 | (c.z & 1) << 2) as usize;
+    let mut start = [0u32; COLOURS + 1];
+    for c in coords {
+        start[colour(c) + 1] += 1;
+    }
+    for k in 0..COLOURS {
+        start[k + 1] += start[k];
+    }
+    let mut next = start;
+    let mut order = vec![0u32; coords.len()];
+    for (j, c) in coords.iter().enumerate() {
+        let k = colour(c);
+        order[next[k] as usize] = j as u32;
+        next[k] += 1;
+    }
+    (order, start)
 }
 
 /// The lattice hierarchy of a model and the per-body unit-cube stiffnesses.
@@ -143,6 +173,7 @@ impl LatticeMultigrid {
             }
         }
         let mut levels = vec![fine];
+        (levels[0].order, levels[0].colour_start) = colour_order(&coords);
         let mut cell_origin: Vec<IVec3> = model
             .elements
             .iter()
@@ -162,6 +193,8 @@ impl LatticeMultigrid {
                 break;
             };
             let shrunk = coarse.nodes * 2 < levels.last().map_or(0, |l| l.nodes);
+            let mut coarse = coarse;
+            (coarse.order, coarse.colour_start) = colour_order(&coarse_coords);
             levels.push(coarse);
             cell_origin = origins;
             coords = coarse_coords;
@@ -584,11 +617,13 @@ impl LatticeMultigrid {
         y
     }
 
-    /// `sweeps` Gauss–Seidel sweeps of `A δ = rhs` on level `l` (fixed nodes stay 0).
+    /// `sweeps` Gauss–Seidel sweeps of `A δ = rhs` on level `l` in colour order
+    /// ([`MgLevel::order`]; fixed nodes stay 0).
     fn smooth(&self, l: usize, sweeps: u32, h2: f32, work: &mut MgWork) {
         let lv = &self.levels[l];
         for _ in 0..sweeps {
-            for j in 0..lv.nodes {
+            for &j in &lv.order {
+                let j = j as usize;
                 if lv.fixed[j] {
                     continue;
                 }

@@ -8,6 +8,7 @@
 
 pub mod buffers;
 pub mod kernels;
+pub mod lattice;
 pub mod profile;
 pub mod world;
 
@@ -38,6 +39,21 @@ pub fn headless() -> Result<Headless, String> {
 /// [`headless`] with given settings (e.g. `constrained_limits`, to try a model against a
 /// smaller GPU).
 pub fn headless_with(settings: bevy::render::settings::WgpuSettings) -> Result<Headless, String> {
+    let (device, queue, adapter) = device_with(settings)?;
+    let kernels = Kernels::new(&device).map_err(|e| e.to_string())?;
+    Ok(Headless {
+        device,
+        queue,
+        adapter,
+        kernels,
+    })
+}
+
+/// A device and queue opened with `settings` and no kernels compiled, with the adapter's
+/// name and driver. Returns a message naming the problem where no adapter exists.
+pub fn device_with(
+    settings: bevy::render::settings::WgpuSettings,
+) -> Result<(RenderDevice, RenderQueue, String), String> {
     use bevy::render::settings::Backends;
     let backends = settings.backends.unwrap_or(Backends::all());
     let res = std::panic::catch_unwind(|| {
@@ -49,15 +65,7 @@ pub fn headless_with(settings: bevy::render::settings::WgpuSettings) -> Result<H
         "no GPU adapter found (install a Vulkan driver, e.g. Mesa's lavapipe: mesa-vulkan-drivers)"
             .to_string()
     })?;
-    let device = res.0;
-    let queue = res.1;
     let info = &res.2;
     let adapter = format!("{} ({:?}, {})", info.name, info.backend, info.driver);
-    let kernels = Kernels::new(&device).map_err(|e| e.to_string())?;
-    Ok(Headless {
-        device,
-        queue,
-        adapter,
-        kernels,
-    })
+    Ok((res.0, res.1, adapter))
 }

@@ -11,10 +11,6 @@ fn sym_from(l0: vec4<f32>, l1: vec4<f32>) -> mat3x3<f32> {
     );
 }
 
-fn cofactor(f: mat3x3<f32>) -> mat3x3<f32> {
-    return mat3x3<f32>(cross(f[1], f[2]), cross(f[2], f[0]), cross(f[0], f[1]));
-}
-
 fn mat_finite(m: mat3x3<f32>) -> bool {
     var ok = true;
     for (var c = 0; c < 3; c = c + 1) {

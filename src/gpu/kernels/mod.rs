@@ -17,6 +17,7 @@ pub mod grid;
 pub mod hierarchy;
 pub mod integrate;
 pub mod knn;
+pub mod lattice;
 pub mod skin;
 
 use crate::core::TissueError;

@@ -133,28 +133,3 @@ fn moments_from(ms: MemberScan, use_p: bool) -> Moments {
     }
     return moments_of(t, origin, com_mass);
 }
-
-// Müller et al. 2016, warm-started from q (first-order update below 0.25 rad).
-fn extract_rotation(a: mat3x3<f32>, q0: vec4<f32>, iterations: u32) -> vec4<f32> {
-    var q = q0;
-    for (var it = 0u; it < iterations; it = it + 1u) {
-        let r = quat_mat(q);
-        let num = cross(r[0], a[0]) + cross(r[1], a[1]) + cross(r[2], a[2]);
-        let den = abs(dot(r[0], a[0]) + dot(r[1], a[1]) + dot(r[2], a[2])) + 1.0e-9;
-        let om = num / den;
-        let w = length(om);
-        if (!(w == w) || w < 1.0e-6) {
-            break;
-        }
-        var s: vec4<f32>;
-        if (w < 0.25) {
-            s = vec4<f32>(0.5 * om, 1.0);
-        } else {
-            let half = 0.5 * w;
-            s = vec4<f32>(om / w * sin(half), cos(half));
-        }
-        let qn = quat_mul(s, q);
-        q = qn * (1.0 / length(qn));
-    }
-    return q;
-}

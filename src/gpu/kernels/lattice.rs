@@ -1,0 +1,362 @@
+//! Newton–multigrid on lattice bodies: the kernels of one implicit-Euler substep
+//! (predict, element forces, the V-cycle's smoothing, restriction and prolongation, the
+//! line search's energy and its reductions, finish).
+//!
+//! Source: `lattice.wgsl`, with `common.wgsl` and the declarations made from [`SLOTS`]
+//! prepended. [`SLOTS`] is the one binding table of these kernels: each kernel's layout
+//! and bind group hold only the slots its entry point uses ([`ENTRIES`]), so every
+//! pipeline fits WebGPU's guaranteed limits (at most 8 storage buffers per stage, one
+//! bind group, 64 invocations and 4 KiB of workgroup memory per workgroup).
+
+use crate::core::TissueError;
+use bevy::render::render_resource::{
+    BindGroupLayout, BindGroupLayoutEntry, BindingType, BufferBindingType, ComputePipeline,
+    PipelineCompilationOptions, PipelineLayoutDescriptor, RawComputePipelineDescriptor,
+    ShaderModuleDescriptor, ShaderSource, ShaderStages,
+};
+use bevy::render::renderer::RenderDevice;
+use std::borrow::Cow;
+
+/// How a kernel sees a slot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    /// A uniform buffer bound whole.
+    Uniform,
+    /// A uniform buffer window chosen per dispatch (dynamic offset).
+    Dynamic,
+    /// A storage buffer the kernels only read.
+    Read,
+    /// A storage buffer the kernels write.
+    ReadWrite,
+}
+
+/// One binding of the lattice kernels: its name in WGSL, its WGSL type and access. Its
+/// binding number is its index in [`SLOTS`]; every slot is in group 0.
+#[derive(Debug, Clone, Copy)]
+pub struct Slot {
+    /// Variable name in WGSL.
+    pub name: &'static str,
+    /// WGSL type.
+    pub ty: &'static str,
+    /// Access.
+    pub access: Access,
+}
+
+/// The binding table, grouped by lifetime: per-world parameters and per-dispatch ranges;
+/// per-step state and solver work; the static model.
+pub const SLOTS: &[Slot] = &[
+    Slot {
+        name: "params",
+        ty: "LatticeParams",
+        access: Access::Uniform,
+    },
+    Slot {
+        name: "pc",
+        ty: "Pass",
+        access: Access::Dynamic,
+    },
+    Slot {
+        name: "pos",
+        ty: "array<vec4<f32>>",
+        access: Access::ReadWrite,
+    },
+    Slot {
+        name: "rot",
+        ty: "array<vec4<f32>>",
+        access: Access::ReadWrite,
+    },
+    Slot {
+        name: "ef",
+        ty: "array<vec4<f32>>",
+        access: Access::ReadWrite,
+    },
+    Slot {
+        name: "vecs",
+        ty: "array<vec4<f32>>",
+        access: Access::ReadWrite,
+    },
+    Slot {
+        name: "nblk",
+        ty: "array<vec4<f32>>",
+        access: Access::ReadWrite,
+    },
+    Slot {
+        name: "red",
+        ty: "array<f32>",
+        access: Access::ReadWrite,
+    },
+    Slot {
+        name: "elems",
+        ty: "array<vec4<u32>>",
+        access: Access::Read,
+    },
+    Slot {
+        name: "kmat",
+        ty: "array<vec4<f32>>",
+        access: Access::Read,
+    },
+    Slot {
+        name: "topo",
+        ty: "array<u32>",
+        access: Access::Read,
+    },
+    Slot {
+        name: "nodes",
+        ty: "array<vec4<f32>>",
+        access: Access::Read,
+    },
+    Slot {
+        name: "mats",
+        ty: "array<vec4<f32>>",
+        access: Access::Read,
+    },
+];
+
+/// The entry points of `lattice.wgsl`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[allow(missing_docs)]
+pub enum Kernel {
+    Predict,
+    Energy,
+    Pick,
+    Advance,
+    Forces,
+    Residual,
+    CoarsenRot,
+    Diag,
+    Smooth,
+    FineResidual,
+    Restrict,
+    Prolong,
+    AlphaTerms,
+    Correct,
+    Trust,
+    Finish,
+}
+
+/// One entry point and the slots it uses.
+#[derive(Debug, Clone, Copy)]
+pub struct Entry {
+    /// The kernel.
+    pub kernel: Kernel,
+    /// Entry point name in WGSL.
+    pub name: &'static str,
+    /// Slots (by name) the entry point uses, in [`SLOTS`] order.
+    pub uses: &'static [&'static str],
+}
+
+/// Every entry point with its slots (a test checks them against the shader).
+pub const ENTRIES: &[Entry] = &[
+    Entry {
+        kernel: Kernel::Predict,
+        name: "predict",
+        uses: &["params", "pos", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::Energy,
+        name: "energy",
+        uses: &[
+            "params", "pc", "pos", "rot", "vecs", "red", "elems", "nodes", "mats",
+        ],
+    },
+    Entry {
+        kernel: Kernel::Pick,
+        name: "pick",
+        uses: &["pc", "red"],
+    },
+    Entry {
+        kernel: Kernel::Advance,
+        name: "advance",
+        uses: &["params", "pc", "pos", "vecs", "red", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::Forces,
+        name: "forces",
+        uses: &["params", "pos", "rot", "ef", "elems", "mats"],
+    },
+    Entry {
+        kernel: Kernel::Residual,
+        name: "residual",
+        uses: &["params", "pos", "ef", "vecs", "topo", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::CoarsenRot,
+        name: "coarsen_rot",
+        uses: &["params", "pc", "rot", "topo"],
+    },
+    Entry {
+        kernel: Kernel::Diag,
+        name: "diag",
+        uses: &[
+            "params", "pc", "rot", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::Smooth,
+        name: "smooth_colour",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::FineResidual,
+        name: "fine_residual",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::Restrict,
+        name: "restrict_residual",
+        uses: &["params", "pc", "vecs", "topo", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::Prolong,
+        name: "prolong",
+        uses: &["params", "pc", "vecs", "topo", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::AlphaTerms,
+        name: "alpha_terms",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "red", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::Correct,
+        name: "correct",
+        uses: &["params", "pc", "vecs", "red"],
+    },
+    Entry {
+        kernel: Kernel::Trust,
+        name: "trust",
+        uses: &["params", "vecs", "red", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::Finish,
+        name: "finish",
+        uses: &["params", "pos"],
+    },
+];
+
+/// Threads per workgroup of every lattice kernel.
+pub const WORKGROUP: u32 = 64;
+
+/// The slot index (binding number) of `name`.
+pub fn slot(name: &str) -> Option<u32> {
+    SLOTS.iter().position(|s| s.name == name).map(|i| i as u32)
+}
+
+/// The module's WGSL: `common.wgsl`, the declarations of [`SLOTS`], `lattice.wgsl`.
+pub fn source() -> String {
+    let mut s = String::from(include_str!("common.wgsl"));
+    s.push_str("\n// Bindings (src/gpu/kernels/lattice.rs, SLOTS).\n");
+    // The declarations refer to the structs of lattice.wgsl; WGSL resolves them in any
+    // order.
+    for (i, slot) in SLOTS.iter().enumerate() {
+        let space = match slot.access {
+            Access::Uniform | Access::Dynamic => "uniform".to_string(),
+            Access::Read => "storage, read".to_string(),
+            Access::ReadWrite => "storage, read_write".to_string(),
+        };
+        s.push_str(&format!(
+            "@group(0) @binding({i}) var<{space}> {}: {};\n",
+            slot.name, slot.ty
+        ));
+    }
+    s.push_str(include_str!("lattice.wgsl"));
+    s
+}
+
+/// The storage buffers an entry point binds.
+pub fn storage_count(entry: &Entry) -> u32 {
+    entry
+        .uses
+        .iter()
+        .filter(|n| {
+            SLOTS
+                .iter()
+                .any(|s| s.name == **n && matches!(s.access, Access::Read | Access::ReadWrite))
+        })
+        .count() as u32
+}
+
+/// Compiled lattice pipelines with their layouts.
+pub struct LatticeKernels {
+    /// Per [`ENTRIES`] entry: its pipeline and the layout of its one bind group.
+    pub pipelines: Vec<(ComputePipeline, BindGroupLayout)>,
+}
+
+impl LatticeKernels {
+    /// Compiles every lattice kernel for `device`, each with a layout of only the slots
+    /// it uses. Fails with [`TissueError::GpuUnsupported`] where the adapter binds fewer
+    /// storage buffers per stage than a kernel needs.
+    pub fn new(device: &RenderDevice) -> Result<Self, TissueError> {
+        let limits = device.limits();
+        let needed = ENTRIES.iter().map(storage_count).max().unwrap_or(0);
+        if limits.max_storage_buffers_per_shader_stage < needed {
+            return Err(TissueError::GpuUnsupported {
+                what: "storage buffers per shader stage",
+                needed: needed as u64,
+                limit: limits.max_storage_buffers_per_shader_stage as u64,
+            });
+        }
+        let module = device.create_and_validate_shader_module(ShaderModuleDescriptor {
+            label: Some("tissue lattice"),
+            source: ShaderSource::Wgsl(Cow::Owned(source())),
+        });
+        let mut pipelines = Vec::with_capacity(ENTRIES.len());
+        for entry in ENTRIES {
+            let mut layout_entries = Vec::new();
+            for name in entry.uses {
+                let Some(b) = slot(name) else {
+                    continue;
+                };
+                let ty = match SLOTS[b as usize].access {
+                    Access::Uniform | Access::Dynamic => BindingType::Buffer {
+                        ty: BufferBindingType::Uniform,
+                        has_dynamic_offset: SLOTS[b as usize].access == Access::Dynamic,
+                        min_binding_size: None,
+                    },
+                    Access::Read | Access::ReadWrite => BindingType::Buffer {
+                        ty: BufferBindingType::Storage {
+                            read_only: SLOTS[b as usize].access == Access::Read,
+                        },
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                };
+                layout_entries.push(BindGroupLayoutEntry {
+                    binding: b,
+                    visibility: ShaderStages::COMPUTE,
+                    ty,
+                    count: None,
+                });
+            }
+            let bgl = device.create_bind_group_layout(entry.name, &layout_entries);
+            let layout = device.create_pipeline_layout(&PipelineLayoutDescriptor {
+                label: Some(entry.name),
+                bind_group_layouts: &[Some(&*bgl)],
+                immediate_size: 0,
+            });
+            let pipeline = device.create_compute_pipeline(&RawComputePipelineDescriptor {
+                label: Some(entry.name),
+                layout: Some(&layout),
+                module: &module,
+                entry_point: Some(entry.name),
+                compilation_options: PipelineCompilationOptions::default(),
+                cache: None,
+            });
+            pipelines.push((pipeline, bgl));
+        }
+        Ok(Self { pipelines })
+    }
+
+    /// Index of `kernel` in [`LatticeKernels::pipelines`] and [`ENTRIES`].
+    pub fn index(kernel: Kernel) -> usize {
+        ENTRIES
+            .iter()
+            .position(|e| e.kernel == kernel)
+            .unwrap_or_default()
+    }
+}

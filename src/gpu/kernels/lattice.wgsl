@@ -1,0 +1,652 @@
+// Newton–multigrid on lattice bodies: one implicit-Euler substep's Newton iterations,
+// each a V-cycle of colour-ordered block Gauss–Seidel and an energy line search.
+// CPU twin: core::multigrid (element_forces, element_energy, LatticeMultigrid::prepare,
+// vcycle) and the solver's Newton iteration (ElementSolver::Multigrid).
+// The bindings are declared by the table in lattice.rs (prepended to this file).
+
+const LWG: u32 = 64u;
+// Line search: α_max 2^-k for k < LINE_CANDIDATES (then 0).
+const LINE_CANDIDATES: u32 = 13u;
+// First iterate: y = x + s (y − x) for s = 1, ½, ¼, 0.
+const FIRST_CANDIDATES: u32 = 4u;
+// Partial sums per workgroup in `red`, after the scalars.
+const RED_STRIDE: u32 = 16u;
+const RED_BASE: u32 = 16u;
+// Scalars in `red`.
+const S_ALPHA: u32 = 0u;       // the step chosen by the last `pick`
+const S_ALPHA_MAX: u32 = 1u;   // the trust region's step bound
+const S_MG_ALPHA: u32 = 8u;    // + level: the coarse correction's step
+// Regions of `pos` (× n): positions, iterate, inertial target, velocity, pin target.
+const R_X: u32 = 0u;
+const R_Y: u32 = 1u;
+const R_T: u32 = 2u;
+const R_V: u32 = 3u;
+const R_PIN: u32 = 4u;
+// Regions of `vecs` (× n_total): right-hand side, correction, residual, prolongated
+// coarse correction.
+const V_RHS: u32 = 0u;
+const V_DELTA: u32 = 1u;
+const V_RES: u32 = 2u;
+const V_PE: u32 = 3u;
+// Material record per body in `mat` (vec4s): (μ, λ), 12 mode stiffnesses, 12 × 8 mode
+// vectors.
+const MAT_STRIDE: u32 = 100u;
+const MODES: u32 = 12u;
+
+struct LatticeParams {
+    gravity: vec4<f32>,      // m/s²
+    h: f32,                  // substep, s
+    h2: f32,                 // s²
+    keep: f32,               // velocity kept after damping
+    rot_iters: u32,
+    n: u32,                  // level-0 nodes
+    ne: u32,                 // level-0 elements
+    levels: u32,
+    n_total: u32,            // nodes of all levels
+    order_base: u32,         // start of the colour orders in `topo`
+    prol_base: u32,          // start of the prolongation lists in `topo`
+    restr_base: u32,         // start of the restriction lists in `topo`
+    child_base: u32,         // start of the child element lists in `topo`
+    lv: array<vec4<u32>, 8>, // per level: first node, end node, first element, end element
+};
+
+// One dispatch's range and mode (a dynamic-offset window of the pass buffer).
+struct Pass {
+    first: u32,
+    count: u32,
+    level: u32,
+    mode: u32,
+};
+
+fn corner_sign(j: u32) -> vec3<f32> {
+    return vec3<f32>(
+        select(-1.0, 1.0, (j & 1u) != 0u),
+        select(-1.0, 1.0, (j & 2u) != 0u),
+        select(-1.0, 1.0, (j & 4u) != 0u),
+    );
+}
+
+fn corner(e: u32, k: u32) -> u32 {
+    return elems[3u * e + k / 4u][k % 4u];
+}
+
+fn held(j: u32) -> bool {
+    return nodes[j].y != 0.0;
+}
+
+// Deformation gradient at the centre of a cube of edge `size` (core::element::element_gradient).
+fn element_gradient(x: array<vec3<f32>, 8>, size: f32) -> mat3x3<f32> {
+    var f = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    let o = x[0];
+    for (var j = 1u; j < 8u; j = j + 1u) {
+        f = f + outer(x[j] - o, corner_sign(j) / (4.0 * size));
+    }
+    return f;
+}
+
+fn identity3() -> mat3x3<f32> {
+    return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
+}
+
+// Hourglass amplitudes c_m = Σ_q g_mq · Rᵀ (x_q − x_0), summed over the modes as
+// ½ Σ k_m c_m² (energy) by `hourglass_energy`.
+fn hourglass_energy(b: u32, x: array<vec3<f32>, 8>, rt: mat3x3<f32>, scale: f32) -> f32 {
+    var lx: array<vec3<f32>, 8>;
+    for (var q = 0u; q < 8u; q = q + 1u) {
+        lx[q] = rt * (x[q] - x[0]);
+    }
+    var out = 0.0;
+    let base = b * MAT_STRIDE;
+    for (var m = 0u; m < MODES; m = m + 1u) {
+        var c = 0.0;
+        for (var q = 0u; q < 8u; q = q + 1u) {
+            c = c + dot(mats[base + 4u + m * 8u + q].xyz, lx[q]);
+        }
+        let k = mats[base + 1u + m / 4u][m % 4u];
+        out = out + 0.5 * k * scale * (c * c);
+    }
+    return out;
+}
+
+// Element energy (J) with rotation r held (core::multigrid::element_energy).
+fn element_energy(e: u32, x: array<vec3<f32>, 8>, r: mat3x3<f32>) -> f32 {
+    let info = elems[3u * e + 2u];
+    let b = info.y;
+    let size = bitcast<f32>(info.z);
+    let volume = bitcast<f32>(info.w);
+    let lame = mats[b * MAT_STRIDE];
+    let f = element_gradient(x, size);
+    let rtf = transpose(r) * f;
+    let s = (rtf + transpose(rtf)) * 0.5 - identity3();
+    let ee = dot(s[0], s[0]) + dot(s[1], s[1]) + dot(s[2], s[2]);
+    let j = determinant(f) - 1.0;
+    let elastic = volume * (lame.x * ee + 0.5 * lame.y * (j * j));
+    return elastic + hourglass_energy(b, x, transpose(r), volume / (size * size));
+}
+
+fn load_x(e: u32, region: u32) -> array<vec3<f32>, 8> {
+    var x: array<vec3<f32>, 8>;
+    for (var k = 0u; k < 8u; k = k + 1u) {
+        x[k] = pos[region * params.n + corner(e, k)].xyz;
+    }
+    return x;
+}
+
+// Search direction of node j: the V-cycle's correction (mode 1) or the step the
+// velocity makes, y − x (mode 0).
+fn direction(j: u32, mode: u32) -> vec3<f32> {
+    if (mode == 0u) {
+        return pos[R_Y * params.n + j].xyz - pos[R_X * params.n + j].xyz;
+    }
+    return vecs[V_DELTA * params.n_total + j].xyz;
+}
+
+fn candidate(k: u32, mode: u32) -> f32 {
+    if (mode == 0u) {
+        var s = array<f32, 4>(0.0, -0.5, -0.75, -1.0);
+        return s[k];
+    }
+    return red[S_ALPHA_MAX] * exp2(-f32(k));
+}
+
+fn candidates(mode: u32) -> u32 {
+    return select(LINE_CANDIDATES, FIRST_CANDIDATES, mode == 0u);
+}
+
+var<workgroup> wsum: array<array<f32, 16>, 64>;
+
+// Sums `wsum[·][k]` for k < count over the workgroup into partial `wid`.
+fn reduce_partials(lid: u32, wid: u32, count: u32) {
+    for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
+        workgroupBarrier();
+        if (lid < stride) {
+            for (var k = 0u; k < count; k = k + 1u) {
+                wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
+            }
+        }
+    }
+    if (lid == 0u) {
+        for (var k = 0u; k < count; k = k + 1u) {
+            red[RED_BASE + wid * RED_STRIDE + k] = wsum[0][k];
+        }
+    }
+}
+
+// Predict: inertial target x̃ = x + h (v + h g) and first iterate y = x + h v (pinned
+// nodes: their targets; nodes outside the lattice: x̃).
+@compute @workgroup_size(64)
+fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    let n = params.n;
+    let x = pos[R_X * n + j];
+    let v = pos[R_V * n + j].xyz;
+    let t = x.xyz + (v + params.gravity.xyz * params.h) * params.h;
+    var y = x.xyz + v * params.h;
+    let pin = pos[R_PIN * n + j];
+    if (pin.w != 0.0) {
+        y = pin.xyz;
+    } else if (held(j)) {
+        y = t;
+    }
+    pos[R_T * n + j] = vec4<f32>(t, 0.0);
+    pos[R_Y * n + j] = vec4<f32>(y, 0.0);
+}
+
+// Energy changes of the candidate steps along the direction (mode 0: first iterate,
+// rotations refined per candidate; mode 1: line search, rotations held), one partial sum
+// per candidate and workgroup: elements first, then the nodes' inertia.
+@compute @workgroup_size(64)
+fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
+          @builtin(workgroup_id) wg: vec3<u32>) {
+    let mode = pc.mode;
+    let kc = candidates(mode);
+    for (var k = 0u; k < 16u; k = k + 1u) {
+        wsum[lid][k] = 0.0;
+    }
+    let i = gid.x;
+    if (i < params.ne) {
+        let e = i;
+        let y = load_x(e, R_Y);
+        var d: array<vec3<f32>, 8>;
+        for (var k = 0u; k < 8u; k = k + 1u) {
+            d[k] = direction(corner(e, k), mode);
+            if (held(corner(e, k))) {
+                d[k] = vec3<f32>(0.0);
+            }
+        }
+        let size = bitcast<f32>(elems[3u * e + 2u].z);
+        let q0 = rot[e];
+        var base = 0.0;
+        for (var k = 0u; k < kc; k = k + 1u) {
+            let a = candidate(k, mode);
+            var xc: array<vec3<f32>, 8>;
+            for (var c = 0u; c < 8u; c = c + 1u) {
+                xc[c] = y[c] + d[c] * a;
+            }
+            var q = q0;
+            if (mode == 0u) {
+                q = extract_rotation(element_gradient(xc, size), q0, params.rot_iters);
+            }
+            let g = element_energy(e, xc, quat_mat(q));
+            if (k == 0u && mode == 0u) {
+                base = g;
+            }
+            wsum[lid][k] = g - base;
+        }
+        if (mode == 1u) {
+            let g0 = element_energy(e, y, quat_mat(q0));
+            for (var k = 0u; k < kc; k = k + 1u) {
+                wsum[lid][k] = wsum[lid][k] - g0;
+            }
+        }
+    } else if (i < params.ne + params.n) {
+        let j = i - params.ne;
+        if (!held(j)) {
+            let n = params.n;
+            let d = direction(j, mode);
+            let u = pos[R_Y * n + j].xyz - pos[R_T * n + j].xyz;
+            let w = 0.5 * nodes[j].x / params.h2;
+            for (var k = 0u; k < kc; k = k + 1u) {
+                let a = candidate(k, mode);
+                wsum[lid][k] = w * a * (2.0 * dot(d, u) + a * dot(d, d));
+            }
+        }
+    }
+    reduce_partials(lid, wg.x, kc);
+}
+
+// One workgroup: sums the partials of `pc.count` workgroups and picks the step.
+// mode 0: the first iterate's s of lowest energy (s = 1 unless another is lower);
+// mode 1: the first line-search candidate that does not raise the energy, else 0;
+// mode 2: the trust region's bound α_max; mode 3: the coarse correction's step of
+// level `pc.level`.
+@compute @workgroup_size(64)
+fn pick(@builtin(local_invocation_index) lid: u32) {
+    let mode = pc.mode;
+    for (var k = 0u; k < 16u; k = k + 1u) {
+        var s = 0.0;
+        if (mode == 2u && k == 0u) {
+            s = 1.0;
+        }
+        for (var w = lid; w < pc.count; w = w + LWG) {
+            let v = red[RED_BASE + w * RED_STRIDE + k];
+            if (mode == 2u && k == 0u) {
+                s = min(s, v);
+            } else {
+                s = s + v;
+            }
+        }
+        wsum[lid][k] = s;
+    }
+    for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
+        workgroupBarrier();
+        if (lid < stride) {
+            for (var k = 0u; k < 16u; k = k + 1u) {
+                if (mode == 2u && k == 0u) {
+                    wsum[lid][k] = min(wsum[lid][k], wsum[lid + stride][k]);
+                } else {
+                    wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
+                }
+            }
+        }
+    }
+    if (lid != 0u) {
+        return;
+    }
+    if (mode == 0u) {
+        var best = 0u;
+        for (var k = 1u; k < FIRST_CANDIDATES; k = k + 1u) {
+            if (wsum[0][k] < wsum[0][best]) {
+                best = k;
+            }
+        }
+        red[S_ALPHA] = candidate(best, 0u);
+    } else if (mode == 1u) {
+        var a = 0.0;
+        if (red[S_ALPHA_MAX] > 0.0) {
+            for (var k = 0u; k < LINE_CANDIDATES; k = k + 1u) {
+                if (wsum[0][k] <= 0.0) {
+                    a = candidate(k, 1u);
+                    break;
+                }
+            }
+        }
+        red[S_ALPHA] = a;
+    } else if (mode == 2u) {
+        red[S_ALPHA_MAX] = select(wsum[0][0], 0.0, wsum[0][1] > 0.0);
+    } else {
+        let num = wsum[0][0];
+        let den = wsum[0][1];
+        var a = 0.0;
+        if (den > 0.0 && num > 0.0) {
+            a = num / den;
+        }
+        red[S_MG_ALPHA + pc.level] = select(0.0, a, is_finite_f(a));
+    }
+}
+
+// y += α d for the free nodes (mode as `direction`).
+@compute @workgroup_size(64)
+fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n || held(j)) {
+        return;
+    }
+    let a = red[S_ALPHA];
+    let y = pos[R_Y * params.n + j].xyz;
+    pos[R_Y * params.n + j] = vec4<f32>(y + direction(j, pc.mode) * a, 0.0);
+}
+
+// Element forces at the iterate (core::multigrid::element_forces), rotations refined.
+@compute @workgroup_size(64)
+fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let e = gid.x;
+    if (e >= params.ne) {
+        return;
+    }
+    let x = load_x(e, R_Y);
+    let info = elems[3u * e + 2u];
+    let b = info.y;
+    let size = bitcast<f32>(info.z);
+    let volume = bitcast<f32>(info.w);
+    let lame = mats[b * MAT_STRIDE];
+    let f = element_gradient(x, size);
+    let q = extract_rotation(f, rot[e], params.rot_iters);
+    rot[e] = q;
+    let r = quat_mat(q);
+    let rtf = transpose(r) * f;
+    let s = (rtf + transpose(rtf)) * 0.5 - identity3();
+    let p = r * s * (2.0 * lame.x) + cofactor(f) * (lame.y * (determinant(f) - 1.0));
+    let pv = p * volume;
+    var out: array<vec3<f32>, 8>;
+    for (var j = 0u; j < 8u; j = j + 1u) {
+        out[j] = -(pv * (corner_sign(j) / (4.0 * size)));
+    }
+    let scale = volume / (size * size);
+    let rt = transpose(r);
+    var lx: array<vec3<f32>, 8>;
+    for (var q2 = 0u; q2 < 8u; q2 = q2 + 1u) {
+        lx[q2] = rt * (x[q2] - x[0]);
+    }
+    let base = b * MAT_STRIDE;
+    for (var m = 0u; m < MODES; m = m + 1u) {
+        var c = 0.0;
+        for (var q2 = 0u; q2 < 8u; q2 = q2 + 1u) {
+            c = c + dot(mats[base + 4u + m * 8u + q2].xyz, lx[q2]);
+        }
+        let kc = mats[base + 1u + m / 4u][m % 4u] * scale * c;
+        for (var j = 0u; j < 8u; j = j + 1u) {
+            out[j] = out[j] - r * mats[base + 4u + m * 8u + j].xyz * kc;
+        }
+    }
+    for (var j = 0u; j < 8u; j = j + 1u) {
+        ef[8u * e + j] = vec4<f32>(out[j], 0.0);
+    }
+}
+
+// The Newton residual r = M/h² (x̃ − y) + f(y) (0 on held nodes) as level 0's
+// right-hand side, and a zero correction.
+@compute @workgroup_size(64)
+fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    var f = vec3<f32>(0.0);
+    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
+        let ec = topo[s];
+        f = f + ef[8u * (ec >> 3u) + (ec & 7u)].xyz;
+    }
+    let n = params.n;
+    var r = (pos[R_T * n + j].xyz - pos[R_Y * n + j].xyz) * (nodes[j].x / params.h2) + f;
+    if (held(j)) {
+        r = vec3<f32>(0.0);
+    }
+    vecs[V_RHS * params.n_total + j] = vec4<f32>(r, 0.0);
+    vecs[V_DELTA * params.n_total + j] = vec4<f32>(0.0);
+}
+
+// Coarse rotations: each element of level pc.level + 1 the normalised mean of its
+// children's quaternions (signs aligned with the first child's).
+@compute @workgroup_size(64)
+fn coarsen_rot(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let e = pc.first + gid.x;
+    let c = params.child_base + e - params.lv[1].z;
+    let first = rot[topo[topo[c]]];
+    var sum = vec4<f32>(0.0);
+    for (var s = topo[c]; s < topo[c + 1u]; s = s + 1u) {
+        let q = rot[topo[s]];
+        sum = sum + select(q, -q, dot(q, first) < 0.0);
+    }
+    rot[e] = sum * (1.0 / length(sum));
+}
+
+fn kblock(base: u32, a: u32, b: u32) -> mat3x3<f32> {
+    let o = 3u * (base + 8u * a + b);
+    return mat3x3<f32>(kmat[o].xyz, kmat[o + 1u].xyz, kmat[o + 2u].xyz);
+}
+
+// Stiffness block base and scale of element e (level 0: its body's unit cube scaled by
+// V/h²; coarse: its own Galerkin blocks).
+fn kinfo(e: u32) -> vec2<f32> {
+    let info = elems[3u * e + 2u];
+    let size = bitcast<f32>(info.z);
+    var sc = 1.0;
+    if (size > 0.0) {
+        sc = bitcast<f32>(info.w) / (size * size);
+    }
+    return vec2<f32>(bitcast<f32>(info.x), sc);
+}
+
+fn extra_block(j: u32) -> mat3x3<f32> {
+    let o = 3u * (params.n_total + j);
+    return mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+}
+
+// (A x)_j with A = M/h² + S + Σ_e R K Rᵀ, x the `vecs` region `region`
+// (core::multigrid's apply_row).
+fn apply_row(j: u32, region: u32) -> vec3<f32> {
+    let off = region * params.n_total;
+    let xj = vecs[off + j].xyz;
+    var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
+    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
+        let ec = topo[s];
+        let e = ec >> 3u;
+        let a = ec & 7u;
+        let ki = kinfo(e);
+        let kb = bitcast<u32>(ki.x);
+        let r = quat_mat(rot[e]);
+        let rt = transpose(r);
+        var acc = vec3<f32>(0.0);
+        for (var b = 0u; b < 8u; b = b + 1u) {
+            acc = acc + kblock(kb, a, b) * (rt * vecs[off + corner(e, b)].xyz);
+        }
+        y = y + r * acc * ki.y;
+    }
+    return y;
+}
+
+// Inverted diagonal blocks M/h² + S + Σ_e R K_jj Rᵀ of level pc.level's nodes (zero
+// where singular).
+@compute @workgroup_size(64)
+fn diag(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    let m = nodes[j].x / params.h2;
+    var d = mat3x3<f32>(vec3<f32>(m, 0.0, 0.0), vec3<f32>(0.0, m, 0.0), vec3<f32>(0.0, 0.0, m));
+    d = d + extra_block(j);
+    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
+        let ec = topo[s];
+        let e = ec >> 3u;
+        let a = ec & 7u;
+        let ki = kinfo(e);
+        let r = quat_mat(rot[e]);
+        d = d + r * (kblock(bitcast<u32>(ki.x), a, a) * ki.y) * transpose(r);
+    }
+    // glam's Mat3::inverse.
+    let t0 = cross(d[1], d[2]);
+    let t1 = cross(d[2], d[0]);
+    let t2 = cross(d[0], d[1]);
+    let det = dot(d[2], t2);
+    var inv = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    if (abs(det) > 1.17549435e-38) {
+        inv = transpose(mat3x3<f32>(t0, t1, t2)) * (1.0 / det);
+    }
+    nblk[3u * j] = vec4<f32>(inv[0], 0.0);
+    nblk[3u * j + 1u] = vec4<f32>(inv[1], 0.0);
+    nblk[3u * j + 2u] = vec4<f32>(inv[2], 0.0);
+}
+
+// One colour of a Gauss–Seidel sweep: the nodes topo[pc.first ..][.. pc.count].
+@compute @workgroup_size(64)
+fn smooth_colour(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = topo[pc.first + gid.x];
+    if (held(j)) {
+        return;
+    }
+    let o = 3u * j;
+    let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+    let r = vecs[V_RHS * params.n_total + j].xyz - apply_row(j, V_DELTA);
+    let dj = V_DELTA * params.n_total + j;
+    vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * r, 0.0);
+}
+
+// The residual rhs − A δ of level pc.level's nodes (0 on fixed ones).
+@compute @workgroup_size(64)
+fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    var r = vec3<f32>(0.0);
+    if (!held(j)) {
+        r = vecs[V_RHS * params.n_total + j].xyz - apply_row(j, V_DELTA);
+    }
+    vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
+}
+
+// The next coarser level's right-hand side Pᵀ r (0 on fixed nodes) and a zero
+// correction, for its nodes pc.first ..
+@compute @workgroup_size(64)
+fn restrict_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    let c = params.restr_base + j - params.lv[1].x;
+    var r = vec3<f32>(0.0);
+    for (var s = topo[c]; s < topo[c + 1u]; s = s + 2u) {
+        r = r + vecs[V_RES * params.n_total + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
+    }
+    if (held(j)) {
+        r = vec3<f32>(0.0);
+    }
+    vecs[V_RHS * params.n_total + j] = vec4<f32>(r, 0.0);
+    vecs[V_DELTA * params.n_total + j] = vec4<f32>(0.0);
+}
+
+// The coarse correction prolongated to level pc.level's nodes, e = P δ_c.
+@compute @workgroup_size(64)
+fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    var e = vec3<f32>(0.0);
+    if (!held(j)) {
+        let c = params.prol_base + j;
+        for (var s = topo[c]; s < topo[c + 1u]; s = s + 2u) {
+            e = e + vecs[V_DELTA * params.n_total + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
+        }
+    }
+    vecs[V_PE * params.n_total + j] = vec4<f32>(e, 0.0);
+}
+
+// Partial sums of eᵀ r and eᵀ A e over level pc.level's nodes (the coarse
+// correction's energy-minimising step).
+@compute @workgroup_size(64)
+fn alpha_terms(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
+               @builtin(workgroup_id) wg: vec3<u32>) {
+    wsum[lid][0] = 0.0;
+    wsum[lid][1] = 0.0;
+    if (gid.x < pc.count) {
+        let j = pc.first + gid.x;
+        if (!held(j)) {
+            let e = vecs[V_PE * params.n_total + j].xyz;
+            wsum[lid][0] = dot(vecs[V_RES * params.n_total + j].xyz, e);
+            wsum[lid][1] = dot(apply_row(j, V_PE), e);
+        }
+    }
+    reduce_partials(lid, wg.x, 2u);
+}
+
+// δ += α e on level pc.level.
+@compute @workgroup_size(64)
+fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    let a = red[S_MG_ALPHA + pc.level];
+    let dj = V_DELTA * params.n_total + j;
+    vecs[dj] = vec4<f32>(vecs[dj].xyz + vecs[V_PE * params.n_total + j].xyz * a, 0.0);
+}
+
+// Partial minima of reach / |δ| over the free nodes (the trust region: no node moves
+// more than half its lattice spacing per iteration) and whether any δ is not finite.
+@compute @workgroup_size(64)
+fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
+         @builtin(workgroup_id) wg: vec3<u32>) {
+    var bound = 1.0;
+    var bad = 0.0;
+    let j = gid.x;
+    if (j < params.n && !held(j)) {
+        let d = vecs[V_DELTA * params.n_total + j].xyz;
+        if (!(is_finite_f(d.x) && is_finite_f(d.y) && is_finite_f(d.z))) {
+            bad = 1.0;
+        } else {
+            let len = length(d);
+            if (len > nodes[j].z) {
+                bound = nodes[j].z / len;
+            }
+        }
+    }
+    wsum[lid][0] = bound;
+    wsum[lid][1] = bad;
+    for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
+        workgroupBarrier();
+        if (lid < stride) {
+            wsum[lid][0] = min(wsum[lid][0], wsum[lid + stride][0]);
+            wsum[lid][1] = wsum[lid][1] + wsum[lid + stride][1];
+        }
+    }
+    if (lid == 0u) {
+        red[RED_BASE + wg.x * RED_STRIDE] = wsum[0][0];
+        red[RED_BASE + wg.x * RED_STRIDE + 1u] = wsum[0][1];
+    }
+}
+
+// Finish: v = (y − x)/h, damped; x = y.
+@compute @workgroup_size(64)
+fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    let n = params.n;
+    let x = pos[R_X * n + j].xyz;
+    let y = pos[R_Y * n + j].xyz;
+    pos[R_V * n + j] = vec4<f32>((y - x) / params.h * params.keep, 0.0);
+    pos[R_X * n + j] = vec4<f32>(y, 0.0);
+}

@@ -1,0 +1,740 @@
+//! [`GpuLattice`]: Newton–multigrid for lattice bodies on the GPU
+//! ([`crate::core::solver::ElementSolver::Multigrid`]'s algorithm, kernels in
+//! [`super::kernels::lattice`]).
+//!
+//! Each substep: predict the inertial target and the first iterate; then per Newton
+//! iteration the element forces and rotations, the residual, one V-cycle of
+//! colour-ordered block Gauss–Seidel on every level of the hierarchy (coarse corrections
+//! taken with their energy-minimising step), a trust region and a backtracking line
+//! search on the substep energy; finally the velocity update. The sequence of dispatches
+//! is [`plan`], a pure function of the hierarchy's shape and the settings; recording
+//! replays it. Scope: lattice bodies with pins under gravity (colliders, particle
+//! contacts and graspers stay on the CPU path).
+
+use super::kernels::lattice::{Kernel, LatticeKernels, SLOTS, WORKGROUP};
+use crate::core::TissueError;
+use crate::core::model::{Discretisation, Material, Model};
+use crate::core::multigrid::{COLOURS, LatticeMultigrid};
+use crate::core::solver::{SolverSettings, State};
+use bevy::render::render_resource::{
+    BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferUsages,
+    CommandEncoder, ComputePassDescriptor,
+};
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use bytemuck::{Pod, Zeroable};
+use glam::{Quat, Vec3};
+
+/// Byte stride of the per-dispatch records (the minimum uniform offset alignment
+/// WebGPU guarantees).
+const PASS_STRIDE: u64 = 256;
+/// Levels the parameter block holds.
+const MAX_LEVELS: usize = 8;
+/// Floats of `red` before the partial sums (see `lattice.wgsl`).
+const RED_BASE: usize = 16;
+/// Floats per workgroup's partial sums.
+const RED_STRIDE: usize = 16;
+/// Gauss–Seidel sweeps before and after the coarse correction, and on the coarsest
+/// level (as the CPU solver's V-cycle).
+const SWEEPS: (u32, u32, u32) = (2, 2, 30);
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Params {
+    gravity: [f32; 4],
+    h: f32,
+    h2: f32,
+    keep: f32,
+    rot_iters: u32,
+    n: u32,
+    ne: u32,
+    levels: u32,
+    n_total: u32,
+    order_base: u32,
+    prol_base: u32,
+    restr_base: u32,
+    child_base: u32,
+    lv: [[u32; 4]; MAX_LEVELS],
+}
+
+/// One dispatch's range and mode (`Pass` in `lattice.wgsl`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Pod, Zeroable)]
+pub struct PassRecord {
+    /// First node or element (or position in the colour order).
+    pub first: u32,
+    /// Nodes or elements (or partial sums to add, for `pick`).
+    pub count: u32,
+    /// Level.
+    pub level: u32,
+    /// Mode (see the kernel).
+    pub mode: u32,
+}
+
+/// One dispatch of the plan.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Dispatch {
+    /// The kernel.
+    pub kernel: Kernel,
+    /// Its range and mode.
+    pub pass: PassRecord,
+    /// Workgroups.
+    pub groups: u32,
+}
+
+/// The shape of a hierarchy as the plan needs it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Shape {
+    /// Per level: first node, node count, first element, element count.
+    pub levels: Vec<[u32; 4]>,
+    /// Per level: where each colour starts in the concatenated colour order (absolute
+    /// position in the topology buffer) and ends.
+    pub colours: Vec<[u32; COLOURS + 1]>,
+}
+
+fn groups(count: u32) -> u32 {
+    count.div_ceil(WORKGROUP)
+}
+
+/// The dispatches of one substep with `newton` Newton iterations.
+pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
+    let mut out = Vec::new();
+    let (n, ne) = (shape.levels[0][1], shape.levels[0][3]);
+    let mut push = |kernel, first, count, level, mode, groups: u32| {
+        if groups > 0 {
+            out.push(Dispatch {
+                kernel,
+                pass: PassRecord {
+                    first,
+                    count,
+                    level,
+                    mode,
+                },
+                groups,
+            });
+        }
+    };
+    push(Kernel::Predict, 0, n, 0, 0, groups(n));
+    for it in 0..newton {
+        if it == 0 {
+            let g = groups(ne + n);
+            push(Kernel::Energy, 0, ne + n, 0, 0, g);
+            push(Kernel::Pick, 0, g, 0, 0, 1);
+            push(Kernel::Advance, 0, n, 0, 0, groups(n));
+        }
+        push(Kernel::Forces, 0, ne, 0, 0, groups(ne));
+        push(Kernel::Residual, 0, n, 0, 0, groups(n));
+        for (l, lv) in shape.levels.iter().enumerate().skip(1) {
+            push(Kernel::CoarsenRot, lv[2], lv[3], l as u32, 0, groups(lv[3]));
+        }
+        for (l, lv) in shape.levels.iter().enumerate() {
+            push(Kernel::Diag, lv[0], lv[1], l as u32, 0, groups(lv[1]));
+        }
+        vcycle(shape, 0, &mut push);
+        push(Kernel::Trust, 0, n, 0, 0, groups(n));
+        push(Kernel::Pick, 0, groups(n), 0, 2, 1);
+        let g = groups(ne + n);
+        push(Kernel::Energy, 0, ne + n, 0, 1, g);
+        push(Kernel::Pick, 0, g, 0, 1, 1);
+        push(Kernel::Advance, 0, n, 0, 1, groups(n));
+    }
+    push(Kernel::Finish, 0, n, 0, 0, groups(n));
+    out
+}
+
+fn sweeps(
+    shape: &Shape,
+    l: usize,
+    count: u32,
+    push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32),
+) {
+    let c = &shape.colours[l];
+    for _ in 0..count {
+        for k in 0..COLOURS {
+            let len = c[k + 1] - c[k];
+            push(Kernel::Smooth, c[k], len, l as u32, 0, groups(len));
+        }
+    }
+}
+
+fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
+    let (pre, post, coarsest) = SWEEPS;
+    if l + 1 == shape.levels.len() {
+        sweeps(shape, l, coarsest, push);
+        return;
+    }
+    let lv = shape.levels[l];
+    let cv = shape.levels[l + 1];
+    let ll = l as u32;
+    sweeps(shape, l, pre, push);
+    push(Kernel::FineResidual, lv[0], lv[1], ll, 0, groups(lv[1]));
+    push(Kernel::Restrict, cv[0], cv[1], ll + 1, 0, groups(cv[1]));
+    vcycle(shape, l + 1, push);
+    push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
+    push(Kernel::AlphaTerms, lv[0], lv[1], ll, 0, groups(lv[1]));
+    push(Kernel::Pick, 0, groups(lv[1]), ll, 3, 1);
+    push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
+    sweeps(shape, l, post, push);
+}
+
+/// The flattened hierarchy: every buffer's initial contents.
+struct Packed {
+    params: Params,
+    shape: Shape,
+    elems: Vec<[u32; 4]>,
+    kmat: Vec<[f32; 4]>,
+    topo: Vec<u32>,
+    nodes: Vec<[f32; 4]>,
+    mats: Vec<[f32; 4]>,
+}
+
+fn vec4(v: Vec3) -> [f32; 4] {
+    v.extend(0.0).to_array()
+}
+
+fn pack(model: &Model, mg: &LatticeMultigrid, settings: &SolverSettings) -> Packed {
+    let nl = mg.levels.len().min(MAX_LEVELS);
+    let levels = &mg.levels[..nl];
+    let mut node_off = vec![0u32];
+    let mut elem_off = vec![0u32];
+    for lv in levels {
+        node_off.push(node_off.last().copied().unwrap_or(0) + lv.nodes as u32);
+        elem_off.push(elem_off.last().copied().unwrap_or(0) + lv.elements.len() as u32);
+    }
+    let n_total = node_off[nl];
+    // Stiffness blocks: each body's unit cube (64 blocks), then the coarse elements'.
+    let mut kmat: Vec<[f32; 4]> = Vec::new();
+    let mut unit_base = vec![0u32; model.bodies.len()];
+    for (b, blocks) in mg.unit_blocks.iter().enumerate() {
+        if let Some(k) = blocks {
+            unit_base[b] = (kmat.len() / 3) as u32;
+            for m in k {
+                kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
+            }
+        }
+    }
+    let mut elems = Vec::with_capacity(3 * elem_off[nl] as usize);
+    for (l, lv) in levels.iter().enumerate() {
+        for (e, el) in lv.elements.iter().enumerate() {
+            let c = el.map(|j| j + node_off[l]);
+            elems.push([c[0], c[1], c[2], c[3]]);
+            elems.push([c[4], c[5], c[6], c[7]]);
+            if l == 0 {
+                let r = &model.element_rest[e];
+                elems.push([
+                    unit_base[lv.body[e] as usize],
+                    lv.body[e],
+                    r.size.to_bits(),
+                    r.volume.to_bits(),
+                ]);
+            } else {
+                let base = (kmat.len() / 3) as u32;
+                for m in &lv.blocks[64 * e..64 * (e + 1)] {
+                    kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
+                }
+                elems.push([base, lv.body[e], 0, 0]);
+            }
+        }
+    }
+    // Topology: inverse element lists of every node, colour orders, prolongation,
+    // restriction and child lists, each with absolute offsets.
+    let mut topo: Vec<u32> = vec![0; n_total as usize + 1];
+    for (l, lv) in levels.iter().enumerate() {
+        for j in 0..lv.nodes {
+            topo[node_off[l] as usize + j] = topo.len() as u32;
+            for &ec in &lv.inv[lv.inv_start[j] as usize..lv.inv_start[j + 1] as usize] {
+                topo.push((((ec >> 3) + elem_off[l]) << 3) | (ec & 7));
+            }
+        }
+    }
+    topo[n_total as usize] = topo.len() as u32;
+    let order_base = topo.len() as u32;
+    let mut colours = Vec::with_capacity(nl);
+    for (l, lv) in levels.iter().enumerate() {
+        let at = topo.len() as u32;
+        topo.extend(lv.order.iter().map(|&j| j + node_off[l]));
+        colours.push(lv.colour_start.map(|c| at + c));
+    }
+    // Prolongation lists of the nodes of every level but the coarsest.
+    let fine_nodes = node_off[nl - 1] as usize;
+    let prol_base = topo.len() as u32;
+    topo.resize(topo.len() + fine_nodes + 1, 0);
+    let mut restr: Vec<Vec<(u32, f32)>> = vec![Vec::new(); (n_total - node_off[1]) as usize];
+    for (l, lv) in levels.iter().enumerate().take(nl - 1) {
+        for j in 0..lv.nodes {
+            let g = node_off[l] as usize + j;
+            topo[prol_base as usize + g] = topo.len() as u32;
+            for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
+                let c = lv.prolong_node[s] + node_off[l + 1];
+                let w = lv.prolong_weight[s];
+                topo.extend([c, w.to_bits()]);
+                restr[(c - node_off[1]) as usize].push((g as u32, w));
+            }
+        }
+    }
+    topo[prol_base as usize + fine_nodes] = topo.len() as u32;
+    let restr_base = topo.len() as u32;
+    topo.resize(topo.len() + restr.len() + 1, 0);
+    for (c, list) in restr.iter().enumerate() {
+        topo[restr_base as usize + c] = topo.len() as u32;
+        for &(f, w) in list {
+            topo.extend([f, w.to_bits()]);
+        }
+    }
+    topo[restr_base as usize + restr.len()] = topo.len() as u32;
+    // Children of every coarse element.
+    let coarse_elems = (elem_off[nl] - elem_off[1]) as usize;
+    let child_base = topo.len() as u32;
+    topo.resize(topo.len() + coarse_elems + 1, 0);
+    let mut c = 0usize;
+    for (l, lv) in levels.iter().enumerate().take(nl - 1) {
+        for k in 0..lv.child_start.len().saturating_sub(1) {
+            topo[child_base as usize + c] = topo.len() as u32;
+            for &e in &lv.child[lv.child_start[k] as usize..lv.child_start[k + 1] as usize] {
+                topo.push(e + elem_off[l]);
+            }
+            c += 1;
+        }
+    }
+    topo[child_base as usize + coarse_elems] = topo.len() as u32;
+    let mut nodes = Vec::with_capacity(n_total as usize);
+    for (l, lv) in levels.iter().enumerate() {
+        for j in 0..lv.nodes {
+            let reach = if l == 0 {
+                0.5 * model.bodies[model.particle_body[j] as usize].spacing
+            } else {
+                0.0
+            };
+            nodes.push([lv.mass[j], lv.fixed[j] as u32 as f32, reach, 0.0]);
+        }
+    }
+    let mut mats = Vec::new();
+    for m in &mg.material {
+        let mut rec = vec![[0.0f32; 4]; 100];
+        if let Some((mat, modes)) = m {
+            rec[0] = [mat.mu, mat.lambda, 0.0, 0.0];
+            for (i, k) in modes.stiffness.iter().enumerate() {
+                rec[1 + i / 4][i % 4] = *k;
+            }
+            for (m, v) in modes.vectors.iter().enumerate() {
+                for (q, g) in v.iter().enumerate() {
+                    rec[4 + m * 8 + q] = vec4(*g);
+                }
+            }
+        }
+        mats.extend(rec);
+    }
+    let h = settings.dt / settings.substeps as f32;
+    let mut lv = [[0u32; 4]; MAX_LEVELS];
+    for l in 0..nl {
+        lv[l] = [node_off[l], node_off[l + 1], elem_off[l], elem_off[l + 1]];
+    }
+    let params = Params {
+        gravity: vec4(settings.gravity),
+        h,
+        h2: h * h,
+        keep: (1.0 - settings.damping * h).max(0.0),
+        rot_iters: settings.rotation_iterations,
+        n: levels[0].nodes as u32,
+        ne: levels[0].elements.len() as u32,
+        levels: nl as u32,
+        n_total,
+        order_base,
+        prol_base,
+        restr_base,
+        child_base,
+        lv,
+    };
+    let shape = Shape {
+        levels: (0..nl)
+            .map(|l| {
+                [
+                    node_off[l],
+                    node_off[l + 1] - node_off[l],
+                    elem_off[l],
+                    elem_off[l + 1] - elem_off[l],
+                ]
+            })
+            .collect(),
+        colours,
+    };
+    Packed {
+        params,
+        shape,
+        elems,
+        kmat,
+        topo,
+        nodes,
+        mats,
+    }
+}
+
+/// The Newton iterations a substep of `settings` takes on lattice bodies (as the CPU
+/// solver: `newton_iterations` of the `iterations`, or all of them for 0).
+pub fn newton_count(settings: &SolverSettings) -> u32 {
+    if settings.newton_iterations == 0 {
+        settings.iterations
+    } else {
+        settings.newton_iterations.min(settings.iterations)
+    }
+}
+
+/// Lattice bodies stepped by Newton–multigrid on the GPU.
+pub struct GpuLattice {
+    n: u32,
+    ne: u32,
+    substeps: u32,
+    dispatches: Vec<Dispatch>,
+    pass_index: Vec<u32>,
+    groups: Vec<BindGroup>,
+    /// Positions, iterate, target, velocity and pin targets (5 regions of `n` vec4).
+    pos: Buffer,
+    /// Element rotations of every level (quaternions; level 0 first).
+    rot: Buffer,
+    params: Buffer,
+    _keep: Vec<Buffer>,
+}
+
+impl GpuLattice {
+    /// Uploads `model` (lattice bodies only, hyperelastic, pins allowed) in `state` with
+    /// `settings` (dt, substeps, iterations, Newton iterations, gravity, damping,
+    /// rotation iterations). Errors name what the GPU path does not run yet, or a model
+    /// without elements.
+    pub fn new(
+        device: &RenderDevice,
+        kernels: &LatticeKernels,
+        model: &Model,
+        state: &State,
+        settings: &SolverSettings,
+    ) -> Result<Self, TissueError> {
+        settings.validate()?;
+        if model.elements.is_empty() {
+            return Err(TissueError::InvalidParameter {
+                name: "model",
+                value: "no lattice elements".into(),
+                expected: "at least one body with Discretisation::Lattice",
+            });
+        }
+        for b in &model.bodies {
+            if b.discretisation != Discretisation::Lattice
+                || !matches!(b.material, Material::Hyperelastic { .. })
+            {
+                return Err(TissueError::InvalidParameter {
+                    name: "model",
+                    value: "a body that is not a hyperelastic lattice".into(),
+                    expected: "only hyperelastic lattice bodies on the GPU lattice solver",
+                });
+            }
+        }
+        let n = model.particle_count();
+        if state.x.len() != n || state.element_rot.len() != model.elements.len() {
+            return Err(TissueError::InvalidParameter {
+                name: "state",
+                value: format!("{} particles", state.x.len()),
+                expected: "a State made for this model",
+            });
+        }
+        let mg = LatticeMultigrid::new(model, 64, 8);
+        let packed = pack(model, &mg, settings);
+        let limit = device.limits().max_storage_buffer_binding_size;
+        let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
+        let make =
+            |label: &str, bytes: &[u8], usage: BufferUsages| -> Result<Buffer, TissueError> {
+                if bytes.len() as u64 > limit {
+                    return Err(TissueError::GpuUnsupported {
+                        what: "bytes per storage buffer binding",
+                        needed: bytes.len() as u64,
+                        limit,
+                    });
+                }
+                let mut data = bytes.to_vec();
+                data.resize(data.len().max(16), 0);
+                Ok(device.create_buffer_with_data(
+                    &bevy::render::render_resource::BufferInitDescriptor {
+                        label: Some(label),
+                        contents: &data,
+                        usage,
+                    },
+                ))
+            };
+        let nt = packed.params.n_total as usize;
+        let pos = make(
+            "tissue lattice pos",
+            bytemuck::cast_slice(&pos_regions(model, state)),
+            st,
+        )?;
+        let mut rots: Vec<[f32; 4]> = state.element_rot.iter().map(|q| q.to_array()).collect();
+        rots.resize(
+            packed.params.lv[packed.params.levels as usize - 1][3] as usize,
+            [0.0, 0.0, 0.0, 1.0],
+        );
+        let rot = make("tissue lattice rot", bytemuck::cast_slice(&rots), st)?;
+        let ef = make(
+            "tissue lattice forces",
+            &vec![0u8; model.elements.len() * 8 * 16],
+            st,
+        )?;
+        let vecs = make("tissue lattice vectors", &vec![0u8; nt * 4 * 16], st)?;
+        let nblk = make("tissue lattice blocks", &vec![0u8; nt * 6 * 16], st)?;
+        let partials = groups(packed.params.ne + packed.params.n) as usize;
+        let red = make(
+            "tissue lattice reductions",
+            &vec![0u8; (RED_BASE + RED_STRIDE * partials) * 4],
+            st,
+        )?;
+        let elems = make(
+            "tissue lattice elements",
+            bytemuck::cast_slice(&packed.elems),
+            st,
+        )?;
+        let kmat = make(
+            "tissue lattice stiffness",
+            bytemuck::cast_slice(&packed.kmat),
+            st,
+        )?;
+        let topo = make(
+            "tissue lattice topology",
+            bytemuck::cast_slice(&packed.topo),
+            st,
+        )?;
+        let nodes = make(
+            "tissue lattice nodes",
+            bytemuck::cast_slice(&packed.nodes),
+            st,
+        )?;
+        let mats = make(
+            "tissue lattice materials",
+            bytemuck::cast_slice(&packed.mats),
+            st,
+        )?;
+        let params = make(
+            "tissue lattice params",
+            bytemuck::bytes_of(&packed.params),
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        )?;
+        let dispatches = plan(&packed.shape, newton_count(settings));
+        let mut records: Vec<PassRecord> = Vec::new();
+        let mut pass_index = Vec::with_capacity(dispatches.len());
+        for d in &dispatches {
+            let i = match records.iter().position(|r| *r == d.pass) {
+                Some(i) => i,
+                None => {
+                    records.push(d.pass);
+                    records.len() - 1
+                }
+            };
+            pass_index.push(i as u32);
+        }
+        let mut pass_bytes = vec![0u8; records.len().max(1) * PASS_STRIDE as usize];
+        for (i, r) in records.iter().enumerate() {
+            let at = i * PASS_STRIDE as usize;
+            pass_bytes[at..at + 16].copy_from_slice(bytemuck::bytes_of(r));
+        }
+        let passes = make(
+            "tissue lattice passes",
+            &pass_bytes,
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        )?;
+        let by_name = |name: &str| -> &Buffer {
+            match name {
+                "params" => &params,
+                "pc" => &passes,
+                "pos" => &pos,
+                "rot" => &rot,
+                "ef" => &ef,
+                "vecs" => &vecs,
+                "nblk" => &nblk,
+                "red" => &red,
+                "elems" => &elems,
+                "kmat" => &kmat,
+                "topo" => &topo,
+                "nodes" => &nodes,
+                _ => &mats,
+            }
+        };
+        let mut bind_groups = Vec::new();
+        for (entry, (_, layout)) in super::kernels::lattice::ENTRIES
+            .iter()
+            .zip(&kernels.pipelines)
+        {
+            let mut entries = Vec::new();
+            for name in entry.uses {
+                let Some(b) = super::kernels::lattice::slot(name) else {
+                    continue;
+                };
+                let size = (SLOTS[b as usize].name == "pc")
+                    .then(|| std::num::NonZeroU64::new(16))
+                    .flatten();
+                entries.push(BindGroupEntry {
+                    binding: b,
+                    resource: BindingResource::Buffer(BufferBinding {
+                        buffer: by_name(name),
+                        offset: 0,
+                        size,
+                    }),
+                });
+            }
+            bind_groups.push(device.create_bind_group(entry.name, layout, &entries));
+        }
+        Ok(Self {
+            n: n as u32,
+            ne: model.elements.len() as u32,
+            substeps: settings.substeps,
+            dispatches,
+            pass_index,
+            groups: bind_groups,
+            pos,
+            rot,
+            params,
+            _keep: vec![ef, vecs, nblk, red, elems, kmat, topo, nodes, mats, passes],
+        })
+    }
+
+    /// Dispatches of one time step.
+    pub fn dispatch_count(&self) -> usize {
+        self.dispatches.len() * self.substeps as usize
+    }
+
+    /// The buffer of positions and velocities (`n` vec4 each of positions, iterate,
+    /// inertial target, velocity, pin target).
+    pub fn pos_buffer(&self) -> &Buffer {
+        &self.pos
+    }
+
+    /// The parameter block (uniform).
+    pub fn params_buffer(&self) -> &Buffer {
+        &self.params
+    }
+
+    /// Records `steps` time steps into `encoder`, in one compute pass (with GPU
+    /// timestamps at its ends when `timestamps` is given).
+    pub fn record(
+        &self,
+        encoder: &mut CommandEncoder,
+        kernels: &LatticeKernels,
+        steps: u32,
+        timestamps: Option<(&wgpu::QuerySet, u32)>,
+    ) {
+        let timestamp_writes = timestamps.map(|(qs, i)| wgpu::ComputePassTimestampWrites {
+            query_set: qs,
+            beginning_of_pass_write_index: Some(i),
+            end_of_pass_write_index: Some(i + 1),
+        });
+        let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
+            label: Some("tissue lattice"),
+            timestamp_writes,
+        });
+        for _ in 0..steps * self.substeps {
+            for (d, &pi) in self.dispatches.iter().zip(&self.pass_index) {
+                let k = LatticeKernels::index(d.kernel);
+                pass.set_pipeline(&kernels.pipelines[k].0);
+                let uses_pc = super::kernels::lattice::ENTRIES[k].uses.contains(&"pc");
+                let offsets: &[u32] = if uses_pc {
+                    &[pi * PASS_STRIDE as u32]
+                } else {
+                    &[]
+                };
+                pass.set_bind_group(0, &self.groups[k], offsets);
+                pass.dispatch_workgroups(d.groups, 1, 1);
+            }
+        }
+    }
+
+    /// Writes `state`'s positions, velocities, pin targets and element rotations.
+    pub fn upload(&self, queue: &RenderQueue, model: &Model, state: &State) {
+        queue.write_buffer(
+            &self.pos,
+            0,
+            bytemuck::cast_slice(&pos_regions(model, state)),
+        );
+        let rots: Vec<[f32; 4]> = state.element_rot.iter().map(|q| q.to_array()).collect();
+        queue.write_buffer(&self.rot, 0, bytemuck::cast_slice(&rots));
+    }
+
+    /// Blocking read of positions, velocities and level-0 element rotations into `state`.
+    pub fn download(&self, device: &RenderDevice, queue: &RenderQueue, state: &mut State) {
+        let n = self.n as u64;
+        let read = |off: u64, count: u64, buf: &Buffer| -> Vec<[f32; 4]> {
+            let bytes = super::world::read_buffer(device, queue, buf, off * 16, count * 16);
+            bytemuck::cast_slice(&bytes).to_vec()
+        };
+        let x = read(0, n, &self.pos);
+        let v = read(3 * n, n, &self.pos);
+        let r = read(0, self.ne as u64, &self.rot);
+        for (i, (a, b)) in x.iter().zip(&v).enumerate() {
+            state.x[i] = Vec3::new(a[0], a[1], a[2]);
+            state.v[i] = Vec3::new(b[0], b[1], b[2]);
+        }
+        for (e, q) in r.iter().enumerate() {
+            state.element_rot[e] = Quat::from_array(*q);
+        }
+        state.step += 1;
+    }
+}
+
+/// The `pos` buffer's regions for `state`: x, (iterate), (target), v, pin targets
+/// (w = 1 on pinned particles).
+fn pos_regions(model: &Model, state: &State) -> Vec<[f32; 4]> {
+    let n = state.x.len();
+    let mut out = vec![[0.0f32; 4]; 5 * n];
+    for i in 0..n {
+        out[i] = vec4(state.x[i]);
+        out[3 * n + i] = vec4(state.v[i]);
+    }
+    for (slot, &i) in model.pinned.iter().enumerate() {
+        let t = state
+            .pin_targets
+            .get(slot)
+            .copied()
+            .unwrap_or(state.x[i as usize]);
+        out[4 * n + i as usize] = t.extend(1.0).to_array();
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shape() -> Shape {
+        Shape {
+            levels: vec![[0, 100, 0, 60], [100, 20, 60, 8], [120, 8, 68, 1]],
+            colours: vec![
+                [0, 13, 26, 39, 52, 65, 78, 91, 100],
+                [100, 103, 106, 109, 112, 115, 118, 118, 120],
+                [120, 121, 122, 123, 124, 125, 126, 127, 128],
+            ],
+        }
+    }
+
+    /// The plan visits every level once per V-cycle, smooths each colour the configured
+    /// number of times, skips empty colours, and its reductions read as many partial
+    /// sums as the dispatch before them wrote.
+    #[test]
+    fn plan_is_a_v_cycle_per_newton_iteration() {
+        let s = shape();
+        let p = plan(&s, 2);
+        let count = |k: Kernel| p.iter().filter(|d| d.kernel == k).count();
+        assert_eq!(count(Kernel::Predict), 1);
+        assert_eq!(count(Kernel::Finish), 1);
+        assert_eq!(count(Kernel::Forces), 2);
+        assert_eq!(count(Kernel::Restrict), 2 * 2);
+        assert_eq!(count(Kernel::Prolong), 2 * 2);
+        // Level 1 has an empty colour (7): 7 colours × 4 sweeps; level 0: 8 × 4;
+        // coarsest: 8 × 30.
+        assert_eq!(count(Kernel::Smooth), 2 * (8 * 4 + 7 * 4 + 8 * 30));
+        // One energy pass for the first iterate, one per line search.
+        assert_eq!(count(Kernel::Energy), 3);
+        for (i, d) in p.iter().enumerate() {
+            if d.kernel == Kernel::Pick {
+                assert_eq!(d.groups, 1);
+                assert_eq!(
+                    d.pass.count,
+                    p[i - 1].groups,
+                    "pick after {:?}",
+                    p[i - 1].kernel
+                );
+            }
+            assert!(d.groups > 0);
+        }
+    }
+}
