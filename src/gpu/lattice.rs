@@ -33,6 +33,8 @@ const MAX_LEVELS: usize = 8;
 const RED_BASE: usize = 16;
 /// Floats per workgroup's partial sums.
 const RED_STRIDE: usize = 16;
+/// Most workgroups of a reduction (see [`reduction_groups`]).
+const MAX_PARTIALS: u32 = 1024;
 /// Gauss–Seidel sweeps before and after the coarse correction, and on the coarsest
 /// level (as the CPU solver's V-cycle).
 const SWEEPS: (u32, u32, u32) = (2, 2, 30);
@@ -54,6 +56,8 @@ struct Params {
     restr_base: u32,
     child_base: u32,
     lv: [[u32; 4]; MAX_LEVELS],
+    sweeps: [u32; 4],
+    colours: [[u32; 4]; 18],
 }
 
 /// One dispatch's range and mode (`Pass` in `lattice.wgsl`).
@@ -89,10 +93,23 @@ pub struct Shape {
     /// Per level: where each colour starts in the concatenated colour order (absolute
     /// position in the topology buffer) and ends.
     pub colours: Vec<[u32; COLOURS + 1]>,
+    /// The level from which the rest of the V-cycle runs in one workgroup (one dispatch),
+    /// if its levels are small enough.
+    pub fold: Option<usize>,
 }
+
+/// Most nodes the levels below [`Shape::fold`] may have together: one workgroup of 256
+/// threads cycles through them.
+pub const FOLD_NODES: u32 = 4096;
 
 fn groups(count: u32) -> u32 {
     count.div_ceil(WORKGROUP)
+}
+
+/// Workgroups of a reduction over `count` items (each thread strides over several when
+/// there are many, so that the single-workgroup sum after it reads few partials).
+fn reduction_groups(count: u32) -> u32 {
+    groups(count).min(MAX_PARTIALS)
 }
 
 /// The dispatches of one substep with `newton` Newton iterations.
@@ -116,7 +133,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
     push(Kernel::Predict, 0, n, 0, 0, groups(n));
     for it in 0..newton {
         if it == 0 {
-            let g = groups(ne + n);
+            let g = reduction_groups(ne + n);
             push(Kernel::Energy, 0, ne + n, 0, 0, g);
             push(Kernel::Pick, 0, g, 0, 0, 1);
             push(Kernel::Advance, 0, n, 0, 0, groups(n));
@@ -130,9 +147,9 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
             push(Kernel::Diag, lv[0], lv[1], l as u32, 0, groups(lv[1]));
         }
         vcycle(shape, 0, &mut push);
-        push(Kernel::Trust, 0, n, 0, 0, groups(n));
-        push(Kernel::Pick, 0, groups(n), 0, 2, 1);
-        let g = groups(ne + n);
+        push(Kernel::Trust, 0, n, 0, 0, reduction_groups(n));
+        push(Kernel::Pick, 0, reduction_groups(n), 0, 2, 1);
+        let g = reduction_groups(ne + n);
         push(Kernel::Energy, 0, ne + n, 0, 1, g);
         push(Kernel::Pick, 0, g, 0, 1, 1);
         push(Kernel::Advance, 0, n, 0, 1, groups(n));
@@ -158,6 +175,10 @@ fn sweeps(
 
 fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
     let (pre, post, coarsest) = SWEEPS;
+    if shape.fold == Some(l) {
+        push(Kernel::CoarseCycle, 0, 0, l as u32, 0, 1);
+        return;
+    }
     if l + 1 == shape.levels.len() {
         sweeps(shape, l, coarsest, push);
         return;
@@ -170,8 +191,15 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     push(Kernel::Restrict, cv[0], cv[1], ll + 1, 0, groups(cv[1]));
     vcycle(shape, l + 1, push);
     push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
-    push(Kernel::AlphaTerms, lv[0], lv[1], ll, 0, groups(lv[1]));
-    push(Kernel::Pick, 0, groups(lv[1]), ll, 3, 1);
+    push(
+        Kernel::AlphaTerms,
+        lv[0],
+        lv[1],
+        ll,
+        0,
+        reduction_groups(lv[1]),
+    );
+    push(Kernel::Pick, 0, reduction_groups(lv[1]), ll, 3, 1);
     push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
     sweeps(shape, l, post, push);
 }
@@ -191,7 +219,12 @@ fn vec4(v: Vec3) -> [f32; 4] {
     v.extend(0.0).to_array()
 }
 
-fn pack(model: &Model, mg: &LatticeMultigrid, settings: &SolverSettings) -> Packed {
+fn pack(
+    model: &Model,
+    mg: &LatticeMultigrid,
+    settings: &SolverSettings,
+    fold_nodes: u32,
+) -> Packed {
     let nl = mg.levels.len().min(MAX_LEVELS);
     let levels = &mg.levels[..nl];
     let mut node_off = vec![0u32];
@@ -328,6 +361,13 @@ fn pack(model: &Model, mg: &LatticeMultigrid, settings: &SolverSettings) -> Pack
     for l in 0..nl {
         lv[l] = [node_off[l], node_off[l + 1], elem_off[l], elem_off[l + 1]];
     }
+    let mut colour_table = [[0u32; 4]; 18];
+    for (l, c) in colours.iter().enumerate() {
+        for (k, &v) in c.iter().enumerate() {
+            let i = l * (COLOURS + 1) + k;
+            colour_table[i / 4][i % 4] = v;
+        }
+    }
     let params = Params {
         gravity: vec4(settings.gravity),
         h,
@@ -343,6 +383,8 @@ fn pack(model: &Model, mg: &LatticeMultigrid, settings: &SolverSettings) -> Pack
         restr_base,
         child_base,
         lv,
+        sweeps: [SWEEPS.0, SWEEPS.1, SWEEPS.2, 0],
+        colours: colour_table,
     };
     let shape = Shape {
         levels: (0..nl)
@@ -355,6 +397,7 @@ fn pack(model: &Model, mg: &LatticeMultigrid, settings: &SolverSettings) -> Pack
                 ]
             })
             .collect(),
+        fold: (0..nl).find(|&l| node_off[nl] - node_off[l] <= fold_nodes),
         colours,
     };
     Packed {
@@ -406,6 +449,20 @@ impl GpuLattice {
         state: &State,
         settings: &SolverSettings,
     ) -> Result<Self, TissueError> {
+        Self::new_with(device, kernels, model, state, settings, FOLD_NODES)
+    }
+
+    /// [`GpuLattice::new`] with the coarse levels cycled in one workgroup from the first
+    /// level at which at most `fold_nodes` nodes remain (0: never; every level's
+    /// smoothing then dispatches per colour and sweep).
+    pub fn new_with(
+        device: &RenderDevice,
+        kernels: &LatticeKernels,
+        model: &Model,
+        state: &State,
+        settings: &SolverSettings,
+        fold_nodes: u32,
+    ) -> Result<Self, TissueError> {
         settings.validate()?;
         if model.elements.is_empty() {
             return Err(TissueError::InvalidParameter {
@@ -434,7 +491,7 @@ impl GpuLattice {
             });
         }
         let mg = LatticeMultigrid::new(model, 64, 8);
-        let packed = pack(model, &mg, settings);
+        let packed = pack(model, &mg, settings, fold_nodes);
         let limit = device.limits().max_storage_buffer_binding_size;
         let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
         let make =
@@ -475,7 +532,7 @@ impl GpuLattice {
         )?;
         let vecs = make("tissue lattice vectors", &vec![0u8; nt * 4 * 16], st)?;
         let nblk = make("tissue lattice blocks", &vec![0u8; nt * 6 * 16], st)?;
-        let partials = groups(packed.params.ne + packed.params.n) as usize;
+        let partials = reduction_groups(packed.params.ne + packed.params.n) as usize;
         let red = make(
             "tissue lattice reductions",
             &vec![0u8; (RED_BASE + RED_STRIDE * partials) * 4],
@@ -639,6 +696,58 @@ impl GpuLattice {
         }
     }
 
+    /// Records `steps` time steps with each dispatch in its own compute pass, timed by
+    /// `rec` under the kernel's name (smoothing per level: "smooth_colour L0", ...): for
+    /// profiling (separate passes add their own cost).
+    pub fn record_profiled(
+        &self,
+        encoder: &mut CommandEncoder,
+        kernels: &LatticeKernels,
+        steps: u32,
+        rec: &mut dyn super::world::PassRecorder,
+    ) {
+        const SMOOTH: [&str; 8] = [
+            "smooth_colour L0",
+            "smooth_colour L1",
+            "smooth_colour L2",
+            "smooth_colour L3",
+            "smooth_colour L4",
+            "smooth_colour L5",
+            "smooth_colour L6",
+            "smooth_colour L7",
+        ];
+        for _ in 0..steps * self.substeps {
+            for (d, &pi) in self.dispatches.iter().zip(&self.pass_index) {
+                let k = LatticeKernels::index(d.kernel);
+                let entry = &super::kernels::lattice::ENTRIES[k];
+                let name = if d.kernel == Kernel::Smooth {
+                    SMOOTH[(d.pass.level as usize).min(7)]
+                } else {
+                    entry.name
+                };
+                let ts = rec.timestamps(name);
+                let timestamp_writes =
+                    ts.as_ref().map(|(qs, i)| wgpu::ComputePassTimestampWrites {
+                        query_set: qs,
+                        beginning_of_pass_write_index: Some(*i),
+                        end_of_pass_write_index: Some(*i + 1),
+                    });
+                let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
+                    label: Some(name),
+                    timestamp_writes,
+                });
+                pass.set_pipeline(&kernels.pipelines[k].0);
+                let offsets: &[u32] = if entry.uses.contains(&"pc") {
+                    &[pi * PASS_STRIDE as u32]
+                } else {
+                    &[]
+                };
+                pass.set_bind_group(0, &self.groups[k], offsets);
+                pass.dispatch_workgroups(d.groups, 1, 1);
+            }
+        }
+    }
+
     /// Writes `state`'s positions, velocities, pin targets and element rotations.
     pub fn upload(&self, queue: &RenderQueue, model: &Model, state: &State) {
         queue.write_buffer(
@@ -703,7 +812,45 @@ mod tests {
                 [100, 103, 106, 109, 112, 115, 118, 118, 120],
                 [120, 121, 122, 123, 124, 125, 126, 127, 128],
             ],
+            fold: None,
         }
+    }
+
+    /// With the coarse levels folded into one workgroup, level 1 and below are one
+    /// dispatch per V-cycle; level 0's smoothing and transfers stay.
+    #[test]
+    fn a_folded_plan_cycles_the_coarse_levels_in_one_dispatch() {
+        let s = Shape {
+            fold: Some(1),
+            ..shape()
+        };
+        let p = plan(&s, 2);
+        let count = |k: Kernel| p.iter().filter(|d| d.kernel == k).count();
+        assert_eq!(count(Kernel::CoarseCycle), 2);
+        assert_eq!(count(Kernel::Smooth), 2 * 8 * 4);
+        assert_eq!(count(Kernel::Restrict), 2);
+        assert!(
+            p.iter()
+                .all(|d| d.kernel != Kernel::Smooth || d.pass.level == 0)
+        );
+        let whole = plan(
+            &Shape {
+                fold: Some(0),
+                ..shape()
+            },
+            1,
+        );
+        assert_eq!(
+            whole
+                .iter()
+                .filter(|d| d.kernel == Kernel::CoarseCycle)
+                .count(),
+            1
+        );
+        assert_eq!(
+            whole.iter().filter(|d| d.kernel == Kernel::Smooth).count(),
+            0
+        );
     }
 
     /// The plan visits every level once per V-cycle, smooths each colour the configured

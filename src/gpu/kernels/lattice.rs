@@ -6,7 +6,7 @@
 //! prepended. [`SLOTS`] is the one binding table of these kernels: each kernel's layout
 //! and bind group hold only the slots its entry point uses ([`ENTRIES`]), so every
 //! pipeline fits WebGPU's guaranteed limits (at most 8 storage buffers per stage, one
-//! bind group, 64 invocations and 4 KiB of workgroup memory per workgroup).
+//! bind group, at most 256 invocations and 4 KiB of workgroup memory per workgroup).
 
 use crate::core::TissueError;
 use bevy::render::render_resource::{
@@ -132,6 +132,7 @@ pub enum Kernel {
     Correct,
     Trust,
     Finish,
+    CoarseCycle,
 }
 
 /// One entry point and the slots it uses.
@@ -237,9 +238,16 @@ pub const ENTRIES: &[Entry] = &[
         name: "finish",
         uses: &["params", "pos"],
     },
+    Entry {
+        kernel: Kernel::CoarseCycle,
+        name: "coarse_cycle",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
 ];
 
-/// Threads per workgroup of every lattice kernel.
+/// Threads per workgroup of every lattice kernel but the coarse cycle's.
 pub const WORKGROUP: u32 = 64;
 
 /// The slot index (binding number) of `name`.

@@ -48,6 +48,10 @@ struct LatticeParams {
     restr_base: u32,         // start of the restriction lists in `topo`
     child_base: u32,         // start of the child element lists in `topo`
     lv: array<vec4<u32>, 8>, // per level: first node, end node, first element, end element
+    sweeps: vec4<u32>,       // Gauss–Seidel sweeps: before and after the coarse
+                             // correction, on the coarsest level
+    colours: array<vec4<u32>, 18>, // per level, where its 8 colours start in `topo` and
+                             // where the last ends (9 entries a level)
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -200,60 +204,59 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
 // per candidate and workgroup: elements first, then the nodes' inertia.
 @compute @workgroup_size(64)
 fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-          @builtin(workgroup_id) wg: vec3<u32>) {
+          @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let mode = pc.mode;
     let kc = candidates(mode);
-    for (var k = 0u; k < 16u; k = k + 1u) {
-        wsum[lid][k] = 0.0;
-    }
-    let i = gid.x;
-    if (i < params.ne) {
-        let e = i;
-        let y = load_x(e, R_Y);
-        var d: array<vec3<f32>, 8>;
-        for (var k = 0u; k < 8u; k = k + 1u) {
-            d[k] = direction(corner(e, k), mode);
-            if (held(corner(e, k))) {
-                d[k] = vec3<f32>(0.0);
+    var acc: array<f32, 16>;
+    for (var i = gid.x; i < params.ne + params.n; i = i + nwg.x * LWG) {
+        if (i < params.ne) {
+            let e = i;
+            let y = load_x(e, R_Y);
+            var d: array<vec3<f32>, 8>;
+            for (var k = 0u; k < 8u; k = k + 1u) {
+                d[k] = direction(corner(e, k), mode);
+                if (held(corner(e, k))) {
+                    d[k] = vec3<f32>(0.0);
+                }
             }
-        }
-        let size = bitcast<f32>(elems[3u * e + 2u].z);
-        let q0 = rot[e];
-        var base = 0.0;
-        for (var k = 0u; k < kc; k = k + 1u) {
-            let a = candidate(k, mode);
-            var xc: array<vec3<f32>, 8>;
-            for (var c = 0u; c < 8u; c = c + 1u) {
-                xc[c] = y[c] + d[c] * a;
+            let size = bitcast<f32>(elems[3u * e + 2u].z);
+            let q0 = rot[e];
+            var base = 0.0;
+            if (mode == 1u) {
+                base = element_energy(e, y, quat_mat(q0));
             }
-            var q = q0;
-            if (mode == 0u) {
-                q = extract_rotation(element_gradient(xc, size), q0, params.rot_iters);
-            }
-            let g = element_energy(e, xc, quat_mat(q));
-            if (k == 0u && mode == 0u) {
-                base = g;
-            }
-            wsum[lid][k] = g - base;
-        }
-        if (mode == 1u) {
-            let g0 = element_energy(e, y, quat_mat(q0));
-            for (var k = 0u; k < kc; k = k + 1u) {
-                wsum[lid][k] = wsum[lid][k] - g0;
-            }
-        }
-    } else if (i < params.ne + params.n) {
-        let j = i - params.ne;
-        if (!held(j)) {
-            let n = params.n;
-            let d = direction(j, mode);
-            let u = pos[R_Y * n + j].xyz - pos[R_T * n + j].xyz;
-            let w = 0.5 * nodes[j].x / params.h2;
             for (var k = 0u; k < kc; k = k + 1u) {
                 let a = candidate(k, mode);
-                wsum[lid][k] = w * a * (2.0 * dot(d, u) + a * dot(d, d));
+                var xc: array<vec3<f32>, 8>;
+                for (var c = 0u; c < 8u; c = c + 1u) {
+                    xc[c] = y[c] + d[c] * a;
+                }
+                var q = q0;
+                if (mode == 0u) {
+                    q = extract_rotation(element_gradient(xc, size), q0, params.rot_iters);
+                }
+                let g = element_energy(e, xc, quat_mat(q));
+                if (k == 0u && mode == 0u) {
+                    base = g;
+                }
+                acc[k] = acc[k] + (g - base);
+            }
+        } else {
+            let j = i - params.ne;
+            if (!held(j)) {
+                let n = params.n;
+                let d = direction(j, mode);
+                let u = pos[R_Y * n + j].xyz - pos[R_T * n + j].xyz;
+                let w = 0.5 * nodes[j].x / params.h2;
+                for (var k = 0u; k < kc; k = k + 1u) {
+                    let a = candidate(k, mode);
+                    acc[k] = acc[k] + w * a * (2.0 * dot(d, u) + a * dot(d, d));
+                }
             }
         }
+    }
+    for (var k = 0u; k < 16u; k = k + 1u) {
+        wsum[lid][k] = acc[k];
     }
     reduce_partials(lid, wg.x, kc);
 }
@@ -266,20 +269,23 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
 @compute @workgroup_size(64)
 fn pick(@builtin(local_invocation_index) lid: u32) {
     let mode = pc.mode;
-    for (var k = 0u; k < 16u; k = k + 1u) {
-        var s = 0.0;
-        if (mode == 2u && k == 0u) {
-            s = 1.0;
-        }
-        for (var w = lid; w < pc.count; w = w + LWG) {
-            let v = red[RED_BASE + w * RED_STRIDE + k];
+    var acc: array<f32, 16>;
+    if (mode == 2u) {
+        acc[0] = 1.0;
+    }
+    for (var w = lid; w < pc.count; w = w + LWG) {
+        let o = RED_BASE + w * RED_STRIDE;
+        for (var k = 0u; k < 16u; k = k + 1u) {
+            let v = red[o + k];
             if (mode == 2u && k == 0u) {
-                s = min(s, v);
+                acc[0] = min(acc[0], v);
             } else {
-                s = s + v;
+                acc[k] = acc[k] + v;
             }
         }
-        wsum[lid][k] = s;
+    }
+    for (var k = 0u; k < 16u; k = k + 1u) {
+        wsum[lid][k] = acc[k];
     }
     for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
         workgroupBarrier();
@@ -318,13 +324,7 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
     } else if (mode == 2u) {
         red[S_ALPHA_MAX] = select(wsum[0][0], 0.0, wsum[0][1] > 0.0);
     } else {
-        let num = wsum[0][0];
-        let den = wsum[0][1];
-        var a = 0.0;
-        if (den > 0.0 && num > 0.0) {
-            a = num / den;
-        }
-        red[S_MG_ALPHA + pc.level] = select(0.0, a, is_finite_f(a));
+        red[S_MG_ALPHA + pc.level] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
     }
 }
 
@@ -505,13 +505,8 @@ fn diag(@builtin(global_invocation_id) gid: vec3<u32>) {
     nblk[3u * j + 2u] = vec4<f32>(inv[2], 0.0);
 }
 
-// One colour of a Gauss–Seidel sweep: the nodes topo[pc.first ..][.. pc.count].
-@compute @workgroup_size(64)
-fn smooth_colour(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
-        return;
-    }
-    let j = topo[pc.first + gid.x];
+// Gauss–Seidel update of node j: δ_j += D_j⁻¹ (rhs_j − (A δ)_j) (held nodes stay).
+fn smooth_node(j: u32) {
     if (held(j)) {
         return;
     }
@@ -522,13 +517,8 @@ fn smooth_colour(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * r, 0.0);
 }
 
-// The residual rhs − A δ of level pc.level's nodes (0 on fixed ones).
-@compute @workgroup_size(64)
-fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
-        return;
-    }
-    let j = pc.first + gid.x;
+// The residual rhs − A δ of node j (0 on held nodes).
+fn fine_residual_node(j: u32) {
     var r = vec3<f32>(0.0);
     if (!held(j)) {
         r = vecs[V_RHS * params.n_total + j].xyz - apply_row(j, V_DELTA);
@@ -536,14 +526,8 @@ fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
 }
 
-// The next coarser level's right-hand side Pᵀ r (0 on fixed nodes) and a zero
-// correction, for its nodes pc.first ..
-@compute @workgroup_size(64)
-fn restrict_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
-        return;
-    }
-    let j = pc.first + gid.x;
+// Coarse node j's right-hand side (Pᵀ r)_j (0 on held nodes) and a zero correction.
+fn restrict_node(j: u32) {
     let c = params.restr_base + j - params.lv[1].x;
     var r = vec3<f32>(0.0);
     for (var s = topo[c]; s < topo[c + 1u]; s = s + 2u) {
@@ -556,13 +540,8 @@ fn restrict_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[V_DELTA * params.n_total + j] = vec4<f32>(0.0);
 }
 
-// The coarse correction prolongated to level pc.level's nodes, e = P δ_c.
-@compute @workgroup_size(64)
-fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
-        return;
-    }
-    let j = pc.first + gid.x;
+// The coarse correction prolongated to node j, e_j = (P δ_c)_j.
+fn prolong_node(j: u32) {
     var e = vec3<f32>(0.0);
     if (!held(j)) {
         let c = params.prol_base + j;
@@ -573,52 +552,176 @@ fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[V_PE * params.n_total + j] = vec4<f32>(e, 0.0);
 }
 
+// Node j's terms of eᵀ r and eᵀ A e.
+fn alpha_node(j: u32) -> vec2<f32> {
+    if (held(j)) {
+        return vec2<f32>(0.0);
+    }
+    let e = vecs[V_PE * params.n_total + j].xyz;
+    return vec2<f32>(dot(vecs[V_RES * params.n_total + j].xyz, e), dot(apply_row(j, V_PE), e));
+}
+
+// δ_j += α e_j.
+fn correct_node(j: u32, a: f32) {
+    let dj = V_DELTA * params.n_total + j;
+    vecs[dj] = vec4<f32>(vecs[dj].xyz + vecs[V_PE * params.n_total + j].xyz * a, 0.0);
+}
+
+// The coarse correction's step: eᵀ r / eᵀ A e where both are positive, else 0.
+fn correction_step(t: vec2<f32>) -> f32 {
+    var a = 0.0;
+    if (t.y > 0.0 && t.x > 0.0) {
+        a = t.x / t.y;
+    }
+    return select(0.0, a, is_finite_f(a));
+}
+
+// One colour of a Gauss–Seidel sweep: the nodes topo[pc.first ..][.. pc.count].
+@compute @workgroup_size(64)
+fn smooth_colour(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x < pc.count) {
+        smooth_node(topo[pc.first + gid.x]);
+    }
+}
+
+// The residual rhs − A δ of level pc.level's nodes (0 on fixed ones).
+@compute @workgroup_size(64)
+fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x < pc.count) {
+        fine_residual_node(pc.first + gid.x);
+    }
+}
+
+// The next coarser level's right-hand side Pᵀ r (0 on fixed nodes) and a zero
+// correction, for its nodes pc.first ..
+@compute @workgroup_size(64)
+fn restrict_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x < pc.count) {
+        restrict_node(pc.first + gid.x);
+    }
+}
+
+// The coarse correction prolongated to level pc.level's nodes, e = P δ_c.
+@compute @workgroup_size(64)
+fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x < pc.count) {
+        prolong_node(pc.first + gid.x);
+    }
+}
+
+// Colour c of level l: its range in `topo` (absolute).
+fn colour_range(l: u32, c: u32) -> vec2<u32> {
+    let i = l * 9u + c;
+    return vec2<u32>(params.colours[i / 4u][i % 4u], params.colours[(i + 1u) / 4u][(i + 1u) % 4u]);
+}
+
+const CWG: u32 = 256u;
+var<workgroup> csum: array<vec2<f32>, 256>;
+
+fn cycle_sweeps(l: u32, count: u32, lid: u32) {
+    for (var s = 0u; s < count; s = s + 1u) {
+        for (var c = 0u; c < 8u; c = c + 1u) {
+            let r = colour_range(l, c);
+            for (var i = r.x + lid; i < r.y; i = i + CWG) {
+                smooth_node(topo[i]);
+            }
+            storageBarrier();
+        }
+    }
+}
+
+// The V-cycle from level pc.level down to the coarsest in one workgroup (the coarse
+// levels are small: one dispatch instead of one per colour and sweep). The same
+// operations in the same order as the dispatches it replaces.
+@compute @workgroup_size(256)
+fn coarse_cycle(@builtin(local_invocation_index) lid: u32) {
+    let top = pc.level;
+    let last = params.levels - 1u;
+    for (var l = top; l < last; l = l + 1u) {
+        cycle_sweeps(l, params.sweeps.x, lid);
+        let lv = params.lv[l];
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+            fine_residual_node(j);
+        }
+        storageBarrier();
+        let cv = params.lv[l + 1u];
+        for (var j = cv.x + lid; j < cv.y; j = j + CWG) {
+            restrict_node(j);
+        }
+        storageBarrier();
+    }
+    cycle_sweeps(last, params.sweeps.z, lid);
+    for (var l = last; l > top; l = l - 1u) {
+        let lv = params.lv[l - 1u];
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+            prolong_node(j);
+        }
+        storageBarrier();
+        var t = vec2<f32>(0.0);
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+            t = t + alpha_node(j);
+        }
+        csum[lid] = t;
+        for (var stride = CWG / 2u; stride > 0u; stride = stride / 2u) {
+            workgroupBarrier();
+            if (lid < stride) {
+                csum[lid] = csum[lid] + csum[lid + stride];
+            }
+        }
+        workgroupBarrier();
+        let a = correction_step(csum[0]);
+        workgroupBarrier();
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+            correct_node(j, a);
+        }
+        storageBarrier();
+        cycle_sweeps(l - 1u, params.sweeps.y, lid);
+    }
+}
+
 // Partial sums of eᵀ r and eᵀ A e over level pc.level's nodes (the coarse
 // correction's energy-minimising step).
 @compute @workgroup_size(64)
 fn alpha_terms(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-               @builtin(workgroup_id) wg: vec3<u32>) {
-    wsum[lid][0] = 0.0;
-    wsum[lid][1] = 0.0;
-    if (gid.x < pc.count) {
-        let j = pc.first + gid.x;
-        if (!held(j)) {
-            let e = vecs[V_PE * params.n_total + j].xyz;
-            wsum[lid][0] = dot(vecs[V_RES * params.n_total + j].xyz, e);
-            wsum[lid][1] = dot(apply_row(j, V_PE), e);
-        }
+               @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    var num = 0.0;
+    var den = 0.0;
+    for (var i = gid.x; i < pc.count; i = i + nwg.x * LWG) {
+        let t = alpha_node(pc.first + i);
+        num = num + t.x;
+        den = den + t.y;
     }
+    wsum[lid][0] = num;
+    wsum[lid][1] = den;
     reduce_partials(lid, wg.x, 2u);
 }
 
 // δ += α e on level pc.level.
 @compute @workgroup_size(64)
 fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
-        return;
+    if (gid.x < pc.count) {
+        correct_node(pc.first + gid.x, red[S_MG_ALPHA + pc.level]);
     }
-    let j = pc.first + gid.x;
-    let a = red[S_MG_ALPHA + pc.level];
-    let dj = V_DELTA * params.n_total + j;
-    vecs[dj] = vec4<f32>(vecs[dj].xyz + vecs[V_PE * params.n_total + j].xyz * a, 0.0);
 }
 
 // Partial minima of reach / |δ| over the free nodes (the trust region: no node moves
 // more than half its lattice spacing per iteration) and whether any δ is not finite.
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-         @builtin(workgroup_id) wg: vec3<u32>) {
+         @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     var bound = 1.0;
     var bad = 0.0;
-    let j = gid.x;
-    if (j < params.n && !held(j)) {
+    for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
+        if (held(j)) {
+            continue;
+        }
         let d = vecs[V_DELTA * params.n_total + j].xyz;
         if (!(is_finite_f(d.x) && is_finite_f(d.y) && is_finite_f(d.z))) {
             bad = 1.0;
         } else {
             let len = length(d);
             if (len > nodes[j].z) {
-                bound = nodes[j].z / len;
+                bound = min(bound, nodes[j].z / len);
             }
         }
     }

@@ -1,0 +1,303 @@
+//! Newton–multigrid for lattice bodies on the GPU (`bevy_tissue::gpu::lattice`): speed at
+//! the paper's sizes and accuracy at real-time budgets.
+//!
+//! 1. **Speed.** The procedural liver as a lattice body pinned at its ligament
+//!    (37,982 particles requested; the lattice's own count is printed), E = 30 kPa,
+//!    ν = 0.45, and 1,000 lattice cubes of 8 × 8 × 8 particles (512 each) falling
+//!    side by side, E = 100 kPa. 1/60 s steps of 1 substep × 1 or 2 Newton iterations.
+//!    Per scene: ms per step of GPU time (timestamps around the steps' compute pass),
+//!    ms per step of wall clock (many steps in one submission, GPU synchronised, median of
+//!    5), and dispatches per step.
+//! 2. **Accuracy.** The cantilever of the accuracy example (24 × 3 × 3 cm, lattice,
+//!    6 and 12 particles across, clamped) settled on the GPU at 1/60 s steps, against
+//!    the static answer of the same model (`core::statics`), E from 1 kPa to 1 MPa
+//!    (gravity scaled with E), critically damped as in `accuracy -- --only-realtime`.
+//!
+//! Markdown on stdout.
+//!
+//! ```text
+//! cargo run --release --example lattice_bench            # everything (a real GPU)
+//! cargo run --release --example lattice_bench -- --quick # small sizes (lavapipe: a minute)
+//! ```
+//! Options: `--no-speed`, `--no-accuracy`, `--bodies N` (default 1,000), `--profile`
+//! (GPU time per kernel: every dispatch in its own timed pass).
+#[path = "support/accuracy.rs"]
+#[allow(dead_code)]
+mod accuracy;
+#[path = "support/bench.rs"]
+mod bench;
+
+use accuracy::*;
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
+use bevy_tissue::core::procedural;
+use bevy_tissue::core::sampling::Resolution;
+use bevy_tissue::core::solver::{ElementSolver, Method, SolverSettings, State};
+use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+use bevy_tissue::gpu::lattice::GpuLattice;
+use bevy_tissue::gpu::profile::GpuProfiler;
+use bevy_tissue::gpu::world::read_buffer;
+use bevy_tissue::gpu::{PassRecorder, device_with};
+use glam::Vec3;
+use std::time::Instant;
+
+fn fail(what: &str, e: impl std::fmt::Display) -> ! {
+    eprintln!("{what}: {e}");
+    std::process::exit(1)
+}
+
+fn settings(iterations: u32, gravity: Vec3, damping: f32) -> SolverSettings {
+    SolverSettings {
+        method: Method::GaussSeidel,
+        element_solver: ElementSolver::Multigrid,
+        substeps: 1,
+        iterations,
+        newton_iterations: iterations,
+        gravity,
+        damping,
+        particle_contacts: false,
+        coarse_iterations: 0,
+        ..Default::default()
+    }
+}
+
+fn liver(particles: u32) -> Model {
+    let (lo, hi) = procedural::liver_ligament();
+    let mut model = Model::new();
+    model
+        .add_body(
+            &procedural::liver(5),
+            &BodyDesc {
+                resolution: Resolution::Particles(particles),
+                material: Material::Hyperelastic {
+                    youngs_modulus: 30e3,
+                    poisson_ratio: 0.45,
+                },
+                discretisation: Discretisation::Lattice,
+                pins: vec![PinRegion::Box { min: lo, max: hi }],
+                ..Default::default()
+            },
+        )
+        .unwrap_or_else(|e| fail("liver", e));
+    model
+}
+
+fn cubes(bodies: u32) -> Model {
+    let mut model = Model::new();
+    let side = (bodies as f32).sqrt().ceil() as u32;
+    // 8 particles across a 5 cm cube: spacing 5 cm / 7.
+    let mesh = procedural::cuboid(Vec3::splat(0.025), 1);
+    for b in 0..bodies {
+        let at = Vec3::new((b % side) as f32 * 0.1, 0.5, (b / side) as f32 * 0.1);
+        model
+            .add_body(
+                &mesh,
+                &BodyDesc {
+                    resolution: Resolution::Spacing(0.05 / 7.0),
+                    material: Material::Hyperelastic {
+                        youngs_modulus: 100e3,
+                        poisson_ratio: 0.3,
+                    },
+                    discretisation: Discretisation::Lattice,
+                    translation: at,
+                    ..Default::default()
+                },
+            )
+            .unwrap_or_else(|e| fail("cube", e));
+    }
+    model
+}
+
+struct Gpu {
+    device: RenderDevice,
+    queue: RenderQueue,
+    kernels: LatticeKernels,
+}
+
+fn wait(g: &Gpu, world: &GpuLattice) {
+    let _ = read_buffer(&g.device, &g.queue, world.pos_buffer(), 0, 16);
+}
+
+/// GPU ms per step (timestamps), wall ms per step (median of 5), dispatches per step.
+fn time(g: &Gpu, model: &Model, s: &SolverSettings, steps: u32) -> (Option<f64>, f64, usize) {
+    let state = State::new(model);
+    let world = GpuLattice::new(&g.device, &g.kernels, model, &state, s)
+        .unwrap_or_else(|e| fail("GPU lattice", e));
+    // Warm up (pipelines, caches, the first steps' larger line-search work).
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    world.record(&mut enc, &g.kernels, 5, None);
+    g.queue.submit([enc.finish()]);
+    wait(g, &world);
+    let mut walls = Vec::new();
+    for _ in 0..5 {
+        let t = Instant::now();
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &g.kernels, steps, None);
+        g.queue.submit([enc.finish()]);
+        wait(g, &world);
+        walls.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
+    }
+    walls.sort_by(f64::total_cmp);
+    let gpu_ms = GpuProfiler::new(&g.device, &g.queue, 1).map(|mut prof| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        let ts = prof.timestamps("lattice");
+        world.record(
+            &mut enc,
+            &g.kernels,
+            steps,
+            ts.as_ref().map(|(q, i)| (q, *i)),
+        );
+        prof.resolve(&mut enc);
+        g.queue.submit([enc.finish()]);
+        let t = prof.read(&g.device, &g.queue);
+        t.get("lattice").map_or(f64::NAN, |v| v.0 / steps as f64)
+    });
+    (gpu_ms, walls[2], world.dispatch_count())
+}
+
+/// GPU ms per step of each kernel (every dispatch its own timed pass).
+fn profile(g: &Gpu, name: &str, model: &Model, s: &SolverSettings) {
+    let state = State::new(model);
+    let world = GpuLattice::new(&g.device, &g.kernels, model, &state, s)
+        .unwrap_or_else(|e| fail("GPU lattice", e));
+    let Some(mut prof) = GpuProfiler::new(&g.device, &g.queue, world.dispatch_count() as u32)
+    else {
+        return;
+    };
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    world.record(&mut enc, &g.kernels, 3, None);
+    g.queue.submit([enc.finish()]);
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    world.record_profiled(&mut enc, &g.kernels, 1, &mut prof);
+    prof.resolve(&mut enc);
+    g.queue.submit([enc.finish()]);
+    let t = prof.read(&g.device, &g.queue);
+    println!(
+        "\nGPU time per kernel, {name}, {} Newton iteration(s) (one step, every dispatch its own pass):\n",
+        s.newton_iterations
+    );
+    println!("| kernel | ms per step | dispatches per step |\n|---|---|---|");
+    let mut sum = 0.0;
+    for (k, (ms, count)) in &t {
+        println!("| {k} | {ms:.4} | {count} |");
+        sum += ms;
+    }
+    println!("| sum | {sum:.4} | |");
+}
+
+fn speed(g: &Gpu, quick: bool, bodies: u32, profile_kernels: bool) {
+    println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
+    println!(
+        "| scene | particles | elements | Newton iterations | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|"
+    );
+    let scenes: Vec<(String, Model)> = if quick {
+        vec![
+            ("liver".into(), liver(3000)),
+            ("cubes × 20".into(), cubes(20)),
+        ]
+    } else {
+        vec![
+            ("liver (paper's size)".into(), liver(37_982)),
+            (format!("{bodies} cubes × 512"), cubes(bodies)),
+        ]
+    };
+    let steps = if quick { 5 } else { 60 };
+    for (name, model) in &scenes {
+        for it in [1u32, 2] {
+            eprintln!("speed: {name}, {it} Newton iteration(s) ...");
+            let s = settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0);
+            let (gpu_ms, wall, dispatches) = time(g, model, &s, steps);
+            println!(
+                "| {name} | {} | {} | {it} | {} | {wall:.3} | {dispatches} |",
+                model.particle_count(),
+                model.elements.len(),
+                gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
+            );
+        }
+    }
+    if profile_kernels {
+        for (name, model) in &scenes {
+            profile(
+                g,
+                name,
+                model,
+                &settings(2, Vec3::new(0.0, -9.81, 0.0), 0.0),
+            );
+        }
+    }
+}
+
+/// Settles `model` on the GPU for `secs` and returns the final positions.
+fn settle_gpu(g: &Gpu, model: &Model, s: &SolverSettings, secs: f32) -> Vec<Vec3> {
+    let mut state = State::new(model);
+    let world = GpuLattice::new(&g.device, &g.kernels, model, &state, s)
+        .unwrap_or_else(|e| fail("GPU lattice", e));
+    let steps = (secs * 60.0).round() as u32;
+    let mut done = 0;
+    while done < steps {
+        let chunk = (steps - done).min(120);
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &g.kernels, chunk, None);
+        g.queue.submit([enc.finish()]);
+        wait(g, &world);
+        done += chunk;
+    }
+    world.download(&g.device, &g.queue, &mut state);
+    state.x
+}
+
+fn accuracy(g: &Gpu, quick: bool) {
+    println!(
+        "\n## Accuracy on the GPU: the settled cantilever (lattice) against its static answer\n"
+    );
+    println!(
+        "| across | particles | E (Pa) | Newton iterations per 1/60 s step | simulated s | tip / static |\n|---|---|---|---|---|---|"
+    );
+    let cases: &[(u32, f32)] = if quick {
+        &[(6, 1e5)]
+    } else {
+        &[(6, 1e3), (6, 1e5), (6, 1e6), (12, 1e5)]
+    };
+    for &(across, e) in cases {
+        let model = bar_model_with(Disc::Lattice, across, e).unwrap_or_else(|err| fail("bar", err));
+        let gv = BAR_GRAVITY * e as f64 / BAR_E as f64;
+        let (stat, _) = bar_static_tip_under(&model, gv).unwrap_or_else(|err| fail("static", err));
+        let w1 = bar_first_mode(e as f64);
+        let secs = if quick {
+            1.0
+        } else {
+            (8.0 / w1).clamp(1.0, 20.0) as f32
+        };
+        for it in [1u32, 2] {
+            eprintln!("accuracy: {across} across, E = {e}, {it} iteration(s) ...");
+            let s = settings(it, Vec3::new(0.0, -gv as f32, 0.0), (2.0 * w1) as f32);
+            let x = settle_gpu(g, &model, &s, secs);
+            let tip = bar_tip(&model, &displacements(&model, &x));
+            println!(
+                "| {across} | {} | {e} | {it} | {secs:.1} | {:.4} |",
+                model.particle_count(),
+                tip / stat
+            );
+        }
+    }
+}
+
+fn main() {
+    let a = bench::Args::new();
+    let quick = a.flag("--quick");
+    let (device, queue, adapter) = device_with(bevy::render::settings::WgpuSettings::default())
+        .unwrap_or_else(|e| fail("GPU", e));
+    let kernels = LatticeKernels::new(&device).unwrap_or_else(|e| fail("kernels", e));
+    println!("# Newton–multigrid on the GPU\n\nAdapter: {adapter}");
+    let g = Gpu {
+        device,
+        queue,
+        kernels,
+    };
+    if !a.flag("--no-speed") {
+        speed(&g, quick, a.num("--bodies", 1000u32), a.flag("--profile"));
+    }
+    if !a.flag("--no-accuracy") {
+        accuracy(&g, quick);
+    }
+}
