@@ -618,12 +618,82 @@ fn colour_range(l: u32, c: u32) -> vec2<u32> {
 const CWG: u32 = 256u;
 var<workgroup> csum: array<vec2<f32>, 256>;
 
+var<workgroup> part: array<vec3<f32>, 256>;
+
+// Part `slot` of (A x)_j split `split` ways (8: one of node j's elements; 64: one of its
+// elements' corner blocks), the mass and extra terms in part 0; 0 past its elements.
+fn apply_part(j: u32, region: u32, slot: u32, split: u32) -> vec3<f32> {
+    let off = region * params.n_total;
+    var y = vec3<f32>(0.0);
+    if (slot == 0u) {
+        let xj = vecs[off + j].xyz;
+        y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
+    }
+    let per = split / 8u;
+    let s = topo[j] + slot / per;
+    if (s >= topo[j + 1u]) {
+        return y;
+    }
+    let ec = topo[s];
+    let e = ec >> 3u;
+    let a = ec & 7u;
+    let ki = kinfo(e);
+    let kb = bitcast<u32>(ki.x);
+    let r = quat_mat(rot[e]);
+    let rt = transpose(r);
+    var acc = vec3<f32>(0.0);
+    for (var b = slot % per; b < 8u; b = b + per) {
+        acc = acc + kblock(kb, a, b) * (rt * vecs[off + corner(e, b)].xyz);
+    }
+    return y + r * acc * ki.y;
+}
+
+// `count` Gauss–Seidel sweeps of level l by the workgroup. A colour of few nodes splits
+// each node's row over 8 or 64 threads (summed in workgroup memory), so that its
+// latency is one element's or one block's loads rather than all of them.
 fn cycle_sweeps(l: u32, count: u32, lid: u32) {
+    var widest = 0u;
+    for (var c = 0u; c < 8u; c = c + 1u) {
+        let r = colour_range(l, c);
+        widest = max(widest, r.y - r.x);
+    }
+    var split = 1u;
+    if (widest <= CWG / 64u) {
+        split = 64u;
+    } else if (widest <= CWG / 8u) {
+        split = 8u;
+    }
     for (var s = 0u; s < count; s = s + 1u) {
         for (var c = 0u; c < 8u; c = c + 1u) {
             let r = colour_range(l, c);
-            for (var i = r.x + lid; i < r.y; i = i + CWG) {
-                smooth_node(topo[i]);
+            if (split == 1u) {
+                for (var i = r.x + lid; i < r.y; i = i + CWG) {
+                    smooth_node(topo[i]);
+                }
+            } else {
+                let i = r.x + lid / split;
+                var p = vec3<f32>(0.0);
+                if (i < r.y) {
+                    p = apply_part(topo[i], V_DELTA, lid % split, split);
+                }
+                part[lid] = p;
+                for (var st = split / 2u; st > 0u; st = st / 2u) {
+                    workgroupBarrier();
+                    if (lid % split < st) {
+                        part[lid] = part[lid] + part[lid + st];
+                    }
+                }
+                workgroupBarrier();
+                if (lid % split == 0u && i < r.y) {
+                    let j = topo[i];
+                    if (!held(j)) {
+                        let o = 3u * j;
+                        let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+                        let dj = V_DELTA * params.n_total + j;
+                        let rr = vecs[V_RHS * params.n_total + j].xyz - part[lid];
+                        vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * rr, 0.0);
+                    }
+                }
             }
             storageBarrier();
         }
