@@ -22,7 +22,6 @@
 //! Options: `--no-speed`, `--no-accuracy`, `--bodies N` (default 1,000), `--profile`
 //! (GPU time per kernel: every dispatch in its own timed pass).
 #[path = "support/accuracy.rs"]
-#[allow(dead_code)]
 mod accuracy;
 #[path = "support/bench.rs"]
 mod bench;
