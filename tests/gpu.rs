@@ -1069,3 +1069,83 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         }
     }
 }
+
+/// Newton–multigrid on the GPU with colliders against the CPU: a lattice box dropped on
+/// the ground (friction 0.5) while a sphere moving sideways pushes into it. The colliders
+/// act as penalties inside the Newton iterations and by projection after each. Contact
+/// makes the motion sensitive: moving the CPU's start by 0.1 µm changes a discrete
+/// decision at step 5 (0.27 mm). So the GPU must agree with the CPU to rounding until
+/// then, and afterwards as well as the CPU agrees with itself so perturbed.
+#[test]
+fn lattice_colliders_match_the_cpu() {
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::GpuLattice;
+    let Some(g) = gpu() else {
+        return;
+    };
+    let kernels = LatticeKernels::new(&g.device).unwrap();
+    let mut model = Model::new();
+    model
+        .add_body(
+            &procedural::cuboid(Vec3::new(0.03, 0.02, 0.02), 2),
+            &BodyDesc {
+                resolution: Resolution::Spacing(0.008),
+                material: Material::Hyperelastic {
+                    youngs_modulus: 20e3,
+                    poisson_ratio: 0.3,
+                },
+                discretisation: bevy_tissue::core::model::Discretisation::Lattice,
+                translation: Vec3::new(0.0, 0.03, 0.0),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+    let s = lattice_settings();
+    let mut cpu = State::new(&model);
+    let mut nudged = State::new(&model);
+    nudged.x.iter_mut().for_each(|p| p.x += 1e-7);
+    let mut solver = Solver::new(&model, s.clone()).unwrap();
+    let mut solver_nudged = Solver::new(&model, s.clone()).unwrap();
+    let gpu_world = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
+    let mut gpu_state = cpu.clone();
+    let start = cpu.x.clone();
+    let mut lowest = f32::MAX;
+    for step in 0..40u32 {
+        let mut sphere = Collider::new(
+            ColliderShape::Sphere { radius: 0.02 },
+            Vec3::new(0.06 - 0.001 * step as f32, 0.02, 0.0),
+            Quat::IDENTITY,
+        );
+        sphere.velocity = Vec3::new(-0.06, 0.0, 0.0);
+        let control = Control {
+            colliders: vec![Collider::ground(0.0), sphere],
+        };
+        solver.step(&model, &mut cpu, &control).unwrap();
+        solver_nudged.step(&model, &mut nudged, &control).unwrap();
+        gpu_world
+            .set_colliders(&g.queue, &control.colliders)
+            .unwrap();
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        gpu_world.record(&mut enc, &kernels, 1, None);
+        g.queue.submit([enc.finish()]);
+        gpu_world.download(&g.device, &g.queue, &mut gpu_state);
+        let moved = max_dist(&start, &cpu.x);
+        let diff = max_dist(&gpu_state.x, &cpu.x);
+        let own = max_dist(&nudged.x, &cpu.x);
+        let bound = if step < 5 {
+            1e-5 * moved + 1e-7
+        } else {
+            (2.0 * own).max(1e-3 * moved) + 1e-6
+        };
+        assert!(
+            diff <= bound,
+            "step {step}: GPU − CPU {diff} m (CPU moved {moved} m; CPU − nudged CPU {own} m)"
+        );
+        lowest = cpu.x.iter().fold(lowest, |a, p| a.min(p.y));
+    }
+    let r = model.bodies[0].radius;
+    assert!(
+        lowest > 0.5 * r,
+        "the box rests on the ground (lowest {lowest} m)"
+    );
+}

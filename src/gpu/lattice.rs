@@ -8,11 +8,14 @@
 //! taken with their energy-minimising step), a trust region and a backtracking line
 //! search on the substep energy; finally the velocity update. The sequence of dispatches
 //! is [`plan`], a pure function of the hierarchy's shape and the settings; recording
-//! replays it. Scope: lattice bodies with pins under gravity (colliders, particle
-//! contacts and graspers stay on the CPU path).
+//! replays it. Scope: lattice bodies with pins and colliders under gravity (particle
+//! contacts between bodies, graspers, collider forces and the divergence check stay on
+//! the CPU path).
 
-use super::kernels::lattice::{Kernel, LatticeKernels, SLOTS, WORKGROUP};
+use super::buffers::GpuCollider;
+use super::kernels::lattice::{Kernel, LatticeKernels, MAX_COLLIDERS, SLOTS, WORKGROUP};
 use crate::core::TissueError;
+use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{COLOURS, LatticeMultigrid};
 use crate::core::solver::{SolverSettings, State};
@@ -58,7 +61,11 @@ struct Params {
     lv: [[u32; 4]; MAX_LEVELS],
     sweeps: [u32; 4],
     colours: [[u32; 4]; 18],
+    misc: [u32; 4],
 }
+
+/// Byte offset of `misc` (the collider count first) in the parameter block.
+const MISC_OFFSET: u64 = std::mem::offset_of!(Params, misc) as u64;
 
 /// One dispatch's range and mode (`Pass` in `lattice.wgsl`).
 #[repr(C)]
@@ -140,6 +147,10 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         }
         push(Kernel::Forces, 0, ne, 0, 0, groups(ne));
         push(Kernel::Residual, 0, n, 0, 0, groups(n));
+        push(Kernel::Contacts, 0, n, 0, 0, groups(n));
+        for (l, lv) in shape.levels.iter().enumerate().skip(1) {
+            push(Kernel::LumpExtra, lv[0], lv[1], l as u32, 0, groups(lv[1]));
+        }
         for (l, lv) in shape.levels.iter().enumerate().skip(1) {
             push(Kernel::CoarsenRot, lv[2], lv[3], l as u32, 0, groups(lv[3]));
         }
@@ -153,6 +164,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         push(Kernel::Energy, 0, ne + n, 0, 1, g);
         push(Kernel::Pick, 0, g, 0, 1, 1);
         push(Kernel::Advance, 0, n, 0, 1, groups(n));
+        push(Kernel::Boundary, 0, n, 0, 0, groups(n));
     }
     push(Kernel::Finish, 0, n, 0, 0, groups(n));
     out
@@ -337,14 +349,15 @@ fn pack(
             } else {
                 0.0
             };
-            nodes.push([lv.mass[j], lv.fixed[j] as u32 as f32, reach, 0.0]);
+            let body = if l == 0 { model.particle_body[j] } else { 0 };
+            nodes.push([lv.mass[j], lv.fixed[j] as u32 as f32, reach, body as f32]);
         }
     }
     let mut mats = Vec::new();
-    for m in &mg.material {
+    for (m, body) in mg.material.iter().zip(&model.bodies) {
         let mut rec = vec![[0.0f32; 4]; 100];
         if let Some((mat, modes)) = m {
-            rec[0] = [mat.mu, mat.lambda, 0.0, 0.0];
+            rec[0] = [mat.mu, mat.lambda, body.radius, body.spacing];
             for (i, k) in modes.stiffness.iter().enumerate() {
                 rec[1 + i / 4][i % 4] = *k;
             }
@@ -385,6 +398,7 @@ fn pack(
         lv,
         sweeps: [SWEEPS.0, SWEEPS.1, SWEEPS.2, 0],
         colours: colour_table,
+        misc: [0; 4],
     };
     let shape = Shape {
         levels: (0..nl)
@@ -434,6 +448,7 @@ pub struct GpuLattice {
     /// Element rotations of every level (quaternions; level 0 first).
     rot: Buffer,
     params: Buffer,
+    cols: Buffer,
     _keep: Vec<Buffer>,
 }
 
@@ -563,6 +578,20 @@ impl GpuLattice {
             bytemuck::cast_slice(&packed.mats),
             st,
         )?;
+        // Region 0: no corrections yet (w = −1); region 1: nothing touched (x = −1), no
+        // contacts (y).
+        let mut ccol_init: Vec<[f32; 4]> = vec![[0.0, 0.0, 0.0, -1.0]; n];
+        ccol_init.extend(std::iter::repeat_n([-1.0, 0.0, 0.0, 0.0], n));
+        let ccol = make(
+            "tissue lattice collider state",
+            bytemuck::cast_slice(&ccol_init),
+            st,
+        )?;
+        let cols = make(
+            "tissue lattice colliders",
+            &vec![0u8; MAX_COLLIDERS * std::mem::size_of::<GpuCollider>()],
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        )?;
         let params = make(
             "tissue lattice params",
             bytemuck::bytes_of(&packed.params),
@@ -595,6 +624,8 @@ impl GpuLattice {
             match name {
                 "params" => &params,
                 "pc" => &passes,
+                "cols" => &cols,
+                "ccol" => &ccol,
                 "pos" => &pos,
                 "rot" => &rot,
                 "ef" => &ef,
@@ -642,7 +673,10 @@ impl GpuLattice {
             pos,
             rot,
             params,
-            _keep: vec![ef, vecs, nblk, red, elems, kmat, topo, nodes, mats, passes],
+            cols,
+            _keep: vec![
+                ef, vecs, nblk, red, elems, kmat, topo, nodes, mats, passes, ccol,
+            ],
         })
     }
 
@@ -746,6 +780,33 @@ impl GpuLattice {
                 pass.dispatch_workgroups(d.groups, 1, 1);
             }
         }
+    }
+
+    /// Sets the colliders of the next steps (at most [`MAX_COLLIDERS`]; graspers touch
+    /// nothing here and hold nothing yet). They push as stiff penalties inside the
+    /// Newton iterations and by projection with friction after each, as on the CPU.
+    pub fn set_colliders(
+        &self,
+        queue: &RenderQueue,
+        colliders: &[Collider],
+    ) -> Result<(), TissueError> {
+        if colliders.len() > MAX_COLLIDERS {
+            return Err(TissueError::InvalidParameter {
+                name: "colliders",
+                value: colliders.len().to_string(),
+                expected: "at most 32 colliders for the GPU lattice solver",
+            });
+        }
+        let packed: Vec<GpuCollider> = colliders.iter().map(GpuCollider::from_core).collect();
+        if !packed.is_empty() {
+            queue.write_buffer(&self.cols, 0, bytemuck::cast_slice(&packed));
+        }
+        queue.write_buffer(
+            &self.params,
+            MISC_OFFSET,
+            bytemuck::bytes_of(&[colliders.len() as u32, 0, 0, 0]),
+        );
+        Ok(())
     }
 
     /// Writes `state`'s positions, velocities, pin targets and element rotations.

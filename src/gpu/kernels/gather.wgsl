@@ -3,77 +3,14 @@
 // CPU twins: core::solver (Jacobi passes B and C), core::constraints::solve_contact,
 // core::colliders::project_collider.
 
-fn sdf_sphere(l: vec3<f32>, r: f32) -> vec4<f32> {
-    let len = length(l);
-    var n = vec3<f32>(0.0, 1.0, 0.0);
-    if (len > 1.0e-12) {
-        n = l / len;
-    }
-    return vec4<f32>(n, len - r);
-}
-
-fn sdf_box(l: vec3<f32>, he: vec3<f32>) -> vec4<f32> {
-    let q = abs(l) - he;
-    let outside = max(q, vec3<f32>(0.0));
-    let ol = length(outside);
-    if (ol > 0.0) {
-        return vec4<f32>(outside * sign(l) / ol, ol);
-    }
-    var axis = 2;
-    if (q.x >= q.y && q.x >= q.z) {
-        axis = 0;
-    } else if (q.y >= q.z) {
-        axis = 1;
-    }
-    var n = vec3<f32>(0.0);
-    if (l[axis] >= 0.0) { n[axis] = 1.0; } else { n[axis] = -1.0; }
-    return vec4<f32>(n, q[axis]);
-}
-
 // Signed distance (w) and outward normal (xyz, world) of collider k at p.
 fn collider_distance(k: u32, pw: vec3<f32>) -> vec4<f32> {
-    let c = colliders[k];
-    let l = quat_inv_rotate(c.rot, pw - c.pos.xyz);
-    let kind = u32(c.kind_fr.x);
-    var r: vec4<f32>;
-    if (kind == 0u) {
-        r = vec4<f32>(0.0, 1.0, 0.0, l.y);
-    } else if (kind == 1u) {
-        r = sdf_sphere(l, c.shape.x);
-    } else if (kind == 2u) {
-        let y = clamp(l.y, -c.shape.x, c.shape.x);
-        r = sdf_sphere(l - vec3<f32>(0.0, y, 0.0), c.shape.y);
-    } else if (kind == 3u) {
-        r = sdf_box(l, c.shape.xyz);
-    } else {
-        r = vec4<f32>(0.0, 1.0, 0.0, 3.4e38); // grasper: touches nothing
-    }
-    return vec4<f32>(quat_rotate(c.rot, r.xyz), r.w);
+    return collider_sdf(colliders[k], pw);
 }
 
 // Macklin et al. 2014 eq. 24 friction; returns the correction of p.
 fn project_collider(k: u32, pp: vec3<f32>, xx: vec3<f32>, radius: f32) -> vec3<f32> {
-    let dn = collider_distance(k, pp);
-    let depth = radius - dn.w;
-    if (!(depth == depth) || depth <= 0.0) {
-        return vec3<f32>(0.0);
-    }
-    let n = dn.xyz;
-    var dp = n * depth;
-    let mu = colliders[k].kind_fr.y;
-    if (mu > 0.0) {
-        let rel = (pp + dp - xx) - colliders[k].vel.xyz * params.h;
-        let tangential = rel - n * dot(rel, n);
-        let t = length(tangential);
-        if (t > 0.0) {
-            if (t <= mu * depth) {
-                dp = dp - tangential;
-            } else {
-                dp = dp - tangential * (mu * depth / t);
-            }
-        }
-    }
-    return dp;
+    return collider_push(colliders[k], pp, xx, radius, params.h);
 }
 
 // Pins, graspers and colliders for particle j at q; records the collider correction.

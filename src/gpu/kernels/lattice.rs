@@ -56,6 +56,11 @@ pub const SLOTS: &[Slot] = &[
         access: Access::Dynamic,
     },
     Slot {
+        name: "cols",
+        ty: "array<Collider, 32>",
+        access: Access::Uniform,
+    },
+    Slot {
         name: "pos",
         ty: "array<vec4<f32>>",
         access: Access::ReadWrite,
@@ -83,6 +88,11 @@ pub const SLOTS: &[Slot] = &[
     Slot {
         name: "red",
         ty: "array<f32>",
+        access: Access::ReadWrite,
+    },
+    Slot {
+        name: "ccol",
+        ty: "array<vec4<f32>>",
         access: Access::ReadWrite,
     },
     Slot {
@@ -133,6 +143,9 @@ pub enum Kernel {
     Trust,
     Finish,
     CoarseCycle,
+    Contacts,
+    LumpExtra,
+    Boundary,
 }
 
 /// One entry point and the slots it uses.
@@ -151,13 +164,13 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Predict,
         name: "predict",
-        uses: &["params", "pos", "nodes"],
+        uses: &["params", "pos", "ccol", "nodes"],
     },
     Entry {
         kernel: Kernel::Energy,
         name: "energy",
         uses: &[
-            "params", "pc", "pos", "rot", "vecs", "red", "elems", "nodes", "mats",
+            "params", "pc", "cols", "pos", "rot", "vecs", "red", "ccol", "elems", "nodes", "mats",
         ],
     },
     Entry {
@@ -236,7 +249,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Finish,
         name: "finish",
-        uses: &["params", "pos"],
+        uses: &["params", "pos", "ccol"],
     },
     Entry {
         kernel: Kernel::CoarseCycle,
@@ -245,7 +258,27 @@ pub const ENTRIES: &[Entry] = &[
             "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
         ],
     },
+    Entry {
+        kernel: Kernel::Contacts,
+        name: "contacts",
+        uses: &[
+            "params", "cols", "pos", "vecs", "nblk", "ccol", "nodes", "mats",
+        ],
+    },
+    Entry {
+        kernel: Kernel::LumpExtra,
+        name: "lump_extra",
+        uses: &["params", "pc", "nblk", "topo"],
+    },
+    Entry {
+        kernel: Kernel::Boundary,
+        name: "boundary",
+        uses: &["params", "cols", "pos", "ccol", "nodes", "mats"],
+    },
 ];
+
+/// Colliders the lattice kernels take at once.
+pub const MAX_COLLIDERS: usize = 32;
 
 /// Threads per workgroup of every lattice kernel but the coarse cycle's.
 pub const WORKGROUP: u32 = 64;

@@ -5,6 +5,7 @@
 // The bindings are declared by the table in lattice.rs (prepended to this file).
 
 const LWG: u32 = 64u;
+const GRASPER: u32 = 4u;
 // Line search: α_max 2^-k for k < LINE_CANDIDATES (then 0).
 const LINE_CANDIDATES: u32 = 13u;
 // First iterate: y = x + s (y − x) for s = 1, ½, ¼, 0.
@@ -32,6 +33,13 @@ const V_PE: u32 = 3u;
 // vectors.
 const MAT_STRIDE: u32 = 100u;
 const MODES: u32 = 12u;
+// Regions of `ccol` (× n): this substep's collider corrections (xyz, m; w: the last
+// collider's index, −1: none); the collider touched in the last substep (x, −1: none)
+// and this iteration's penalty contacts (y: a bit per collider).
+const C_COL: u32 = 0u;
+const C_TOUCH: u32 = 1u;
+// Penalty stiffness over a particle's own stiffness scale m/h² + (λ + 2μ) s.
+const PENALTY: f32 = 1.0e3;
 
 struct LatticeParams {
     gravity: vec4<f32>,      // m/s²
@@ -52,6 +60,7 @@ struct LatticeParams {
                              // correction, on the coarsest level
     colours: array<vec4<u32>, 18>, // per level, where its 8 colours start in `topo` and
                              // where the last ends (9 entries a level)
+    misc: vec4<u32>,         // x: colliders
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -197,6 +206,7 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     pos[R_T * n + j] = vec4<f32>(t, 0.0);
     pos[R_Y * n + j] = vec4<f32>(y, 0.0);
+    ccol[C_COL * n + j] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
 }
 
 // Energy changes of the candidate steps along the direction (mode 0: first iterate,
@@ -251,6 +261,22 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                 for (var k = 0u; k < kc; k = k + 1u) {
                     let a = candidate(k, mode);
                     acc[k] = acc[k] + w * a * (2.0 * dot(d, u) + a * dot(d, d));
+                }
+                // Penalty contacts (line search only): ½ k depth² along the step.
+                let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
+                if (mode == 1u && mask != 0u) {
+                    let sc = contact_scale(j);
+                    let y = pos[R_Y * n + j].xyz;
+                    for (var c = 0u; c < params.misc.x; c = c + 1u) {
+                        if ((mask & (1u << c)) == 0u) {
+                            continue;
+                        }
+                        let d0 = sc.x - collider_sdf(cols[c], y).w;
+                        for (var k = 0u; k < kc; k = k + 1u) {
+                            let da = sc.x - collider_sdf(cols[c], y + d * candidate(k, mode)).w;
+                            acc[k] = acc[k] + 0.5 * sc.y * (da * da - d0 * d0);
+                        }
+                    }
                 }
             }
         }
@@ -822,4 +848,106 @@ fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
     let y = pos[R_Y * n + j].xyz;
     pos[R_V * n + j] = vec4<f32>((y - x) / params.h * params.keep, 0.0);
     pos[R_X * n + j] = vec4<f32>(y, 0.0);
+    let t = ccol[C_TOUCH * n + j];
+    ccol[C_TOUCH * n + j] = vec4<f32>(ccol[C_COL * n + j].w, t.yzw);
+}
+
+// Node j's particle radius (m) and penalty stiffness (N/m).
+fn contact_scale(j: u32) -> vec2<f32> {
+    let m = mats[u32(nodes[j].w) * MAT_STRIDE];
+    let modulus = m.y + 2.0 * m.x;
+    return vec2<f32>(m.z, PENALTY * (nodes[j].x / params.h2 + modulus * m.w));
+}
+
+// Penalty contacts of node j with the colliders (core::solver's Newton contacts): every
+// collider it is inside now, and the one it touched in the last substep while within a
+// radius of it. Adds k depth n to its right-hand side, sets its extra stiffness k n nᵀ
+// (zero without contacts) and records which colliders are in contact.
+@compute @workgroup_size(64)
+fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    let n = params.n;
+    var extra = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    var mask = 0u;
+    if (!held(j) && params.misc.x > 0u) {
+        let sc = contact_scale(j);
+        let r = sc.x;
+        let y = pos[R_Y * n + j].xyz;
+        let touched = ccol[C_TOUCH * n + j].x;
+        let ri = V_RHS * params.n_total + j;
+        var rhs = vecs[ri].xyz;
+        for (var k = 0u; k < params.misc.x; k = k + 1u) {
+            if (u32(cols[k].kind_fr.x) == GRASPER) {
+                continue;
+            }
+            let dn = collider_sdf(cols[k], y);
+            let d = dn.w;
+            let on = d < r || (touched == f32(k) && d < 2.0 * r);
+            if (!on || !is_finite_f(d)) {
+                continue;
+            }
+            rhs = rhs + dn.xyz * (sc.y * (r - d));
+            extra = extra + outer(dn.xyz, dn.xyz) * sc.y;
+            mask = mask | (1u << k);
+        }
+        vecs[ri] = vec4<f32>(rhs, 0.0);
+    }
+    let o = 3u * (params.n_total + j);
+    nblk[o] = vec4<f32>(extra[0], 0.0);
+    nblk[o + 1u] = vec4<f32>(extra[1], 0.0);
+    nblk[o + 2u] = vec4<f32>(extra[2], 0.0);
+    let t = ccol[C_TOUCH * n + j];
+    ccol[C_TOUCH * n + j] = vec4<f32>(t.x, bitcast<f32>(mask), t.zw);
+}
+
+// Coarse node j's extra stiffness: its fine nodes' lumped, Σ w S (exact for a uniform
+// correction), for the nodes of level pc.level.
+@compute @workgroup_size(64)
+fn lump_extra(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    let c = params.restr_base + j - params.lv[1].x;
+    var s = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    for (var i = topo[c]; i < topo[c + 1u]; i = i + 2u) {
+        s = s + extra_block(topo[i]) * bitcast<f32>(topo[i + 1u]);
+    }
+    let o = 3u * (params.n_total + j);
+    nblk[o] = vec4<f32>(s[0], 0.0);
+    nblk[o + 1u] = vec4<f32>(s[1], 0.0);
+    nblk[o + 2u] = vec4<f32>(s[2], 0.0);
+}
+
+// The colliders' projection after a Newton iteration (pins already hold their targets):
+// every free node pushed out of each collider it penetrates, with friction
+// (core::solver's boundary), the corrections recorded for the touched colliders.
+@compute @workgroup_size(64)
+fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n || held(j) || params.misc.x == 0u) {
+        return;
+    }
+    let n = params.n;
+    let r = contact_scale(j).x;
+    let x = pos[R_X * n + j].xyz;
+    var q = pos[R_Y * n + j].xyz;
+    var total = vec3<f32>(0.0);
+    var id = -1.0;
+    for (var k = 0u; k < params.misc.x; k = k + 1u) {
+        let dp = collider_push(cols[k], q, x, r, params.h);
+        if (any(dp != vec3<f32>(0.0))) {
+            q = q + dp;
+            total = total + dp;
+            id = f32(k);
+        }
+    }
+    if (id >= 0.0) {
+        let old = ccol[C_COL * n + j];
+        ccol[C_COL * n + j] = vec4<f32>(old.xyz + total, id);
+        pos[R_Y * n + j] = vec4<f32>(q, 0.0);
+    }
 }
