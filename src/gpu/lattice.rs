@@ -8,8 +8,8 @@
 //! taken with their energy-minimising step), a trust region and a backtracking line
 //! search on the substep energy; finally the velocity update. The sequence of dispatches
 //! is [`plan`], a pure function of the hierarchy's shape and the settings; recording
-//! replays it. Scope: lattice bodies with pins and colliders under gravity (particle
-//! contacts between bodies, graspers, collider forces and the divergence check stay on
+//! replays it. Scope: lattice bodies with pins, colliders and graspers under gravity
+//! (particle contacts between bodies, collider forces and the divergence check stay on
 //! the CPU path).
 
 use super::buffers::GpuCollider;
@@ -580,8 +580,10 @@ impl GpuLattice {
         )?;
         // Region 0: no corrections yet (w = −1); region 1: nothing touched (x = −1), no
         // contacts (y).
+        // Region 2: nothing grasped.
         let mut ccol_init: Vec<[f32; 4]> = vec![[0.0, 0.0, 0.0, -1.0]; n];
         ccol_init.extend(std::iter::repeat_n([-1.0, 0.0, 0.0, 0.0], n));
+        ccol_init.extend(std::iter::repeat_n([0.0; 4], n));
         let ccol = make(
             "tissue lattice collider state",
             bytemuck::cast_slice(&ccol_init),
@@ -782,9 +784,10 @@ impl GpuLattice {
         }
     }
 
-    /// Sets the colliders of the next steps (at most [`MAX_COLLIDERS`]; graspers touch
-    /// nothing here and hold nothing yet). They push as stiff penalties inside the
-    /// Newton iterations and by projection with friction after each, as on the CPU.
+    /// Sets the colliders of the next steps (at most [`MAX_COLLIDERS`]). They push as
+    /// stiff penalties inside the Newton iterations and by projection with friction
+    /// after each; graspers capture nodes within their radius and hold them, as on the
+    /// CPU.
     pub fn set_colliders(
         &self,
         queue: &RenderQueue,

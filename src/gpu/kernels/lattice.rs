@@ -164,7 +164,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Predict,
         name: "predict",
-        uses: &["params", "pos", "ccol", "nodes"],
+        uses: &["params", "cols", "pos", "ccol", "nodes"],
     },
     Entry {
         kernel: Kernel::Energy,
@@ -181,7 +181,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Advance,
         name: "advance",
-        uses: &["params", "pc", "pos", "vecs", "red", "nodes"],
+        uses: &["params", "pc", "pos", "vecs", "red", "ccol", "nodes"],
     },
     Entry {
         kernel: Kernel::Forces,
@@ -191,7 +191,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Residual,
         name: "residual",
-        uses: &["params", "pos", "ef", "vecs", "topo", "nodes"],
+        uses: &["params", "pos", "ef", "vecs", "ccol", "topo", "nodes"],
     },
     Entry {
         kernel: Kernel::CoarsenRot,
@@ -244,7 +244,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Trust,
         name: "trust",
-        uses: &["params", "vecs", "red", "nodes"],
+        uses: &["params", "vecs", "red", "ccol", "nodes"],
     },
     Entry {
         kernel: Kernel::Finish,

@@ -38,6 +38,9 @@ const MODES: u32 = 12u;
 // and this iteration's penalty contacts (y: a bit per collider).
 const C_COL: u32 = 0u;
 const C_TOUCH: u32 = 1u;
+// Region 2 of `ccol`: the grasp of each node (the offset in the grasper's frame, m; w:
+// the grasper's index + 1, 0: free).
+const C_GRAB: u32 = 2u;
 // Penalty stiffness over a particle's own stiffness scale m/h² + (λ + 2μ) s.
 const PENALTY: f32 = 1.0e3;
 
@@ -83,8 +86,28 @@ fn corner(e: u32, k: u32) -> u32 {
     return elems[3u * e + k / 4u][k % 4u];
 }
 
+// Held out of the V-cycle: pinned nodes and nodes outside the lattice.
 fn held(j: u32) -> bool {
     return nodes[j].y != 0.0;
+}
+
+// Held in this substep: `held`, or grasped.
+fn held_now(j: u32) -> bool {
+    return held(j) || ccol[C_GRAB * params.n + j].w > 0.5;
+}
+
+// Where a grasped node must be (xyz) and whether its grasper exists (w = 1; else 0).
+fn grasp_target(j: u32) -> vec4<f32> {
+    let g = ccol[C_GRAB * params.n + j];
+    if (g.w < 0.5) {
+        return vec4<f32>(0.0);
+    }
+    let k = u32(g.w) - 1u;
+    if (k >= params.misc.x) {
+        return vec4<f32>(0.0);
+    }
+    let c = cols[k];
+    return vec4<f32>(c.pos.xyz + quat_rotate(c.rot, g.xyz), 1.0);
 }
 
 // Deformation gradient at the centre of a cube of edge `size` (core::element::element_gradient).
@@ -204,6 +227,34 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     } else if (held(j)) {
         y = t;
     }
+    // Graspers let go and take nodes (core::colliders::update_grab); held nodes start at
+    // their targets.
+    if (pin.w == 0.0 && params.misc.x > 0u) {
+        var g = ccol[C_GRAB * n + j];
+        if (g.w > 0.5) {
+            let k = u32(g.w) - 1u;
+            let keep = k < params.misc.x && u32(cols[k].kind_fr.x) == GRASPER
+                && cols[k].kind_fr.z != 0.0;
+            if (!keep) {
+                g = vec4<f32>(0.0);
+            }
+        }
+        if (g.w < 0.5) {
+            for (var k = 0u; k < params.misc.x; k = k + 1u) {
+                let c = cols[k];
+                if (u32(c.kind_fr.x) == GRASPER && c.kind_fr.z == 1.0
+                    && length(x.xyz - c.pos.xyz) <= c.shape.x) {
+                    g = vec4<f32>(quat_inv_rotate(c.rot, x.xyz - c.pos.xyz), f32(k + 1u));
+                    break;
+                }
+            }
+        }
+        ccol[C_GRAB * n + j] = g;
+        let gt = grasp_target(j);
+        if (gt.w > 0.0) {
+            y = gt.xyz;
+        }
+    }
     pos[R_T * n + j] = vec4<f32>(t, 0.0);
     pos[R_Y * n + j] = vec4<f32>(y, 0.0);
     ccol[C_COL * n + j] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
@@ -225,7 +276,7 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
             var d: array<vec3<f32>, 8>;
             for (var k = 0u; k < 8u; k = k + 1u) {
                 d[k] = direction(corner(e, k), mode);
-                if (held(corner(e, k))) {
+                if (held_now(corner(e, k))) {
                     d[k] = vec3<f32>(0.0);
                 }
             }
@@ -253,7 +304,7 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
             }
         } else {
             let j = i - params.ne;
-            if (!held(j)) {
+            if (!held_now(j)) {
                 let n = params.n;
                 let d = direction(j, mode);
                 let u = pos[R_Y * n + j].xyz - pos[R_T * n + j].xyz;
@@ -358,7 +409,7 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
 @compute @workgroup_size(64)
 fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n || held(j)) {
+    if (j >= params.n || held_now(j)) {
         return;
     }
     let a = red[S_ALPHA];
@@ -428,7 +479,7 @@ fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let n = params.n;
     var r = (pos[R_T * n + j].xyz - pos[R_Y * n + j].xyz) * (nodes[j].x / params.h2) + f;
-    if (held(j)) {
+    if (held_now(j)) {
         r = vec3<f32>(0.0);
     }
     vecs[V_RHS * params.n_total + j] = vec4<f32>(r, 0.0);
@@ -808,7 +859,7 @@ fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocatio
     var bound = 1.0;
     var bad = 0.0;
     for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
-        if (held(j)) {
+        if (held_now(j)) {
             continue;
         }
         let d = vecs[V_DELTA * params.n_total + j].xyz;
@@ -872,7 +923,7 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
     let n = params.n;
     var extra = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     var mask = 0u;
-    if (!held(j) && params.misc.x > 0u) {
+    if (!held_now(j) && params.misc.x > 0u) {
         let sc = contact_scale(j);
         let r = sc.x;
         let y = pos[R_Y * n + j].xyz;
@@ -932,6 +983,15 @@ fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let n = params.n;
+    let gt = grasp_target(j);
+    if (gt.w > 0.0) {
+        // A grasped node goes to its target; the correction is the grasper's.
+        let old = ccol[C_COL * n + j];
+        let y = pos[R_Y * n + j].xyz;
+        ccol[C_COL * n + j] = vec4<f32>(old.xyz + gt.xyz - y, ccol[C_GRAB * n + j].w - 1.0);
+        pos[R_Y * n + j] = vec4<f32>(gt.xyz, 0.0);
+        return;
+    }
     let r = contact_scale(j).x;
     let x = pos[R_X * n + j].xyz;
     var q = pos[R_Y * n + j].xyz;
