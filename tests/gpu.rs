@@ -1106,7 +1106,7 @@ fn lattice_colliders_match_the_cpu() {
     nudged.x.iter_mut().for_each(|p| p.x += 1e-7);
     let mut solver = Solver::new(&model, s.clone()).unwrap();
     let mut solver_nudged = Solver::new(&model, s.clone()).unwrap();
-    let gpu_world = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
+    let mut gpu_world = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
     let mut gpu_state = cpu.clone();
     let start = cpu.x.clone();
     let mut lowest = f32::MAX;
@@ -1185,7 +1185,7 @@ fn lattice_graspers_match_the_cpu() {
     nudged.x.iter_mut().for_each(|p| p.x += 1e-7);
     let mut solver = Solver::new(&model, s.clone()).unwrap();
     let mut solver_nudged = Solver::new(&model, s.clone()).unwrap();
-    let gpu_world = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
+    let mut gpu_world = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
     let mut gpu_state = cpu.clone();
     let start = cpu.x.clone();
     let top = start.iter().fold(f32::MIN, |a, p| a.max(p.y));
@@ -1208,7 +1208,7 @@ fn lattice_graspers_match_the_cpu() {
         let control = Control {
             colliders: vec![Collider::ground(0.0), grasper],
         };
-        solver.step(&model, &mut cpu, &control).unwrap();
+        let stats = solver.step(&model, &mut cpu, &control).unwrap();
         solver_nudged.step(&model, &mut nudged, &control).unwrap();
         gpu_world
             .set_colliders(&g.queue, &control.colliders)
@@ -1217,15 +1217,31 @@ fn lattice_graspers_match_the_cpu() {
         gpu_world.record(&mut enc, &kernels, 1, None);
         g.queue.submit([enc.finish()]);
         gpu_world.download(&g.device, &g.queue, &mut gpu_state);
+        let forces = gpu_world.read_forces(&g.device, &g.queue);
         let moved = max_dist(&start, &cpu.x);
         let diff = max_dist(&gpu_state.x, &cpu.x);
         let own = max_dist(&nudged.x, &cpu.x);
+        if own < 1e-6 {
+            // Before the CPU's own decisions can differ: the ground's and the grasper's
+            // forces as on the CPU.
+            for (k, (f, c)) in forces.iter().zip(&stats.collider_forces).enumerate() {
+                assert!(
+                    f.distance(*c) <= 0.02 * c.length() + 1e-4,
+                    "step {step}, collider {k}: GPU force {f} N, CPU {c} N"
+                );
+            }
+        }
         assert!(
             diff <= (2.0 * own).max(1e-4 * moved) + 1e-6,
             "step {step}: GPU − CPU {diff} m (CPU moved {moved} m; CPU − nudged CPU {own} m)"
         );
         if step == 39 {
             lifted = gpu_state.x.iter().fold(f32::MIN, |a, p| a.max(p.y)) - top;
+            assert!(
+                forces[1].y < -1e-3,
+                "the grasper feels the box: {}",
+                forces[1]
+            );
         }
     }
     assert!(lifted > 0.015, "the grasper lifted the top by {lifted} m");

@@ -167,6 +167,8 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         push(Kernel::Boundary, 0, n, 0, 0, groups(n));
     }
     push(Kernel::Finish, 0, n, 0, 0, groups(n));
+    push(Kernel::ForcePartials, 0, n, 0, 0, reduction_groups(n));
+    push(Kernel::ForceTotal, 0, reduction_groups(n), 0, 0, 1);
     out
 }
 
@@ -381,6 +383,10 @@ fn pack(
             colour_table[i / 4][i % 4] = v;
         }
     }
+    // `red`: scalars, the reductions' partial sums, the collider forces' partial sums,
+    // their totals.
+    let force_base = (RED_BASE + RED_STRIDE * MAX_PARTIALS as usize) as u32;
+    let force_partials = 4 * MAX_COLLIDERS as u32 * MAX_PARTIALS;
     let params = Params {
         gravity: vec4(settings.gravity),
         h,
@@ -398,7 +404,12 @@ fn pack(
         lv,
         sweeps: [SWEEPS.0, SWEEPS.1, SWEEPS.2, 0],
         colours: colour_table,
-        misc: [0; 4],
+        misc: [
+            0,
+            settings.substeps,
+            force_base,
+            force_base + force_partials,
+        ],
     };
     let shape = Shape {
         levels: (0..nl)
@@ -425,6 +436,11 @@ fn pack(
     }
 }
 
+/// Floats of the reduction buffer for `misc` (see `pack`).
+fn red_floats(misc: [u32; 4]) -> usize {
+    misc[3] as usize + 4 * MAX_COLLIDERS
+}
+
 /// The Newton iterations a substep of `settings` takes on lattice bodies (as the CPU
 /// solver: `newton_iterations` of the `iterations`, or all of them for 0).
 pub fn newton_count(settings: &SolverSettings) -> u32 {
@@ -449,6 +465,11 @@ pub struct GpuLattice {
     rot: Buffer,
     params: Buffer,
     cols: Buffer,
+    /// Reductions and the collider forces.
+    red: Buffer,
+    /// Where the collider force totals start in `red` (floats).
+    force_out: u32,
+    colliders: usize,
     _keep: Vec<Buffer>,
 }
 
@@ -547,10 +568,9 @@ impl GpuLattice {
         )?;
         let vecs = make("tissue lattice vectors", &vec![0u8; nt * 4 * 16], st)?;
         let nblk = make("tissue lattice blocks", &vec![0u8; nt * 6 * 16], st)?;
-        let partials = reduction_groups(packed.params.ne + packed.params.n) as usize;
         let red = make(
             "tissue lattice reductions",
-            &vec![0u8; (RED_BASE + RED_STRIDE * partials) * 4],
+            &vec![0u8; red_floats(packed.params.misc) * 4],
             st,
         )?;
         let elems = make(
@@ -579,11 +599,12 @@ impl GpuLattice {
             st,
         )?;
         // Region 0: no corrections yet (w = −1); region 1: nothing touched (x = −1), no
-        // contacts (y).
-        // Region 2: nothing grasped.
+        // contacts (y); region 2: nothing grasped.
         let mut ccol_init: Vec<[f32; 4]> = vec![[0.0, 0.0, 0.0, -1.0]; n];
         ccol_init.extend(std::iter::repeat_n([-1.0, 0.0, 0.0, 0.0], n));
         ccol_init.extend(std::iter::repeat_n([0.0; 4], n));
+        // Region 3: no Newton forces.
+        ccol_init.extend(std::iter::repeat_n([0.0, 0.0, 0.0, -1.0], n));
         let ccol = make(
             "tissue lattice collider state",
             bytemuck::cast_slice(&ccol_init),
@@ -676,9 +697,10 @@ impl GpuLattice {
             rot,
             params,
             cols,
-            _keep: vec![
-                ef, vecs, nblk, red, elems, kmat, topo, nodes, mats, passes, ccol,
-            ],
+            force_out: packed.params.misc[3],
+            red,
+            colliders: 0,
+            _keep: vec![ef, vecs, nblk, elems, kmat, topo, nodes, mats, passes, ccol],
         })
     }
 
@@ -716,7 +738,13 @@ impl GpuLattice {
             label: Some("tissue lattice"),
             timestamp_writes,
         });
-        for _ in 0..steps * self.substeps {
+        let clear = LatticeKernels::index(Kernel::ForceClear);
+        for i in 0..steps * self.substeps {
+            if i % self.substeps == 0 {
+                pass.set_pipeline(&kernels.pipelines[clear].0);
+                pass.set_bind_group(0, &self.groups[clear], &[]);
+                pass.dispatch_workgroups(1, 1, 1);
+            }
             for (d, &pi) in self.dispatches.iter().zip(&self.pass_index) {
                 let k = LatticeKernels::index(d.kernel);
                 pass.set_pipeline(&kernels.pipelines[k].0);
@@ -789,7 +817,7 @@ impl GpuLattice {
     /// after each; graspers capture nodes within their radius and hold them, as on the
     /// CPU.
     pub fn set_colliders(
-        &self,
+        &mut self,
         queue: &RenderQueue,
         colliders: &[Collider],
     ) -> Result<(), TissueError> {
@@ -807,8 +835,9 @@ impl GpuLattice {
         queue.write_buffer(
             &self.params,
             MISC_OFFSET,
-            bytemuck::bytes_of(&[colliders.len() as u32, 0, 0, 0]),
+            bytemuck::bytes_of(&(colliders.len() as u32)),
         );
+        self.colliders = colliders.len();
         Ok(())
     }
 
@@ -823,7 +852,30 @@ impl GpuLattice {
         queue.write_buffer(&self.rot, 0, bytemuck::cast_slice(&rots));
     }
 
-    /// Blocking read of positions, velocities and level-0 element rotations into `state`.
+    /// Blocking read of the force (N) the bodies put on each collider set by
+    /// [`GpuLattice::set_colliders`] in the last recorded step: the penalties and
+    /// projections pressing on it, and for a grasper the pull of what it holds (as the
+    /// CPU solver's `StepStats::collider_forces`; a contact's normal is taken at the
+    /// iteration's end rather than its start).
+    pub fn read_forces(&self, device: &RenderDevice, queue: &RenderQueue) -> Vec<Vec3> {
+        if self.colliders == 0 {
+            return Vec::new();
+        }
+        let bytes = super::world::read_buffer(
+            device,
+            queue,
+            &self.red,
+            self.force_out as u64 * 4,
+            self.colliders as u64 * 16,
+        );
+        bytemuck::cast_slice::<u8, [f32; 4]>(&bytes)
+            .iter()
+            .map(|f| Vec3::new(f[0], f[1], f[2]))
+            .collect()
+    }
+
+    /// Blocking read of positions, velocities and level-0 element rotations into `state`
+    /// (its step count is the caller's to advance).
     pub fn download(&self, device: &RenderDevice, queue: &RenderQueue, state: &mut State) {
         let n = self.n as u64;
         let read = |off: u64, count: u64, buf: &Buffer| -> Vec<[f32; 4]> {
@@ -840,7 +892,6 @@ impl GpuLattice {
         for (e, q) in r.iter().enumerate() {
             state.element_rot[e] = Quat::from_array(*q);
         }
-        state.step += 1;
     }
 }
 

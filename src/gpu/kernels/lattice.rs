@@ -146,6 +146,9 @@ pub enum Kernel {
     Contacts,
     LumpExtra,
     Boundary,
+    ForcePartials,
+    ForceTotal,
+    ForceClear,
 }
 
 /// One entry point and the slots it uses.
@@ -274,6 +277,21 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Boundary,
         name: "boundary",
         uses: &["params", "cols", "pos", "ccol", "nodes", "mats"],
+    },
+    Entry {
+        kernel: Kernel::ForcePartials,
+        name: "force_partials",
+        uses: &["params", "red", "ccol", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::ForceTotal,
+        name: "force_total",
+        uses: &["params", "pc", "red"],
+    },
+    Entry {
+        kernel: Kernel::ForceClear,
+        name: "force_clear",
+        uses: &["params", "red"],
     },
 ];
 

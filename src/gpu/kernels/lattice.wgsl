@@ -41,6 +41,10 @@ const C_TOUCH: u32 = 1u;
 // Region 2 of `ccol`: the grasp of each node (the offset in the grasper's frame, m; w:
 // the grasper's index + 1, 0: free).
 const C_GRAB: u32 = 2u;
+// Region 3 of `ccol`: the force a node puts on a collider or grasper in this Newton
+// iteration (xyz, N; w: the collider, −1: none): a grasped node's residual, or the
+// penalty of its last collider contact.
+const C_NF: u32 = 3u;
 // Penalty stiffness over a particle's own stiffness scale m/h² + (λ + 2μ) s.
 const PENALTY: f32 = 1.0e3;
 
@@ -63,7 +67,8 @@ struct LatticeParams {
                              // correction, on the coarsest level
     colours: array<vec4<u32>, 18>, // per level, where its 8 colours start in `topo` and
                              // where the last ends (9 entries a level)
-    misc: vec4<u32>,         // x: colliders
+    misc: vec4<u32>,         // x: colliders; y: substeps; z, w: where the collider
+                             // forces' partial sums and totals start in `red`
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -479,6 +484,13 @@ fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let n = params.n;
     var r = (pos[R_T * n + j].xyz - pos[R_Y * n + j].xyz) * (nodes[j].x / params.h2) + f;
+    // A grasped node's residual is the tissue's pull on the grasper.
+    let g = ccol[C_GRAB * n + j].w;
+    var nf = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+    if (g > 0.5 && !held(j)) {
+        nf = vec4<f32>(r, g - 1.0);
+    }
+    ccol[C_NF * n + j] = nf;
     if (held_now(j)) {
         r = vec3<f32>(0.0);
     }
@@ -992,9 +1004,25 @@ fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
         pos[R_Y * n + j] = vec4<f32>(gt.xyz, 0.0);
         return;
     }
-    let r = contact_scale(j).x;
+    let sc = contact_scale(j);
+    let r = sc.x;
     let x = pos[R_X * n + j].xyz;
     var q = pos[R_Y * n + j].xyz;
+    // The penalty forces at the new positions: the tissue presses on a collider with
+    // −k depth n (the last of its contacts reported).
+    let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
+    if (mask != 0u) {
+        for (var k = 0u; k < params.misc.x; k = k + 1u) {
+            if ((mask & (1u << k)) == 0u) {
+                continue;
+            }
+            let dn = collider_sdf(cols[k], q);
+            let depth = r - dn.w;
+            if (depth > 0.0) {
+                ccol[C_NF * n + j] = vec4<f32>(-dn.xyz * (sc.y * depth), f32(k));
+            }
+        }
+    }
     var total = vec3<f32>(0.0);
     var id = -1.0;
     for (var k = 0u; k < params.misc.x; k = k + 1u) {
@@ -1010,4 +1038,77 @@ fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
         ccol[C_COL * n + j] = vec4<f32>(old.xyz + total, id);
         pos[R_Y * n + j] = vec4<f32>(q, 0.0);
     }
+}
+
+// The forces a node put on the colliders in this substep: −m/h² times its projection's
+// correction, and its Newton force, each for its collider (core::solver's collider
+// forces).
+fn node_force(j: u32, k: f32) -> vec3<f32> {
+    let n = params.n;
+    var f = vec3<f32>(0.0);
+    let c = ccol[C_COL * n + j];
+    if (c.w == k) {
+        f = f - c.xyz * (nodes[j].x / params.h2);
+    }
+    let nf = ccol[C_NF * n + j];
+    if (nf.w == k) {
+        f = f + nf.xyz;
+    }
+    return f;
+}
+
+var<workgroup> fsum: array<vec3<f32>, 64>;
+
+// Partial sums per collider of the nodes' forces (after finish).
+@compute @workgroup_size(64)
+fn force_partials(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
+                  @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    for (var k = 0u; k < params.misc.x; k = k + 1u) {
+        var f = vec3<f32>(0.0);
+        for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
+            f = f + node_force(j, f32(k));
+        }
+        fsum[lid] = f;
+        for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
+            workgroupBarrier();
+            if (lid < stride) {
+                fsum[lid] = fsum[lid] + fsum[lid + stride];
+            }
+        }
+        if (lid == 0u) {
+            let o = params.misc.z + 4u * (wg.x * 32u + k);
+            red[o] = fsum[0].x;
+            red[o + 1u] = fsum[0].y;
+            red[o + 2u] = fsum[0].z;
+        }
+        workgroupBarrier();
+    }
+}
+
+// Adds this substep's force on each collider, over the substeps, to the step's totals
+// (thread k: collider k; pc.count partial sums).
+@compute @workgroup_size(32)
+fn force_total(@builtin(local_invocation_index) k: u32) {
+    if (k >= params.misc.x) {
+        return;
+    }
+    var f = vec3<f32>(0.0);
+    for (var w = 0u; w < pc.count; w = w + 1u) {
+        let o = params.misc.z + 4u * (w * 32u + k);
+        f = f + vec3<f32>(red[o], red[o + 1u], red[o + 2u]);
+    }
+    let o = params.misc.w + 4u * k;
+    let inv = 1.0 / f32(params.misc.y);
+    red[o] = red[o] + f.x * inv;
+    red[o + 1u] = red[o + 1u] + f.y * inv;
+    red[o + 2u] = red[o + 2u] + f.z * inv;
+}
+
+// Zeroes the step's collider force totals.
+@compute @workgroup_size(32)
+fn force_clear(@builtin(local_invocation_index) k: u32) {
+    let o = params.misc.w + 4u * k;
+    red[o] = 0.0;
+    red[o + 1u] = 0.0;
+    red[o + 2u] = 0.0;
 }
