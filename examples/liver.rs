@@ -7,12 +7,13 @@
 //! cargo run --release --example liver
 //! cargo run --release --example liver -- --particles 8000          # lighter
 //! cargo run --release --example liver -- --headless --frames 600   # frame rate, no window
-//! cargo run --release --example liver -- --lattice                  # accurate, on the CPU
+//! cargo run --release --example liver -- --lattice                  # accurate material
 //! ```
 //!
 //! `--lattice` builds the liver from hexahedral elements on its sampling lattice, which
 //! converge to the E and ν set (the paper's clusters, the default, are softer than
-//! they say), stepped on the CPU by Newton–multigrid at one 1/60 s step a frame
+//! they say), stepped by Newton–multigrid at one 1/60 s step a frame: on the GPU, its
+//! positions read back and skinned on the CPU, or on the CPU where there is no GPU
 //! (default 3,000 particles: the CPU's budget, where the GPU's clusters take 37,982).
 //!
 //! Controls: probe W/A/S/D (across), Q/E (down/up); grasper I/J/K/L, U/O, G closes and
@@ -36,7 +37,7 @@ use scene::SceneArgs;
 
 /// Particles of the liver (the paper's largest model, Table 1).
 const DEFAULT_PARTICLES: u32 = 37_982;
-/// Particles of the liver as a lattice body (`--lattice`, stepped on the CPU).
+/// Particles of the liver as a lattice body (`--lattice`).
 const DEFAULT_LATTICE_PARTICLES: u32 = 3_000;
 /// Where the liver's centre sits, m (the tray is at y = 0).
 const LIVER_AT: Vec3 = Vec3::new(0.0, 0.05, 0.0);
@@ -59,7 +60,7 @@ struct Jaw(f32);
 #[derive(Resource)]
 struct Particles(u32);
 
-/// The liver is a lattice body (hexahedral elements, on the CPU).
+/// The liver is a lattice body (hexahedral elements, stepped by Newton–multigrid).
 #[derive(Resource)]
 struct Lattice(bool);
 
@@ -325,6 +326,8 @@ fn script_report(
     tools: Query<(&Name, &ColliderForce)>,
     liver: Query<(&SoftBody, &SoftBodyStatus), With<Liver>>,
     time: Res<Time<Real>>,
+    lattice: Res<Lattice>,
+    cpu_world: Option<Res<bevy_tissue::plugin::cpu::CpuWorld>>,
     mut max: Local<Vec<(String, f32)>>,
 ) {
     for (name, f) in &tools {
@@ -340,8 +343,13 @@ fn script_report(
             .single()
             .map(|(b, s)| format!("K = {}, {s:?}", b.neighbours))
             .unwrap_or_default();
+        let stepping = match (lattice.0, cpu_world) {
+            (true, Some(w)) if w.stepped_on_gpu() => "; lattice stepped on the GPU",
+            (true, _) => "; lattice stepped on the CPU",
+            _ => "",
+        };
         println!(
-            "frame {} ({:.2} s): max forces: {}; liver {status}",
+            "frame {} ({:.2} s): max forces: {}; liver {status}{stepping}",
             frames.count,
             time.elapsed_secs(),
             list.join(", ")

@@ -901,3 +901,64 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     let sag = common::max_sag(&x, &model.rest);
     assert!(sag > 1e-4, "the body did not move: {sag} m");
 }
+
+/// A lattice body steps on the GPU (Newton–multigrid, `GpuLattice`) from the plugin and
+/// lands where the core's CPU solver does with the same settings.
+#[test]
+fn a_lattice_body_steps_on_the_gpu_like_the_core() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    let body = SoftBody {
+        resolution: TissueResolution::Particles(400),
+        material: TissueMaterial::Hyperelastic {
+            youngs_modulus: 50_000.0,
+            poisson_ratio: 0.4,
+        },
+        discretisation: TissueDiscretisation::Lattice,
+        ..default()
+    };
+    let pinned = Pinned::region(PinShape::HalfSpace {
+        point: Vec3::new(-0.05, 0.0, 0.0),
+        normal: -Vec3::X,
+    });
+    let at = Vec3::new(0.0, 0.3, 0.0);
+    let e = spawn_body(&mut app, at, body.clone(), Some(pinned.clone()));
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles { continuous: true });
+    let built = until(&mut app, 600, |app| {
+        app.world()
+            .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
+            .is_some()
+    });
+    assert!(built, "the lattice body was never built");
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    for _ in 0..30 {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    app.update();
+    let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
+    assert!(
+        world.stepped_on_gpu(),
+        "the lattice body stepped on the CPU"
+    );
+    let steps = world.state().unwrap().step;
+    let read = app.world().get::<ParticlePositions>(e).unwrap().clone();
+    let settings = app.world().resource::<TissueSettings>().clone();
+    let (model, x) = common::cpu_path_reference(&body, &pinned, &box_mesh(), at, &settings, steps);
+    let sag = common::max_sag(&x, &model.rest);
+    let worst = common::max_distance(&read.positions, &x);
+    assert!(steps >= 30 && sag > 1e-4, "{steps} steps, sag {sag} m");
+    assert!(
+        worst <= 1e-4 * sag + 1e-6,
+        "plugin (GPU) and core (CPU) differ by {worst} m of {sag} m"
+    );
+}

@@ -159,7 +159,7 @@ fn liver_runs_in_a_window_with_scripted_tools_and_drag() {
 /// Runs the scripted liver headless with `extra` options, checks the run
 /// ([`check_liver_run`]) and that frames 35 and 195 show the organ and the grasped lobe
 /// moving.
-fn check_liver_frames(test: &str, extra: &[&str]) {
+fn check_liver_frames(test: &str, extra: &[&str]) -> Option<String> {
     let dir = out_dir(test);
     let (rest, deformed) = (dir.join("rest.png"), dir.join("deformed.png"));
     let s1 = format!("35:{}", rest.display());
@@ -167,9 +167,7 @@ fn check_liver_frames(test: &str, extra: &[&str]) {
     let mut args = LIVER_ARGS.to_vec();
     args.extend(extra);
     args.extend(["--no-ui", "--shot", &s1, "--shot", &s2]);
-    let Some(text) = run("liver", true, &args) else {
-        return;
-    };
+    let text = run("liver", true, &args)?;
     check_liver_run(&text);
     let (c0, m0) = liver_pixels(&rest);
     let (c1, m1) = liver_pixels(&deformed);
@@ -182,11 +180,12 @@ fn check_liver_frames(test: &str, extra: &[&str]) {
         changed > 0.002,
         "the grasped lobe moved: {changed} of the pixels changed"
     );
+    Some(text)
 }
 
 #[test]
 fn liver_headless_frames_show_the_organ_and_its_deformation() {
-    check_liver_frames("liver_headless", &[]);
+    let _ = check_liver_frames("liver_headless", &[]);
 }
 
 #[test]
@@ -251,11 +250,14 @@ fn liver_starts_with_default_flags() {
     );
 }
 
-/// The liver as a lattice body (`--lattice`: hexahedral elements stepped on the CPU by
-/// Newton–multigrid, its surface written into its mesh by the CPU): the scripted tools
+/// The liver as a lattice body (`--lattice`: hexahedral elements stepped on the GPU by
+/// Newton–multigrid, its surface skinned by the CPU into its mesh): the scripted tools
 /// feel it, the K change rebuilds it, and the frames show the organ and the grasped
 /// lobe moving.
 #[test]
-fn liver_lattice_on_the_cpu_feels_the_tools_and_is_drawn() {
-    check_liver_frames("liver_lattice", &["--lattice"]);
+fn liver_lattice_on_the_gpu_feels_the_tools_and_is_drawn() {
+    if let Some(text) = check_liver_frames("liver_lattice", &["--lattice"]) {
+        let line = last_report(&text, "max forces");
+        assert!(line.contains("lattice stepped on the GPU"), "{line}");
+    }
 }

@@ -27,7 +27,7 @@ use super::element::{
     CORNERS, ElementMultipliers, ElementSolve, HexModes, element_gradient, multiplier_displacement,
     solve_element,
 };
-use super::error::{DivergenceKind, TissueError, in_range, positive};
+use super::error::{TissueError, in_range, positive};
 use super::model::{Level, Material, Model};
 use super::par;
 use glam::{Mat3, Quat, Vec3};
@@ -721,42 +721,19 @@ impl Solver {
         let t = std::time::Instant::now();
         // 4. divergence check: the fastest particle over the speed limit, else the first
         // non-finite one, reported with its body, region, likely cause and remedy.
-        let mut fastest: Option<(usize, f32)> = None;
-        let mut non_finite = None;
-        for i in 0..n {
-            let (x, v) = (state.x[i], state.v[i]);
-            if !x.is_finite() || !v.is_finite() {
-                non_finite = non_finite.or(Some(i));
-                continue;
-            }
-            let speed = v.length();
-            if speed > s.max_speed && fastest.is_none_or(|(_, w)| speed > w) {
-                fastest = Some((i, speed));
-            }
-        }
-        let worst = match (fastest, non_finite) {
-            (Some((i, speed)), _) => Some((i, DivergenceKind::Exploding { speed })),
-            (None, Some(i)) => Some((i, DivergenceKind::NonFinite)),
-            (None, None) => None,
-        };
-        if let Some((i, reason)) = worst {
+        if let Some(worst) = super::diagnose::worst_particle(&state.x, &state.v, s.max_speed) {
             state.x.clone_from(&self.backup_x);
             state.v.clone_from(&self.backup_v);
-            let body = model.particle_body[i] as usize;
+            let body = model.particle_body[worst.0] as usize;
             let before = model.bodies.get(body).map_or(0.0, |b| {
                 state.v[b.range()]
                     .iter()
                     .map(|v| v.length())
                     .fold(0.0f32, f32::max)
             });
-            return Err(TissueError::Diverged {
-                step: state.step,
-                body,
-                particle: i,
-                region: super::diagnose::region(model, i),
-                reason,
-                advice: super::diagnose::advice(model, &s, body, before),
-            });
+            return Err(super::diagnose::diverged(
+                model, &s, state.step, worst, before,
+            ));
         }
         stats.active_contacts = self.count_active_contacts(model, &state.x);
         self.timings.finish += ms(t);

@@ -465,6 +465,9 @@ pub struct GpuLattice {
     rot: Buffer,
     params: Buffer,
     cols: Buffer,
+    /// Collider state per node: corrections, touched colliders and contacts, grasps,
+    /// Newton forces.
+    ccol: Buffer,
     /// Reductions and the collider forces.
     red: Buffer,
     /// Where the collider force totals start in `red` (floats).
@@ -598,13 +601,7 @@ impl GpuLattice {
             bytemuck::cast_slice(&packed.mats),
             st,
         )?;
-        // Region 0: no corrections yet (w = −1); region 1: nothing touched (x = −1), no
-        // contacts (y); region 2: nothing grasped.
-        let mut ccol_init: Vec<[f32; 4]> = vec![[0.0, 0.0, 0.0, -1.0]; n];
-        ccol_init.extend(std::iter::repeat_n([-1.0, 0.0, 0.0, 0.0], n));
-        ccol_init.extend(std::iter::repeat_n([0.0; 4], n));
-        // Region 3: no Newton forces.
-        ccol_init.extend(std::iter::repeat_n([0.0, 0.0, 0.0, -1.0], n));
+        let ccol_init = ccol_regions(state);
         let ccol = make(
             "tissue lattice collider state",
             bytemuck::cast_slice(&ccol_init),
@@ -697,10 +694,11 @@ impl GpuLattice {
             rot,
             params,
             cols,
+            ccol,
             force_out: packed.params.misc[3],
             red,
             colliders: 0,
-            _keep: vec![ef, vecs, nblk, elems, kmat, topo, nodes, mats, passes, ccol],
+            _keep: vec![ef, vecs, nblk, elems, kmat, topo, nodes, mats, passes],
         })
     }
 
@@ -841,8 +839,9 @@ impl GpuLattice {
         Ok(())
     }
 
-    /// Writes `state`'s positions, velocities, pin targets and element rotations.
-    pub fn upload(&self, queue: &RenderQueue, model: &Model, state: &State) {
+    /// Writes `state`'s positions, velocities, pin targets, element rotations and grasps
+    /// (the colliders touched in the last substep are forgotten).
+    pub fn upload(&mut self, queue: &RenderQueue, model: &Model, state: &State) {
         queue.write_buffer(
             &self.pos,
             0,
@@ -850,6 +849,7 @@ impl GpuLattice {
         );
         let rots: Vec<[f32; 4]> = state.element_rot.iter().map(|q| q.to_array()).collect();
         queue.write_buffer(&self.rot, 0, bytemuck::cast_slice(&rots));
+        queue.write_buffer(&self.ccol, 0, bytemuck::cast_slice(&ccol_regions(state)));
     }
 
     /// Blocking read of the force (N) the bodies put on each collider set by
@@ -874,8 +874,8 @@ impl GpuLattice {
             .collect()
     }
 
-    /// Blocking read of positions, velocities and level-0 element rotations into `state`
-    /// (its step count is the caller's to advance).
+    /// Blocking read of positions, velocities, level-0 element rotations and grasps into
+    /// `state` (its step count is the caller's to advance).
     pub fn download(&self, device: &RenderDevice, queue: &RenderQueue, state: &mut State) {
         let n = self.n as u64;
         let read = |off: u64, count: u64, buf: &Buffer| -> Vec<[f32; 4]> {
@@ -885,6 +885,17 @@ impl GpuLattice {
         let x = read(0, n, &self.pos);
         let v = read(3 * n, n, &self.pos);
         let r = read(0, self.ne as u64, &self.rot);
+        let grabs = read(2 * n, n, &self.ccol);
+        for (g, s) in grabs.iter().zip(state.grab.iter_mut()) {
+            *s = if g[3] > 0.5 {
+                crate::core::colliders::Grab {
+                    collider: g[3] as u32 - 1,
+                    offset: Vec3::new(g[0], g[1], g[2]),
+                }
+            } else {
+                crate::core::colliders::Grab::FREE
+            };
+        }
         for (i, (a, b)) in x.iter().zip(&v).enumerate() {
             state.x[i] = Vec3::new(a[0], a[1], a[2]);
             state.v[i] = Vec3::new(b[0], b[1], b[2]);
@@ -893,6 +904,24 @@ impl GpuLattice {
             state.element_rot[e] = Quat::from_array(*q);
         }
     }
+}
+
+/// The `ccol` buffer's regions for `state`: no collider corrections yet (w = −1),
+/// nothing touched (x = −1) and no contacts (y), `state`'s grasps (offset, grasper + 1),
+/// no Newton forces (w = −1).
+fn ccol_regions(state: &State) -> Vec<[f32; 4]> {
+    let n = state.x.len();
+    let mut out: Vec<[f32; 4]> = vec![[0.0, 0.0, 0.0, -1.0]; n];
+    out.extend(std::iter::repeat_n([-1.0, 0.0, 0.0, 0.0], n));
+    out.extend(state.grab.iter().map(|g| {
+        if g.collider == u32::MAX {
+            [0.0; 4]
+        } else {
+            g.offset.extend(g.collider as f32 + 1.0).to_array()
+        }
+    }));
+    out.extend(std::iter::repeat_n([0.0, 0.0, 0.0, -1.0], n));
+    out
 }
 
 /// The `pos` buffer's regions for `state`: x, (iterate), (target), v, pin targets

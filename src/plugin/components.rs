@@ -83,8 +83,11 @@ impl TissueDiscretisation {
 /// Where bodies are simulated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum TissueBackend {
-    /// On the GPU (the render graph's compute passes), except what it cannot run yet:
-    /// lattice bodies ([`TissueDiscretisation::Lattice`]) step on the CPU.
+    /// On the GPU: cluster bodies in the render graph's compute passes; lattice bodies
+    /// ([`TissueDiscretisation::Lattice`]) by Newton–multigrid submitted from the main
+    /// world, their positions read back and skinned on the CPU (on the CPU instead where
+    /// the GPU cannot take them: lattice bodies that touch each other, more colliders
+    /// than its kernels take, no GPU).
     #[default]
     Auto,
     /// Every body on the CPU, by the core's solver on the main thread (Jacobi for

@@ -1,14 +1,21 @@
-//! Bodies simulated on the CPU, in the main world: lattice bodies (which the GPU cannot
-//! run yet) and, under [`TissueBackend::Cpu`] (chosen, or switched to when the adapter
-//! cannot run the kernels), every body. They are batched into one core model, state and
-//! [`Solver`] (so they touch each other through particle contacts, as on the GPU); every
-//! frame the world takes the clock's steps against the scene's colliders, then each
-//! body's render surface is skinned on the CPU and written into its draw mesh
-//! (positions and normals, in the entity's frame). The render world leaves these bodies
-//! alone ([`runs_on_cpu`]).
+//! Bodies simulated from the main world: lattice bodies (which the render graph's
+//! kernels do not run) and, under [`TissueBackend::Cpu`] (chosen, or switched to when
+//! the adapter cannot run the kernels), every body. They are batched into one core
+//! model, state and [`Solver`] (so they touch each other through particle contacts, as
+//! on the GPU); every frame the world takes the clock's steps against the scene's
+//! colliders, then each body's render surface is skinned on the CPU and written into its
+//! draw mesh (positions and normals, in the entity's frame). The render world leaves
+//! these bodies alone ([`runs_on_cpu`]).
 //!
-//! Not done on the CPU path (yet): sleeping, and [`ColliderForce`] while some bodies
-//! are on the GPU (it is written when every built body is on the CPU).
+//! Under [`TissueBackend::Auto`], when every body of this world is a hyperelastic lattice
+//! body and they cannot touch each other (one body, or particle contacts off), the steps
+//! run on the GPU ([`GpuLattice`]: the same Newton–multigrid, colliders and graspers) and
+//! the positions are read back for the skinning; the CPU's solver takes over where that
+//! is not possible (the GPU path cannot be set up, more than
+//! [`crate::gpu::kernels::lattice::MAX_COLLIDERS`] colliders).
+//!
+//! Not done on this path (yet): sleeping, and [`ColliderForce`] while some bodies are
+//! stepped by the render graph (it is written when every built body is in this world).
 
 use super::build::BuiltBody;
 use super::components::*;
@@ -16,11 +23,15 @@ use super::render::{LastPose, core_collider};
 use crate::core::TissueError;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::model::Model;
+use crate::core::model::{Discretisation, Material};
 use crate::core::skin::{skin_normals, skin_positions};
 use crate::core::solver::{Control, Solver, SolverSettings, State};
+use crate::gpu::kernels::lattice::{LatticeKernels, MAX_COLLIDERS};
+use crate::gpu::lattice::GpuLattice;
 use bevy::camera::primitives::Aabb;
 use bevy::mesh::VertexAttributeValues;
 use bevy::prelude::*;
+use bevy::render::renderer::{RenderDevice, RenderQueue};
 use std::ops::Range;
 
 /// Whether a built body steps on the CPU: every body under [`TissueBackend::Cpu`], and
@@ -54,9 +65,39 @@ pub struct CpuWorld {
     normals: Vec<Vec3>,
     /// Graspers that have had a CPU step while closed (they then hold, not capture).
     captured: Vec<Entity>,
+    /// The lattice kernels and, once made, the world's bodies on the GPU.
+    gpu: Option<LatticeOnGpu>,
+    /// The GPU path failed for this model (kernels or buffers): the CPU steps it.
+    gpu_failed: bool,
+    /// The last step ran on the GPU.
+    last_on_gpu: bool,
+}
+
+/// The CPU world's lattice bodies on the GPU.
+struct LatticeOnGpu {
+    kernels: LatticeKernels,
+    world: Option<GpuLattice>,
+    /// The GPU holds the CPU state's latest positions.
+    synced: bool,
+}
+
+/// Whether the GPU can step every body of `model` under `settings` (hyperelastic lattice
+/// bodies that cannot touch each other).
+fn gpu_can_step(model: &Model, settings: &SolverSettings) -> bool {
+    !model.bodies.is_empty()
+        && model.bodies.iter().all(|b| {
+            b.discretisation == Discretisation::Lattice
+                && matches!(b.material, Material::Hyperelastic { .. })
+        })
+        && (model.bodies.len() == 1 || !settings.particle_contacts)
 }
 
 impl CpuWorld {
+    /// Whether the last step ran on the GPU ([`GpuLattice`]) rather than the CPU's solver.
+    pub fn stepped_on_gpu(&self) -> bool {
+        self.last_on_gpu
+    }
+
     /// The batched model of the CPU bodies.
     pub fn model(&self) -> &Model {
         &self.model
@@ -113,7 +154,101 @@ impl CpuWorld {
         self.model = model;
         self.state = Some(state);
         self.ranges = ranges;
+        self.gpu_failed = false;
+        if let Some(g) = self.gpu.as_mut() {
+            g.world = None;
+        }
         Ok(())
+    }
+
+    /// Steps `steps` times on the GPU: `Some` with the colliders' forces, or the error
+    /// of a diverged step (the body index in it); `None` where the GPU path is not
+    /// available (the caller steps on the CPU).
+    fn step_gpu(
+        &mut self,
+        render: (&RenderDevice, &RenderQueue),
+        control: &Control,
+        steps: u32,
+    ) -> Option<Result<Vec<Vec3>, TissueError>> {
+        let (device, queue) = render;
+        let settings = self.settings.as_ref()?;
+        if self.gpu_failed
+            || control.colliders.len() > MAX_COLLIDERS
+            || !gpu_can_step(&self.model, settings)
+        {
+            return None;
+        }
+        let state = self.state.as_mut()?;
+        if self.gpu.is_none() {
+            match LatticeKernels::new(device) {
+                Ok(kernels) => {
+                    self.gpu = Some(LatticeOnGpu {
+                        kernels,
+                        world: None,
+                        synced: false,
+                    })
+                }
+                Err(e) => {
+                    warn!("bevy_tissue: lattice bodies step on the CPU: {e}");
+                    self.gpu_failed = true;
+                    return None;
+                }
+            }
+        }
+        let g = self.gpu.as_mut()?;
+        if g.world.is_none() {
+            match GpuLattice::new(device, &g.kernels, &self.model, state, settings) {
+                Ok(w) => {
+                    g.world = Some(w);
+                    g.synced = true;
+                }
+                Err(e) => {
+                    warn!("bevy_tissue: lattice bodies step on the CPU: {e}");
+                    self.gpu_failed = true;
+                    return None;
+                }
+            }
+        }
+        let world = g.world.as_mut()?;
+        if !g.synced {
+            world.upload(queue, &self.model, state);
+            g.synced = true;
+        }
+        if let Err(e) = world.set_colliders(queue, &control.colliders) {
+            return Some(Err(e));
+        }
+        // The fastest particle of each body before the steps (for a divergence's advice).
+        let before: Vec<f32> = self
+            .model
+            .bodies
+            .iter()
+            .map(|b| {
+                state.v[b.range()]
+                    .iter()
+                    .map(|v| v.length())
+                    .fold(0.0f32, f32::max)
+            })
+            .collect();
+        let mut enc = device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &g.kernels, steps, None);
+        queue.submit([enc.finish()]);
+        world.download(device, queue, state);
+        let forces = world.read_forces(device, queue);
+        state.step += steps as u64;
+        if let Some(worst) =
+            crate::core::diagnose::worst_particle(&state.x, &state.v, settings.max_speed)
+        {
+            let body = self.model.particle_body[worst.0] as usize;
+            g.synced = false;
+            return Some(Err(crate::core::diagnose::diverged(
+                &self.model,
+                settings,
+                state.step,
+                worst,
+                before.get(body).copied().unwrap_or(0.0),
+            )));
+        }
+        Some(Ok(forces))
     }
 
     /// Puts body `index` back at rest (its particles at their rest positions, still).
@@ -127,6 +262,9 @@ impl CpuWorld {
         state.rot[p.clone()].copy_from_slice(&rest.rot[p.clone()]);
         state.grab[p.clone()].copy_from_slice(&rest.grab[p.clone()]);
         state.element_rot[e.clone()].copy_from_slice(&rest.element_rot[e.clone()]);
+        if let Some(g) = self.gpu.as_mut() {
+            g.synced = false;
+        }
     }
 }
 
@@ -168,6 +306,7 @@ pub fn step_cpu_bodies(
     colliders: Query<(Entity, &TissueCollider, &GlobalTransform, Option<&LastPose>)>,
     forces: Query<(), With<ColliderForce>>,
     mut errors: MessageWriter<SoftBodyError>,
+    render: (Option<Res<RenderDevice>>, Option<Res<RenderQueue>>),
 ) {
     let mut cpu: Vec<(Entity, &BuiltBody)> = Vec::new();
     let mut all_cpu = true;
@@ -240,20 +379,43 @@ pub fn step_cpu_bodies(
     }
     let mut force = vec![Vec3::ZERO; cols.len()];
     let w = &mut *world;
-    let (Some(solver), Some(state)) = (w.solver.as_mut(), w.state.as_mut()) else {
-        return;
-    };
     let mut diverged = None;
-    for _ in 0..clock.steps_this_frame {
-        match solver.step(&w.model, state, &control) {
-            Ok(stats) => {
-                for (f, s) in force.iter_mut().zip(&stats.collider_forces) {
-                    *f = *s;
+    // Lattice bodies step on the GPU where they can; the CPU's solver steps the rest.
+    let on_gpu = match (&render.0, &render.1) {
+        (Some(device), Some(queue))
+            if settings.backend == TissueBackend::Auto && clock.steps_this_frame > 0 =>
+        {
+            w.step_gpu((device, queue), &control, clock.steps_this_frame)
+        }
+        _ => None,
+    };
+    if clock.steps_this_frame > 0 {
+        w.last_on_gpu = on_gpu.is_some();
+    }
+    match on_gpu {
+        Some(Ok(f)) => force = f,
+        Some(Err(e)) => diverged = Some(e),
+        None => {
+            let (Some(solver), Some(state)) = (w.solver.as_mut(), w.state.as_mut()) else {
+                return;
+            };
+            for _ in 0..clock.steps_this_frame {
+                match solver.step(&w.model, state, &control) {
+                    Ok(stats) => {
+                        for (f, s) in force.iter_mut().zip(&stats.collider_forces) {
+                            *f = *s;
+                        }
+                    }
+                    Err(e) => {
+                        diverged = Some(e);
+                        break;
+                    }
                 }
             }
-            Err(e) => {
-                diverged = Some(e);
-                break;
+            if clock.steps_this_frame > 0
+                && let Some(g) = w.gpu.as_mut()
+            {
+                g.synced = false;
             }
         }
     }
