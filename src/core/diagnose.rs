@@ -131,6 +131,49 @@ pub fn implausible(info: &BodyInfo) -> Option<String> {
     ))
 }
 
+/// The particle that shows a step diverged, if one does: the fastest over `max_speed`
+/// (m/s), else the first whose position or velocity is not finite.
+pub fn worst_particle(x: &[Vec3], v: &[Vec3], max_speed: f32) -> Option<(usize, DivergenceKind)> {
+    let mut fastest: Option<(usize, f32)> = None;
+    let mut non_finite = None;
+    for (i, (x, v)) in x.iter().zip(v).enumerate() {
+        if !x.is_finite() || !v.is_finite() {
+            non_finite = non_finite.or(Some(i));
+            continue;
+        }
+        let speed = v.length();
+        if speed > max_speed && fastest.is_none_or(|(_, w)| speed > w) {
+            fastest = Some((i, speed));
+        }
+    }
+    match (fastest, non_finite) {
+        (Some((i, speed)), _) => Some((i, DivergenceKind::Exploding { speed })),
+        (None, Some(i)) => Some((i, DivergenceKind::NonFinite)),
+        (None, None) => None,
+    }
+}
+
+/// The error of a step that diverged at `particle` for `reason`: its body, region, the
+/// likely cause and the remedy (`speed_before`: the body's fastest particle before the
+/// step, m/s).
+pub fn diverged(
+    model: &Model,
+    settings: &SolverSettings,
+    step: u64,
+    (particle, reason): (usize, DivergenceKind),
+    speed_before: f32,
+) -> TissueError {
+    let body = model.particle_body.get(particle).copied().unwrap_or(0) as usize;
+    TissueError::Diverged {
+        step,
+        body,
+        particle,
+        region: region(model, particle),
+        reason,
+        advice: advice(model, settings, body, speed_before),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -225,48 +268,5 @@ mod tests {
         small.size *= 0.001;
         small.volume *= 1e-9;
         assert!(implausible(&small).unwrap().contains("too small"));
-    }
-}
-
-/// The particle that shows a step diverged, if one does: the fastest over `max_speed`
-/// (m/s), else the first whose position or velocity is not finite.
-pub fn worst_particle(x: &[Vec3], v: &[Vec3], max_speed: f32) -> Option<(usize, DivergenceKind)> {
-    let mut fastest: Option<(usize, f32)> = None;
-    let mut non_finite = None;
-    for (i, (x, v)) in x.iter().zip(v).enumerate() {
-        if !x.is_finite() || !v.is_finite() {
-            non_finite = non_finite.or(Some(i));
-            continue;
-        }
-        let speed = v.length();
-        if speed > max_speed && fastest.is_none_or(|(_, w)| speed > w) {
-            fastest = Some((i, speed));
-        }
-    }
-    match (fastest, non_finite) {
-        (Some((i, speed)), _) => Some((i, DivergenceKind::Exploding { speed })),
-        (None, Some(i)) => Some((i, DivergenceKind::NonFinite)),
-        (None, None) => None,
-    }
-}
-
-/// The error of a step that diverged at `particle` for `reason`: its body, region, the
-/// likely cause and the remedy (`speed_before`: the body's fastest particle before the
-/// step, m/s).
-pub fn diverged(
-    model: &Model,
-    settings: &SolverSettings,
-    step: u64,
-    (particle, reason): (usize, DivergenceKind),
-    speed_before: f32,
-) -> TissueError {
-    let body = model.particle_body.get(particle).copied().unwrap_or(0) as usize;
-    TissueError::Diverged {
-        step,
-        body,
-        particle,
-        region: region(model, particle),
-        reason,
-        advice: advice(model, settings, body, speed_before),
     }
 }
