@@ -1070,6 +1070,98 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     }
 }
 
+/// A lattice box of half extents `half` (8 mm spacing, E = 20 kPa, ν = 0.3) centred at
+/// height `y`.
+fn lattice_box(half: Vec3, y: f32) -> Model {
+    let mut model = Model::new();
+    model
+        .add_body(
+            &procedural::cuboid(half, 2),
+            &BodyDesc {
+                resolution: Resolution::Spacing(0.008),
+                material: Material::Hyperelastic {
+                    youngs_modulus: 20e3,
+                    poisson_ratio: 0.3,
+                },
+                discretisation: bevy_tissue::core::model::Discretisation::Lattice,
+                translation: Vec3::new(0.0, y, 0.0),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+    model
+}
+
+/// The CPU solver, the CPU solver started 0.1 µm away (how sensitive the run is), and
+/// the GPU lattice solver, stepped together.
+struct Lockstep {
+    model: Model,
+    start: Vec<Vec3>,
+    cpu: (Solver, State),
+    nudged: (Solver, State),
+    gpu: (bevy_tissue::gpu::lattice::GpuLattice, State),
+    kernels: bevy_tissue::gpu::kernels::lattice::LatticeKernels,
+}
+
+/// One step of a [`Lockstep`].
+struct Compared {
+    /// The CPU's collider forces, N.
+    cpu_forces: Vec<Vec3>,
+    /// The GPU's, N.
+    gpu_forces: Vec<Vec3>,
+    /// Largest GPU − CPU distance, m.
+    diff: f32,
+    /// Largest distance between the CPU and the nudged CPU, m.
+    own: f32,
+    /// Largest distance the CPU's particles moved from the start, m.
+    moved: f32,
+}
+
+impl Lockstep {
+    fn new(g: &Headless, model: Model) -> Self {
+        use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+        use bevy_tissue::gpu::lattice::GpuLattice;
+        let s = lattice_settings();
+        let kernels = LatticeKernels::new(&g.device).unwrap();
+        let cpu = State::new(&model);
+        let mut nudged = cpu.clone();
+        nudged.x.iter_mut().for_each(|p| p.x += 1e-7);
+        let gpu = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
+        Self {
+            start: cpu.x.clone(),
+            cpu: (Solver::new(&model, s.clone()).unwrap(), cpu.clone()),
+            nudged: (Solver::new(&model, s).unwrap(), nudged),
+            gpu: (gpu, cpu),
+            kernels,
+            model,
+        }
+    }
+
+    fn step(&mut self, g: &Headless, control: &Control) -> Compared {
+        let stats = self
+            .cpu
+            .0
+            .step(&self.model, &mut self.cpu.1, control)
+            .unwrap();
+        (self.nudged.0)
+            .step(&self.model, &mut self.nudged.1, control)
+            .unwrap();
+        let (world, state) = &mut self.gpu;
+        world.set_colliders(&g.queue, &control.colliders).unwrap();
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &self.kernels, 1, None);
+        g.queue.submit([enc.finish()]);
+        world.download(&g.device, &g.queue, state);
+        Compared {
+            cpu_forces: stats.collider_forces,
+            gpu_forces: world.read_forces(&g.device, &g.queue),
+            diff: max_dist(&state.x, &self.cpu.1.x),
+            own: max_dist(&self.nudged.1.x, &self.cpu.1.x),
+            moved: max_dist(&self.start, &self.cpu.1.x),
+        }
+    }
+}
+
 /// Newton–multigrid on the GPU with colliders against the CPU: a lattice box dropped on
 /// the ground (friction 0.5) while a sphere moving sideways pushes into it. The colliders
 /// act as penalties inside the Newton iterations and by projection after each. Contact
@@ -1078,38 +1170,10 @@ fn lattice_newton_multigrid_matches_the_cpu() {
 /// then, and afterwards as well as the CPU agrees with itself so perturbed.
 #[test]
 fn lattice_colliders_match_the_cpu() {
-    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
-    use bevy_tissue::gpu::lattice::GpuLattice;
     let Some(g) = gpu() else {
         return;
     };
-    let kernels = LatticeKernels::new(&g.device).unwrap();
-    let mut model = Model::new();
-    model
-        .add_body(
-            &procedural::cuboid(Vec3::new(0.03, 0.02, 0.02), 2),
-            &BodyDesc {
-                resolution: Resolution::Spacing(0.008),
-                material: Material::Hyperelastic {
-                    youngs_modulus: 20e3,
-                    poisson_ratio: 0.3,
-                },
-                discretisation: bevy_tissue::core::model::Discretisation::Lattice,
-                translation: Vec3::new(0.0, 0.03, 0.0),
-                ..Default::default()
-            },
-        )
-        .unwrap();
-    let s = lattice_settings();
-    let mut cpu = State::new(&model);
-    let mut nudged = State::new(&model);
-    nudged.x.iter_mut().for_each(|p| p.x += 1e-7);
-    let mut solver = Solver::new(&model, s.clone()).unwrap();
-    let mut solver_nudged = Solver::new(&model, s.clone()).unwrap();
-    let mut gpu_world = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
-    let mut gpu_state = cpu.clone();
-    let start = cpu.x.clone();
-    let mut lowest = f32::MAX;
+    let mut run = Lockstep::new(g, lattice_box(Vec3::new(0.03, 0.02, 0.02), 0.03));
     for step in 0..40u32 {
         let mut sphere = Collider::new(
             ColliderShape::Sphere { radius: 0.02 },
@@ -1120,30 +1184,22 @@ fn lattice_colliders_match_the_cpu() {
         let control = Control {
             colliders: vec![Collider::ground(0.0), sphere],
         };
-        solver.step(&model, &mut cpu, &control).unwrap();
-        solver_nudged.step(&model, &mut nudged, &control).unwrap();
-        gpu_world
-            .set_colliders(&g.queue, &control.colliders)
-            .unwrap();
-        let mut enc = g.device.create_command_encoder(&Default::default());
-        gpu_world.record(&mut enc, &kernels, 1, None);
-        g.queue.submit([enc.finish()]);
-        gpu_world.download(&g.device, &g.queue, &mut gpu_state);
-        let moved = max_dist(&start, &cpu.x);
-        let diff = max_dist(&gpu_state.x, &cpu.x);
-        let own = max_dist(&nudged.x, &cpu.x);
+        let c = run.step(g, &control);
         let bound = if step < 5 {
-            1e-5 * moved + 1e-7
+            1e-5 * c.moved + 1e-7
         } else {
-            (2.0 * own).max(1e-3 * moved) + 1e-6
+            (2.0 * c.own).max(1e-3 * c.moved) + 1e-6
         };
         assert!(
-            diff <= bound,
-            "step {step}: GPU − CPU {diff} m (CPU moved {moved} m; CPU − nudged CPU {own} m)"
+            c.diff <= bound,
+            "step {step}: GPU − CPU {} m (CPU moved {} m; CPU − nudged CPU {} m)",
+            c.diff,
+            c.moved,
+            c.own
         );
-        lowest = cpu.x.iter().fold(lowest, |a, p| a.min(p.y));
     }
-    let r = model.bodies[0].radius;
+    let lowest = run.cpu.1.x.iter().fold(f32::MAX, |a, p| a.min(p.y));
+    let r = run.model.bodies[0].radius;
     assert!(
         lowest > 0.5 * r,
         "the box rests on the ground (lowest {lowest} m)"
@@ -1152,43 +1208,17 @@ fn lattice_colliders_match_the_cpu() {
 
 /// Graspers on the GPU lattice against the CPU: a grasper closes on the top of a lattice
 /// box resting on the ground, lifts it by 2 cm and opens again. The grasped nodes, the
-/// lift and the release match the CPU (to rounding before contact decisions can differ,
-/// then as well as the CPU matches itself started 0.1 µm away).
+/// lift, the release and the forces on the ground and the grasper match the CPU (to
+/// rounding before contact decisions can differ, then as well as the CPU matches itself
+/// started 0.1 µm away).
 #[test]
 fn lattice_graspers_match_the_cpu() {
     use bevy_tissue::core::colliders::GraspMode;
-    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
-    use bevy_tissue::gpu::lattice::GpuLattice;
     let Some(g) = gpu() else {
         return;
     };
-    let kernels = LatticeKernels::new(&g.device).unwrap();
-    let mut model = Model::new();
-    model
-        .add_body(
-            &procedural::cuboid(Vec3::new(0.02, 0.02, 0.02), 2),
-            &BodyDesc {
-                resolution: Resolution::Spacing(0.008),
-                material: Material::Hyperelastic {
-                    youngs_modulus: 20e3,
-                    poisson_ratio: 0.3,
-                },
-                discretisation: bevy_tissue::core::model::Discretisation::Lattice,
-                translation: Vec3::new(0.0, 0.025, 0.0),
-                ..Default::default()
-            },
-        )
-        .unwrap();
-    let s = lattice_settings();
-    let mut cpu = State::new(&model);
-    let mut nudged = State::new(&model);
-    nudged.x.iter_mut().for_each(|p| p.x += 1e-7);
-    let mut solver = Solver::new(&model, s.clone()).unwrap();
-    let mut solver_nudged = Solver::new(&model, s.clone()).unwrap();
-    let mut gpu_world = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
-    let mut gpu_state = cpu.clone();
-    let start = cpu.x.clone();
-    let top = start.iter().fold(f32::MIN, |a, p| a.max(p.y));
+    let mut run = Lockstep::new(g, lattice_box(Vec3::splat(0.02), 0.025));
+    let top = run.start.iter().fold(f32::MIN, |a, p| a.max(p.y));
     let mut lifted = 0.0f32;
     for step in 0..50u32 {
         let (mode, lift) = match step {
@@ -1208,41 +1238,53 @@ fn lattice_graspers_match_the_cpu() {
         let control = Control {
             colliders: vec![Collider::ground(0.0), grasper],
         };
-        let stats = solver.step(&model, &mut cpu, &control).unwrap();
-        solver_nudged.step(&model, &mut nudged, &control).unwrap();
-        gpu_world
-            .set_colliders(&g.queue, &control.colliders)
-            .unwrap();
-        let mut enc = g.device.create_command_encoder(&Default::default());
-        gpu_world.record(&mut enc, &kernels, 1, None);
-        g.queue.submit([enc.finish()]);
-        gpu_world.download(&g.device, &g.queue, &mut gpu_state);
-        let forces = gpu_world.read_forces(&g.device, &g.queue);
-        let moved = max_dist(&start, &cpu.x);
-        let diff = max_dist(&gpu_state.x, &cpu.x);
-        let own = max_dist(&nudged.x, &cpu.x);
-        if own < 1e-6 {
+        let c = run.step(g, &control);
+        if c.own < 1e-6 {
             // Before the CPU's own decisions can differ: the ground's and the grasper's
             // forces as on the CPU.
-            for (k, (f, c)) in forces.iter().zip(&stats.collider_forces).enumerate() {
+            for (k, (f, cf)) in c.gpu_forces.iter().zip(&c.cpu_forces).enumerate() {
                 assert!(
-                    f.distance(*c) <= 0.02 * c.length() + 1e-4,
-                    "step {step}, collider {k}: GPU force {f} N, CPU {c} N"
+                    f.distance(*cf) <= 0.02 * cf.length() + 1e-4,
+                    "step {step}, collider {k}: GPU force {f} N, CPU {cf} N"
                 );
             }
         }
         assert!(
-            diff <= (2.0 * own).max(1e-4 * moved) + 1e-6,
-            "step {step}: GPU − CPU {diff} m (CPU moved {moved} m; CPU − nudged CPU {own} m)"
+            c.diff <= (2.0 * c.own).max(1e-4 * c.moved) + 1e-6,
+            "step {step}: GPU − CPU {} m (CPU moved {} m; CPU − nudged CPU {} m)",
+            c.diff,
+            c.moved,
+            c.own
         );
         if step == 39 {
-            lifted = gpu_state.x.iter().fold(f32::MIN, |a, p| a.max(p.y)) - top;
-            assert!(
-                forces[1].y < -1e-3,
-                "the grasper feels the box: {}",
-                forces[1]
-            );
+            lifted = run.gpu.1.x.iter().fold(f32::MIN, |a, p| a.max(p.y)) - top;
+            let f = c.gpu_forces[1];
+            assert!(f.y < -1e-3, "the grasper feels the box: {f}");
         }
     }
     assert!(lifted > 0.015, "the grasper lifted the top by {lifted} m");
+}
+
+/// Under wgpu's downlevel limits (4 storage buffers per stage) the lattice kernels
+/// cannot be created, and the error names the limit, what they need and what the
+/// adapter allows.
+#[test]
+fn lattice_kernels_name_the_limit_a_downlevel_adapter_lacks() {
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    if gpu().is_none() {
+        return;
+    }
+    let (device, _, _) = bevy_tissue::gpu::device_with(bevy::render::settings::WgpuSettings {
+        constrained_limits: Some(bevy::render::settings::WgpuLimits::downlevel_defaults()),
+        ..Default::default()
+    })
+    .expect("a device with the downlevel limits");
+    let err = match LatticeKernels::new(&device) {
+        Ok(_) => panic!("the lattice kernels were created under the downlevel limits"),
+        Err(e) => e.to_string(),
+    };
+    assert!(
+        err.contains("storage buffers per shader stage needs 8, the adapter allows 4"),
+        "{err}"
+    );
 }

@@ -848,6 +848,36 @@ fn a_body_at_rest_sleeps_without_gpu_work_and_wakes_on_settings_and_contact() {
 /// A device with WebGPU's default limits (8 storage buffers per stage) cannot run the
 /// kernels as they are bound today: the plugin says so once, moves every body to the
 /// CPU (`TissueBackend::Cpu`) and the body simulates there, exactly as the core does.
+/// Spawns a body with continuous read-back and updates until it steps from the main
+/// world (`plugin::cpu`).
+fn spawn_on_main_world_path(app: &mut App, at: Vec3, body: SoftBody, pinned: Pinned) -> Entity {
+    let e = spawn_body(app, at, body, Some(pinned));
+    app.world_mut()
+        .entity_mut(e)
+        .insert(ReadbackParticles { continuous: true });
+    let built = until(app, 600, |app| {
+        app.world()
+            .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
+            .is_some()
+    });
+    assert!(built, "the body never reached the main world's path");
+    e
+}
+
+/// Takes one step a frame for `frames` frames, then pauses.
+fn step_frames(app: &mut App, frames: u32) {
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    for _ in 0..frames {
+        app.update();
+    }
+    app.world_mut().resource_mut::<TissueClock>().paused = true;
+    app.update();
+}
+
 #[test]
 fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
@@ -860,30 +890,12 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     });
     let (body, pinned) = body_spec();
     let at = Vec3::new(0.0, 0.5, 0.0);
-    let e = spawn_body(&mut app, at, body, Some(pinned));
-    app.world_mut()
-        .entity_mut(e)
-        .insert(ReadbackParticles { continuous: true });
-    let built = until(&mut app, 600, |app| {
-        app.world()
-            .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
-            .is_some()
-    });
-    assert!(built, "the body never reached the CPU path");
+    let e = spawn_on_main_world_path(&mut app, at, body, pinned);
     assert_eq!(
         app.world().resource::<TissueSettings>().backend,
         TissueBackend::Cpu
     );
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(1);
-    }
-    for _ in 0..20 {
-        app.update();
-    }
-    app.world_mut().resource_mut::<TissueClock>().paused = true;
-    app.update();
+    step_frames(&mut app, 20);
     let read = app.world().get::<ParticlePositions>(e).unwrap().clone();
     let settings = app.world().resource::<TissueSettings>().clone();
     let steps = app
@@ -911,40 +923,10 @@ fn a_lattice_body_steps_on_the_gpu_like_the_core() {
         return;
     }
     let mut app = app(WgpuSettings::default());
-    let body = SoftBody {
-        resolution: TissueResolution::Particles(400),
-        material: TissueMaterial::Hyperelastic {
-            youngs_modulus: 50_000.0,
-            poisson_ratio: 0.4,
-        },
-        discretisation: TissueDiscretisation::Lattice,
-        ..default()
-    };
-    let pinned = Pinned::region(PinShape::HalfSpace {
-        point: Vec3::new(-0.05, 0.0, 0.0),
-        normal: -Vec3::X,
-    });
+    let (body, pinned) = common::lattice_body();
     let at = Vec3::new(0.0, 0.3, 0.0);
-    let e = spawn_body(&mut app, at, body.clone(), Some(pinned.clone()));
-    app.world_mut()
-        .entity_mut(e)
-        .insert(ReadbackParticles { continuous: true });
-    let built = until(&mut app, 600, |app| {
-        app.world()
-            .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
-            .is_some()
-    });
-    assert!(built, "the lattice body was never built");
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(1);
-    }
-    for _ in 0..30 {
-        app.update();
-    }
-    app.world_mut().resource_mut::<TissueClock>().paused = true;
-    app.update();
+    let e = spawn_on_main_world_path(&mut app, at, body.clone(), pinned.clone());
+    step_frames(&mut app, 30);
     let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
     assert!(
         world.stepped_on_gpu(),

@@ -33,24 +33,6 @@ fn box_mesh() -> Mesh {
     Cuboid::new(0.12, 0.05, 0.05).mesh().build()
 }
 
-fn lattice_body() -> (SoftBody, Pinned) {
-    (
-        SoftBody {
-            resolution: TissueResolution::Particles(400),
-            material: TissueMaterial::Hyperelastic {
-                youngs_modulus: 50_000.0,
-                poisson_ratio: 0.4,
-            },
-            discretisation: TissueDiscretisation::Lattice,
-            ..default()
-        },
-        Pinned::region(PinShape::HalfSpace {
-            point: Vec3::new(-0.05, 0.0, 0.0),
-            normal: -Vec3::X,
-        }),
-    )
-}
-
 fn spawn(app: &mut App, at: Vec3, body: SoftBody, pinned: Pinned) -> Entity {
     let mesh = app
         .world_mut()
@@ -113,7 +95,7 @@ fn a_lattice_body_steps_on_the_cpu_like_the_core_and_is_drawn() {
     let settings = TissueSettings::default();
     let mut app = app(settings.clone());
     let at = Vec3::new(0.0, 0.3, 0.0);
-    let (body, pinned) = lattice_body();
+    let (body, pinned) = common::lattice_body();
     let e = spawn(&mut app, at, body.clone(), pinned.clone());
     until_built(&mut app, e);
     let built = app.world().get::<BuiltBody>(e).unwrap().clone();
@@ -155,7 +137,7 @@ fn the_cpu_backend_runs_cluster_bodies_like_the_core() {
     };
     let mut app = app(settings.clone());
     let at = Vec3::new(0.0, 0.3, 0.0);
-    let (mut body, pinned) = lattice_body();
+    let (mut body, pinned) = common::lattice_body();
     body.discretisation = TissueDiscretisation::Clusters;
     body.neighbours = 16;
     let e = spawn(&mut app, at, body.clone(), pinned.clone());
@@ -177,7 +159,7 @@ fn a_diverging_cpu_body_is_put_back_at_rest_with_a_diagnosis() {
         ..default()
     };
     let mut app = app(settings);
-    let (mut body, pinned) = lattice_body();
+    let (mut body, pinned) = common::lattice_body();
     body.discretisation = TissueDiscretisation::Clusters;
     body.neighbours = 16;
     body.material = TissueMaterial::Hyperelastic {
@@ -220,7 +202,7 @@ fn cpu_bodies_touch_each_other() {
         knn_every: 1,
         ..default()
     });
-    let (body, _) = lattice_body();
+    let (body, _) = common::lattice_body();
     // The lower body held whole (every particle pinned): a fixed shelf.
     let shelf = Pinned::region(PinShape::HalfSpace {
         point: Vec3::new(0.0, 1.0, 0.0),

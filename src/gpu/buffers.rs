@@ -6,6 +6,7 @@
 //! bodies). Particles keep the core's order: Morton (Z-curve) order inside each
 //! body, which is the spatial reordering the kernels' gathers rely on for coherent reads.
 
+use crate::core::TissueError;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::constraints::iteration_stiffness;
 use crate::core::model::{Material, Model};
@@ -168,6 +169,23 @@ pub struct GpuCollider {
     pub shape: [f32; 4],
     /// Velocity, m/s.
     pub vel: [f32; 4],
+}
+
+/// `colliders` in their GPU form, or an error naming `what` when there are more than
+/// `max` (the size of the kernels' collider array).
+pub fn pack_colliders(
+    colliders: &[Collider],
+    max: usize,
+    what: &'static str,
+) -> Result<Vec<GpuCollider>, TissueError> {
+    if colliders.len() > max {
+        return Err(TissueError::InvalidParameter {
+            name: "colliders",
+            value: colliders.len().to_string(),
+            expected: what,
+        });
+    }
+    Ok(colliders.iter().map(GpuCollider::from_core).collect())
 }
 
 impl GpuCollider {

@@ -819,14 +819,11 @@ impl GpuLattice {
         queue: &RenderQueue,
         colliders: &[Collider],
     ) -> Result<(), TissueError> {
-        if colliders.len() > MAX_COLLIDERS {
-            return Err(TissueError::InvalidParameter {
-                name: "colliders",
-                value: colliders.len().to_string(),
-                expected: "at most 32 colliders for the GPU lattice solver",
-            });
-        }
-        let packed: Vec<GpuCollider> = colliders.iter().map(GpuCollider::from_core).collect();
+        let packed = super::buffers::pack_colliders(
+            colliders,
+            MAX_COLLIDERS,
+            "at most 32 colliders for the GPU lattice solver",
+        )?;
         if !packed.is_empty() {
             queue.write_buffer(&self.cols, 0, bytemuck::cast_slice(&packed));
         }

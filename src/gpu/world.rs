@@ -971,14 +971,11 @@ impl GpuWorld {
         queue: &RenderQueue,
         colliders: &[Collider],
     ) -> Result<(), TissueError> {
-        if colliders.len() > MAX_COLLIDERS {
-            return Err(TissueError::InvalidParameter {
-                name: "colliders",
-                value: colliders.len().to_string(),
-                expected: "at most 128 colliders per world",
-            });
-        }
-        let data: Vec<GpuCollider> = colliders.iter().map(GpuCollider::from_core).collect();
+        let data = super::buffers::pack_colliders(
+            colliders,
+            MAX_COLLIDERS,
+            "at most 128 colliders per world",
+        )?;
         if !data.is_empty() {
             queue.write_buffer(&self.b.colliders, 0, bytemuck::cast_slice(&data));
         }

@@ -236,3 +236,27 @@ pub fn cpu_path_reference(
     }
     (model, state.x)
 }
+
+/// A 12 × 5 × 5 cm lattice body of about 400 particles (E = 50 kPa, ν = 0.4), pinned at
+/// its −x end (the plugin tests' accurate body).
+pub fn lattice_body() -> (
+    bevy_tissue::plugin::components::SoftBody,
+    bevy_tissue::plugin::components::Pinned,
+) {
+    use bevy_tissue::plugin::components::*;
+    (
+        SoftBody {
+            resolution: TissueResolution::Particles(400),
+            material: TissueMaterial::Hyperelastic {
+                youngs_modulus: 50_000.0,
+                poisson_ratio: 0.4,
+            },
+            discretisation: TissueDiscretisation::Lattice,
+            ..Default::default()
+        },
+        Pinned::region(PinShape::HalfSpace {
+            point: Vec3::new(-0.05, 0.0, 0.0),
+            normal: -Vec3::X,
+        }),
+    )
+}

@@ -538,6 +538,22 @@ fn extra_block(j: u32) -> mat3x3<f32> {
     return mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
 }
 
+// One element's part of (A x)_j: R Σ_b K_ab Rᵀ x_b (times its scale) over the corners
+// b = first, first + step, … (the element and corner a packed as `ec`, x at `vecs[off ..]`).
+fn element_term(ec: u32, off: u32, first: u32, step: u32) -> vec3<f32> {
+    let e = ec >> 3u;
+    let a = ec & 7u;
+    let ki = kinfo(e);
+    let kb = bitcast<u32>(ki.x);
+    let r = quat_mat(rot[e]);
+    let rt = transpose(r);
+    var acc = vec3<f32>(0.0);
+    for (var b = first; b < 8u; b = b + step) {
+        acc = acc + kblock(kb, a, b) * (rt * vecs[off + corner(e, b)].xyz);
+    }
+    return r * acc * ki.y;
+}
+
 // (A x)_j with A = M/h² + S + Σ_e R K Rᵀ, x the `vecs` region `region`
 // (core::multigrid's apply_row).
 fn apply_row(j: u32, region: u32) -> vec3<f32> {
@@ -545,18 +561,7 @@ fn apply_row(j: u32, region: u32) -> vec3<f32> {
     let xj = vecs[off + j].xyz;
     var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
     for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
-        let ec = topo[s];
-        let e = ec >> 3u;
-        let a = ec & 7u;
-        let ki = kinfo(e);
-        let kb = bitcast<u32>(ki.x);
-        let r = quat_mat(rot[e]);
-        let rt = transpose(r);
-        var acc = vec3<f32>(0.0);
-        for (var b = 0u; b < 8u; b = b + 1u) {
-            acc = acc + kblock(kb, a, b) * (rt * vecs[off + corner(e, b)].xyz);
-        }
-        y = y + r * acc * ki.y;
+        y = y + element_term(topo[s], off, 0u, 1u);
     }
     return y;
 }
@@ -723,18 +728,7 @@ fn apply_part(j: u32, region: u32, slot: u32, split: u32) -> vec3<f32> {
     if (s >= topo[j + 1u]) {
         return y;
     }
-    let ec = topo[s];
-    let e = ec >> 3u;
-    let a = ec & 7u;
-    let ki = kinfo(e);
-    let kb = bitcast<u32>(ki.x);
-    let r = quat_mat(rot[e]);
-    let rt = transpose(r);
-    var acc = vec3<f32>(0.0);
-    for (var b = slot % per; b < 8u; b = b + per) {
-        acc = acc + kblock(kb, a, b) * (rt * vecs[off + corner(e, b)].xyz);
-    }
-    return y + r * acc * ki.y;
+    return y + element_term(topo[s], off, slot % per, per);
 }
 
 // `count` Gauss–Seidel sweeps of level l by the workgroup. A colour of few nodes splits
