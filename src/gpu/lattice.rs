@@ -182,7 +182,8 @@ fn sweeps(
     for _ in 0..count {
         for k in 0..COLOURS {
             let len = c[k + 1] - c[k];
-            push(Kernel::Smooth, c[k], len, l as u32, 0, groups(len));
+            // Eight threads a node (see `smooth_colour`).
+            push(Kernel::Smooth, c[k], len, l as u32, 0, len.div_ceil(8));
         }
     }
 }

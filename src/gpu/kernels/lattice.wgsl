@@ -670,12 +670,11 @@ fn correction_step(t: vec2<f32>) -> f32 {
     return select(0.0, a, is_finite_f(a));
 }
 
-// One colour of a Gauss–Seidel sweep: the nodes topo[pc.first ..][.. pc.count].
+// One colour of a Gauss–Seidel sweep: the nodes topo[pc.first ..][.. pc.count], eight
+// threads a node (one element each), eight nodes a workgroup.
 @compute @workgroup_size(64)
-fn smooth_colour(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x < pc.count) {
-        smooth_node(topo[pc.first + gid.x]);
-    }
+fn smooth_colour(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    smooth_split(pc.first + wg.x * 8u + lid / 8u, pc.first + pc.count, lid, 8u);
 }
 
 // The residual rhs − A δ of level pc.level's nodes (0 on fixed ones).
@@ -743,9 +742,10 @@ fn cycle_sweeps(l: u32, count: u32, lid: u32) {
     var split = 1u;
     if (widest <= CWG / 64u) {
         split = 64u;
-    } else if (widest <= CWG / 8u) {
+    } else if (widest <= CWG) {
         split = 8u;
     }
+    let per = CWG / split;
     for (var s = 0u; s < count; s = s + 1u) {
         for (var c = 0u; c < 8u; c = c + 1u) {
             let r = colour_range(l, c);
@@ -754,31 +754,39 @@ fn cycle_sweeps(l: u32, count: u32, lid: u32) {
                     smooth_node(topo[i]);
                 }
             } else {
-                let i = r.x + lid / split;
-                var p = vec3<f32>(0.0);
-                if (i < r.y) {
-                    p = apply_part(topo[i], V_DELTA, lid % split, split);
-                }
-                part[lid] = p;
-                for (var st = split / 2u; st > 0u; st = st / 2u) {
-                    workgroupBarrier();
-                    if (lid % split < st) {
-                        part[lid] = part[lid] + part[lid + st];
-                    }
-                }
-                workgroupBarrier();
-                if (lid % split == 0u && i < r.y) {
-                    let j = topo[i];
-                    if (!held(j)) {
-                        let o = 3u * j;
-                        let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
-                        let dj = V_DELTA * params.n_total + j;
-                        let rr = vecs[V_RHS * params.n_total + j].xyz - part[lid];
-                        vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * rr, 0.0);
-                    }
+                for (var base = r.x; base < r.y; base = base + per) {
+                    smooth_split(base + lid / split, r.y, lid, split);
                 }
             }
             storageBarrier();
+        }
+    }
+}
+
+// Part of a Gauss–Seidel update split `split` ways: thread `lid` adds its part of
+// (A δ) for the node at topo[i] (none past `end`) into `part`, and the node's first
+// thread applies the update. Every thread of the workgroup calls it.
+fn smooth_split(i: u32, end: u32, lid: u32, split: u32) {
+    var p = vec3<f32>(0.0);
+    if (i < end) {
+        p = apply_part(topo[i], V_DELTA, lid % split, split);
+    }
+    part[lid] = p;
+    for (var st = split / 2u; st > 0u; st = st / 2u) {
+        workgroupBarrier();
+        if (lid % split < st) {
+            part[lid] = part[lid] + part[lid + st];
+        }
+    }
+    workgroupBarrier();
+    if (lid % split == 0u && i < end) {
+        let j = topo[i];
+        if (!held(j)) {
+            let o = 3u * j;
+            let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+            let dj = V_DELTA * params.n_total + j;
+            let rr = vecs[V_RHS * params.n_total + j].xyz - part[lid];
+            vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * rr, 0.0);
         }
     }
 }
