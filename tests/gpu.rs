@@ -1024,7 +1024,7 @@ fn lattice_settings() -> SolverSettings {
 #[test]
 fn lattice_newton_multigrid_matches_the_cpu() {
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
-    use bevy_tissue::gpu::lattice::{FOLD_NODES, GpuLattice};
+    use bevy_tissue::gpu::lattice::{FOLD_NODES, GpuLattice, LatticeOptions};
     if gpu().is_none() {
         return;
     }
@@ -1034,14 +1034,30 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     })
     .expect("a device with WebGPU's default limits");
     let kernels = LatticeKernels::new(&device).expect("the lattice kernels fit WebGPU's limits");
-    for (spacing, fold) in [(0.0075f32, 0), (0.0075, FOLD_NODES), (0.00375, FOLD_NODES)] {
+    // The last run tries every line-search candidate in the second, indirect pass.
+    for (spacing, fold, first) in [
+        (0.0075f32, 0, 4),
+        (0.0075, FOLD_NODES, 4),
+        (0.00375, FOLD_NODES, 4),
+        (0.0075, FOLD_NODES, 0),
+    ] {
         let model = lattice_bar(spacing);
         let s = lattice_settings();
         let mut cpu_state = State::new(&model);
         let mut solver = Solver::new(&model, s.clone()).unwrap();
         let control = Control::default();
-        let gpu_world =
-            GpuLattice::new_with(&device, &kernels, &model, &cpu_state, &s, fold).unwrap();
+        let gpu_world = GpuLattice::new_with(
+            &device,
+            &kernels,
+            &model,
+            &cpu_state,
+            &s,
+            LatticeOptions {
+                fold_nodes: fold,
+                first_candidates: first,
+            },
+        )
+        .unwrap();
         let mut gpu_state = cpu_state.clone();
         let rest = model.rest.clone();
         let mut steps_done = 0;
@@ -1119,11 +1135,15 @@ struct Compared {
 
 impl Lockstep {
     fn new(g: &Headless, model: Model) -> Self {
+        let start = State::new(&model);
+        Self::from_state(g, model, start)
+    }
+
+    fn from_state(g: &Headless, model: Model, cpu: State) -> Self {
         use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
         use bevy_tissue::gpu::lattice::GpuLattice;
         let s = lattice_settings();
         let kernels = LatticeKernels::new(&g.device).unwrap();
-        let cpu = State::new(&model);
         let mut nudged = cpu.clone();
         nudged.x.iter_mut().for_each(|p| p.x += 1e-7);
         let gpu = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
@@ -1263,6 +1283,76 @@ fn lattice_graspers_match_the_cpu() {
         }
     }
     assert!(lifted > 0.015, "the grasper lifted the top by {lifted} m");
+}
+
+/// A lattice box squashed to a fifth of its height lets go: far from its solution, the
+/// Newton steps are cut by the trust region and halved by the line search, past its
+/// first candidates (the second, indirect pass), as on the CPU.
+#[test]
+fn lattice_squashed_box_recovers_as_on_the_cpu() {
+    let Some(g) = gpu() else {
+        return;
+    };
+    let model = lattice_box(Vec3::splat(0.02), 0.5);
+    let mut start = State::new(&model);
+    for p in &mut start.x {
+        p.y = 0.5 + (p.y - 0.5) * 0.2;
+    }
+    let mut run = Lockstep::from_state(g, model, start);
+    let control = Control::default();
+    for step in 0..10u32 {
+        let c = run.step(g, &control);
+        assert!(
+            c.diff <= (2.0 * c.own).max(1e-4 * c.moved) + 1e-6,
+            "step {step}: GPU − CPU {} m (CPU moved {} m; CPU − nudged CPU {} m)",
+            c.diff,
+            c.moved,
+            c.own
+        );
+    }
+    let height = |x: &[Vec3]| {
+        x.iter().fold(f32::MIN, |a, p| a.max(p.y)) - x.iter().fold(f32::MAX, |a, p| a.min(p.y))
+    };
+    let h = height(&run.gpu.1.x);
+    assert!(h > 0.03, "the box regained its height: {h} m");
+}
+
+/// A lattice box hitting the ground at 30 m/s: the first iterate, the trust region and
+/// the line search's second pass (its first candidates all raise the energy) take
+/// the impact as on the CPU (as well as the CPU agrees with itself started 0.1 µm away),
+/// and the box comes to rest above the ground.
+#[test]
+fn lattice_impact_recovers_as_on_the_cpu() {
+    let Some(g) = gpu() else {
+        return;
+    };
+    let model = lattice_box(Vec3::new(0.03, 0.02, 0.02), 0.5);
+    let r = model.bodies[0].radius;
+    let mut start = State::new(&model);
+    let low = start.x.iter().fold(f32::MAX, |a, p| a.min(p.y));
+    for (x, v) in start.x.iter_mut().zip(&mut start.v) {
+        x.y += r + 0.01 - low;
+        *v = Vec3::new(0.0, -30.0, 0.0);
+    }
+    let mut run = Lockstep::from_state(g, model, start);
+    let control = Control {
+        colliders: vec![Collider::ground(0.0)],
+    };
+    for step in 0..20u32 {
+        let c = run.step(g, &control);
+        assert!(
+            c.diff <= (2.0 * c.own).max(1e-4 * c.moved) + 1e-6,
+            "step {step}: GPU − CPU {} m (CPU moved {} m; CPU − nudged CPU {} m)",
+            c.diff,
+            c.moved,
+            c.own
+        );
+    }
+    let lowest = run.gpu.1.x.iter().fold(f32::MAX, |a, p| a.min(p.y));
+    assert!(
+        lowest > 0.0 && lowest.is_finite(),
+        "above the ground: {lowest} m"
+    );
 }
 
 /// Under wgpu's downlevel limits (4 storage buffers per stage) the lattice kernels

@@ -88,8 +88,11 @@ pub struct Dispatch {
     pub kernel: Kernel,
     /// Its range and mode.
     pub pass: PassRecord,
-    /// Workgroups.
+    /// Workgroups (at most: an indirect dispatch takes its count from the GPU).
     pub groups: u32,
+    /// The workgroup count is the one the kernel before it wrote (the line search's
+    /// second pass, dispatched only when its first candidates all failed).
+    pub indirect: bool,
 }
 
 /// The shape of a hierarchy as the plan needs it.
@@ -108,6 +111,27 @@ pub struct Shape {
 /// Most nodes the levels below [`Shape::fold`] may have together: one workgroup of 256
 /// threads cycles through them.
 pub const FOLD_NODES: u32 = 4096;
+
+/// How [`GpuLattice`] schedules its work (the answer is the same either way).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LatticeOptions {
+    /// The V-cycle runs in one workgroup from the first level at which at most this
+    /// many nodes remain (0: never; every level's smoothing then dispatches per colour
+    /// and sweep). Default [`FOLD_NODES`].
+    pub fold_nodes: u32,
+    /// Line-search candidates (of 13) tried in the first energy pass; the rest in a
+    /// second pass only when none of these lowers the energy. Default 4.
+    pub first_candidates: u32,
+}
+
+impl Default for LatticeOptions {
+    fn default() -> Self {
+        Self {
+            fold_nodes: FOLD_NODES,
+            first_candidates: 4,
+        }
+    }
+}
 
 fn groups(count: u32) -> u32 {
     count.div_ceil(WORKGROUP)
@@ -134,6 +158,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
                     mode,
                 },
                 groups,
+                indirect: false,
             });
         }
     };
@@ -163,12 +188,17 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         let g = reduction_groups(ne + n);
         push(Kernel::Energy, 0, ne + n, 0, 1, g);
         push(Kernel::Pick, 0, g, 0, 1, 1);
+        push(Kernel::Energy, 0, ne + n, 0, 2, g);
+        push(Kernel::Pick, 0, g, 0, 4, 1);
         push(Kernel::Advance, 0, n, 0, 1, groups(n));
         push(Kernel::Boundary, 0, n, 0, 0, groups(n));
     }
     push(Kernel::Finish, 0, n, 0, 0, groups(n));
     push(Kernel::ForcePartials, 0, n, 0, 0, reduction_groups(n));
     push(Kernel::ForceTotal, 0, reduction_groups(n), 0, 0, 1);
+    for d in &mut out {
+        d.indirect = d.kernel == Kernel::Energy && d.pass.mode == 2;
+    }
     out
 }
 
@@ -238,7 +268,7 @@ fn pack(
     model: &Model,
     mg: &LatticeMultigrid,
     settings: &SolverSettings,
-    fold_nodes: u32,
+    options: LatticeOptions,
 ) -> Packed {
     let nl = mg.levels.len().min(MAX_LEVELS);
     let levels = &mg.levels[..nl];
@@ -403,7 +433,7 @@ fn pack(
         restr_base,
         child_base,
         lv,
-        sweeps: [SWEEPS.0, SWEEPS.1, SWEEPS.2, 0],
+        sweeps: [SWEEPS.0, SWEEPS.1, SWEEPS.2, options.first_candidates],
         colours: colour_table,
         misc: [
             0,
@@ -423,7 +453,7 @@ fn pack(
                 ]
             })
             .collect(),
-        fold: (0..nl).find(|&l| node_off[nl] - node_off[l] <= fold_nodes),
+        fold: (0..nl).find(|&l| node_off[nl] - node_off[l] <= options.fold_nodes),
         colours,
     };
     Packed {
@@ -471,6 +501,8 @@ pub struct GpuLattice {
     ccol: Buffer,
     /// Reductions and the collider forces.
     red: Buffer,
+    /// The line search's second pass's workgroup count (indirect dispatch).
+    args: Buffer,
     /// Where the collider force totals start in `red` (floats).
     force_out: u32,
     colliders: usize,
@@ -489,19 +521,24 @@ impl GpuLattice {
         state: &State,
         settings: &SolverSettings,
     ) -> Result<Self, TissueError> {
-        Self::new_with(device, kernels, model, state, settings, FOLD_NODES)
+        Self::new_with(
+            device,
+            kernels,
+            model,
+            state,
+            settings,
+            LatticeOptions::default(),
+        )
     }
 
-    /// [`GpuLattice::new`] with the coarse levels cycled in one workgroup from the first
-    /// level at which at most `fold_nodes` nodes remain (0: never; every level's
-    /// smoothing then dispatches per colour and sweep).
+    /// [`GpuLattice::new`] with other [`LatticeOptions`] (for tests and tuning).
     pub fn new_with(
         device: &RenderDevice,
         kernels: &LatticeKernels,
         model: &Model,
         state: &State,
         settings: &SolverSettings,
-        fold_nodes: u32,
+        options: LatticeOptions,
     ) -> Result<Self, TissueError> {
         settings.validate()?;
         if model.elements.is_empty() {
@@ -531,7 +568,7 @@ impl GpuLattice {
             });
         }
         let mg = LatticeMultigrid::new(model, 64, 8);
-        let packed = pack(model, &mg, settings, fold_nodes);
+        let packed = pack(model, &mg, settings, options);
         let limit = device.limits().max_storage_buffer_binding_size;
         let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
         let make =
@@ -608,6 +645,11 @@ impl GpuLattice {
             bytemuck::cast_slice(&ccol_init),
             st,
         )?;
+        let args = make(
+            "tissue lattice indirect",
+            bytemuck::cast_slice(&[0u32, 1, 1, 0]),
+            BufferUsages::STORAGE | BufferUsages::INDIRECT | BufferUsages::COPY_DST,
+        )?;
         let cols = make(
             "tissue lattice colliders",
             &vec![0u8; MAX_COLLIDERS * std::mem::size_of::<GpuCollider>()],
@@ -647,6 +689,7 @@ impl GpuLattice {
                 "pc" => &passes,
                 "cols" => &cols,
                 "ccol" => &ccol,
+                "args" => &args,
                 "pos" => &pos,
                 "rot" => &rot,
                 "ef" => &ef,
@@ -696,6 +739,7 @@ impl GpuLattice {
             params,
             cols,
             ccol,
+            args,
             force_out: packed.params.misc[3],
             red,
             colliders: 0,
@@ -754,7 +798,11 @@ impl GpuLattice {
                     &[]
                 };
                 pass.set_bind_group(0, &self.groups[k], offsets);
-                pass.dispatch_workgroups(d.groups, 1, 1);
+                if d.indirect {
+                    pass.dispatch_workgroups_indirect(&self.args, 0);
+                } else {
+                    pass.dispatch_workgroups(d.groups, 1, 1);
+                }
             }
         }
     }
@@ -806,7 +854,11 @@ impl GpuLattice {
                     &[]
                 };
                 pass.set_bind_group(0, &self.groups[k], offsets);
-                pass.dispatch_workgroups(d.groups, 1, 1);
+                if d.indirect {
+                    pass.dispatch_workgroups_indirect(&self.args, 0);
+                } else {
+                    pass.dispatch_workgroups(d.groups, 1, 1);
+                }
             }
         }
     }
@@ -1011,8 +1063,10 @@ mod tests {
         // Level 1 has an empty colour (7): 7 colours × 4 sweeps; level 0: 8 × 4;
         // coarsest: 8 × 30.
         assert_eq!(count(Kernel::Smooth), 2 * (8 * 4 + 7 * 4 + 8 * 30));
-        // One energy pass for the first iterate, one per line search.
-        assert_eq!(count(Kernel::Energy), 3);
+        // One energy pass for the first iterate, two per line search (the second
+        // indirect: it runs only when the first candidates fail).
+        assert_eq!(count(Kernel::Energy), 5);
+        assert_eq!(p.iter().filter(|d| d.indirect).count(), 2);
         for (i, d) in p.iter().enumerate() {
             if d.kernel == Kernel::Pick {
                 assert_eq!(d.groups, 1);

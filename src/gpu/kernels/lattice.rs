@@ -91,6 +91,11 @@ pub const SLOTS: &[Slot] = &[
         access: Access::ReadWrite,
     },
     Slot {
+        name: "args",
+        ty: "array<u32>",
+        access: Access::ReadWrite,
+    },
+    Slot {
         name: "ccol",
         ty: "array<vec4<f32>>",
         access: Access::ReadWrite,
@@ -179,7 +184,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Pick,
         name: "pick",
-        uses: &["pc", "red"],
+        uses: &["params", "pc", "red", "args"],
     },
     Entry {
         kernel: Kernel::Advance,

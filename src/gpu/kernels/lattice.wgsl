@@ -6,7 +6,8 @@
 
 const LWG: u32 = 64u;
 const GRASPER: u32 = 4u;
-// Line search: α_max 2^-k for k < LINE_CANDIDATES (then 0).
+// Line search: α_max 2^-k for k < LINE_CANDIDATES (then 0), the first `part_a()` in
+// one pass, the rest in a second pass dispatched only when none of those was taken.
 const LINE_CANDIDATES: u32 = 13u;
 // First iterate: y = x + s (y − x) for s = 1, ½, ¼, 0.
 const FIRST_CANDIDATES: u32 = 4u;
@@ -16,6 +17,7 @@ const RED_BASE: u32 = 16u;
 // Scalars in `red`.
 const S_ALPHA: u32 = 0u;       // the step chosen by the last `pick`
 const S_ALPHA_MAX: u32 = 1u;   // the trust region's step bound
+const S_PENDING: u32 = 2u;     // 1: the line search's second pass runs
 const S_MG_ALPHA: u32 = 8u;    // + level: the coarse correction's step
 // Regions of `pos` (× n): positions, iterate, inertial target, velocity, pin target.
 const R_X: u32 = 0u;
@@ -64,7 +66,8 @@ struct LatticeParams {
     child_base: u32,         // start of the child element lists in `topo`
     lv: array<vec4<u32>, 8>, // per level: first node, end node, first element, end element
     sweeps: vec4<u32>,       // Gauss–Seidel sweeps: before and after the coarse
-                             // correction, on the coarsest level
+                             // correction, on the coarsest level; w: the line search's
+                             // candidates in its first pass
     colours: array<vec4<u32>, 18>, // per level, where its 8 colours start in `topo` and
                              // where the last ends (9 entries a level)
     misc: vec4<u32>,         // x: colliders; y: substeps; z, w: where the collider
@@ -190,8 +193,23 @@ fn candidate(k: u32, mode: u32) -> f32 {
     return red[S_ALPHA_MAX] * exp2(-f32(k));
 }
 
+// The line search's candidates in its first pass.
+fn part_a() -> u32 {
+    return min(params.sweeps.w, LINE_CANDIDATES);
+}
+
+// Candidates of an energy pass: mode 0 the first iterate's, mode 1 the line search's
+// first `part_a()`, mode 2 the rest.
 fn candidates(mode: u32) -> u32 {
-    return select(LINE_CANDIDATES, FIRST_CANDIDATES, mode == 0u);
+    if (mode == 0u) {
+        return FIRST_CANDIDATES;
+    }
+    return select(LINE_CANDIDATES - part_a(), part_a(), mode == 1u);
+}
+
+// Index of an energy pass's first candidate.
+fn first_candidate(mode: u32) -> u32 {
+    return select(0u, part_a(), mode == 2u);
 }
 
 var<workgroup> wsum: array<array<f32, 16>, 64>;
@@ -273,6 +291,7 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
           @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let mode = pc.mode;
     let kc = candidates(mode);
+    let k0 = first_candidate(mode);
     var acc: array<f32, 16>;
     for (var i = gid.x; i < params.ne + params.n; i = i + nwg.x * LWG) {
         if (i < params.ne) {
@@ -288,11 +307,11 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
             let size = bitcast<f32>(elems[3u * e + 2u].z);
             let q0 = rot[e];
             var base = 0.0;
-            if (mode == 1u) {
+            if (mode != 0u) {
                 base = element_energy(e, y, quat_mat(q0));
             }
             for (var k = 0u; k < kc; k = k + 1u) {
-                let a = candidate(k, mode);
+                let a = candidate(k0 + k, mode);
                 var xc: array<vec3<f32>, 8>;
                 for (var c = 0u; c < 8u; c = c + 1u) {
                     xc[c] = y[c] + d[c] * a;
@@ -315,12 +334,12 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                 let u = pos[R_Y * n + j].xyz - pos[R_T * n + j].xyz;
                 let w = 0.5 * nodes[j].x / params.h2;
                 for (var k = 0u; k < kc; k = k + 1u) {
-                    let a = candidate(k, mode);
+                    let a = candidate(k0 + k, mode);
                     acc[k] = acc[k] + w * a * (2.0 * dot(d, u) + a * dot(d, d));
                 }
                 // Penalty contacts (line search only): ½ k depth² along the step.
                 let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
-                if (mode == 1u && mask != 0u) {
+                if (mode != 0u && mask != 0u) {
                     let sc = contact_scale(j);
                     let y = pos[R_Y * n + j].xyz;
                     for (var c = 0u; c < params.misc.x; c = c + 1u) {
@@ -329,7 +348,7 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                         }
                         let d0 = sc.x - collider_sdf(cols[c], y).w;
                         for (var k = 0u; k < kc; k = k + 1u) {
-                            let da = sc.x - collider_sdf(cols[c], y + d * candidate(k, mode)).w;
+                            let da = sc.x - collider_sdf(cols[c], y + d * candidate(k0 + k, mode)).w;
                             acc[k] = acc[k] + 0.5 * sc.y * (da * da - d0 * d0);
                         }
                     }
@@ -345,7 +364,9 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
 
 // One workgroup: sums the partials of `pc.count` workgroups and picks the step.
 // mode 0: the first iterate's s of lowest energy (s = 1 unless another is lower);
-// mode 1: the first line-search candidate that does not raise the energy, else 0;
+// mode 1: the first of the line search's first candidates that does not raise the
+// energy (else 0, and the second pass's workgroups into `args`); mode 4: after the
+// second pass, if it ran, the first of its candidates that does not, else 0;
 // mode 2: the trust region's bound α_max; mode 3: the coarse correction's step of
 // level `pc.level`.
 @compute @workgroup_size(64)
@@ -393,16 +414,36 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
         }
         red[S_ALPHA] = candidate(best, 0u);
     } else if (mode == 1u) {
+        // The line search's first candidates; the rest only if none of them is taken.
         var a = 0.0;
+        var found = false;
         if (red[S_ALPHA_MAX] > 0.0) {
-            for (var k = 0u; k < LINE_CANDIDATES; k = k + 1u) {
+            for (var k = 0u; k < part_a(); k = k + 1u) {
                 if (wsum[0][k] <= 0.0) {
                     a = candidate(k, 1u);
+                    found = true;
                     break;
                 }
             }
         }
         red[S_ALPHA] = a;
+        let pending = red[S_ALPHA_MAX] > 0.0 && !found;
+        red[S_PENDING] = select(0.0, 1.0, pending);
+        args[0] = select(0u, pc.count, pending);
+        args[1] = 1u;
+        args[2] = 1u;
+    } else if (mode == 4u) {
+        if (red[S_PENDING] > 0.5) {
+            var a = 0.0;
+            for (var k = 0u; k < LINE_CANDIDATES - part_a(); k = k + 1u) {
+                if (wsum[0][k] <= 0.0) {
+                    a = candidate(part_a() + k, 1u);
+                    break;
+                }
+            }
+            red[S_ALPHA] = a;
+            red[S_PENDING] = 0.0;
+        }
     } else if (mode == 2u) {
         red[S_ALPHA_MAX] = select(wsum[0][0], 0.0, wsum[0][1] > 0.0);
     } else {
