@@ -6,8 +6,9 @@
 //! E = 100 kPa, ν = 0.45), each with CPU Gauss–Seidel and CPU Jacobi; hyperelastic with a
 //! two-level hierarchy (Müller 2008, Jacobi); the same material on the lattice
 //! discretisation (hexahedra on the sampling lattice: `Discretisation::Lattice`) with XPBD
-//! Gauss–Seidel and with Newton–multigrid (`ElementSolver::Multigrid`), CPU only; and the
-//! GPU world (Jacobi on the GPU) with both cluster materials, where an adapter exists. The
+//! Gauss–Seidel and with Newton–multigrid (`ElementSolver::Multigrid`); and, where an
+//! adapter exists, the GPU world (Jacobi on the GPU) with both cluster materials and
+//! Newton–multigrid on the GPU (`gpu::lattice::GpuLattice`, the lattice material). The
 //! lattice rows have no `K = 4` column (no neighbourhoods) and no coplanar plate (a plate
 //! thinner than a cell has no cell); they are measured on their own hexahedra.
 //!
@@ -68,6 +69,7 @@ mod chart;
 use bevy_tissue::core::TissueError;
 use bevy_tissue::core::colliders::Collider;
 use bevy_tissue::core::constraints::sym_eigen;
+use bevy_tissue::core::diagnose;
 use bevy_tissue::core::element::element_gradient;
 use bevy_tissue::core::hierarchy::HierarchyDesc;
 use bevy_tissue::core::mesh::TriMesh;
@@ -75,6 +77,8 @@ use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Control, ElementSolver, Method, Solver, SolverSettings, State};
+use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+use bevy_tissue::gpu::lattice::GpuLattice;
 use bevy_tissue::gpu::world::{read_u32, read_vec3};
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
 use glam::Vec3;
@@ -221,6 +225,7 @@ enum Row {
     LatticeMg,
     GpuSm,
     GpuHe,
+    GpuLatticeMg,
 }
 
 impl Row {
@@ -233,7 +238,7 @@ impl Row {
         Row::LatticeGs,
         Row::LatticeMg,
     ];
-    const GPU: [Row; 2] = [Row::GpuSm, Row::GpuHe];
+    const GPU: [Row; 3] = [Row::GpuSm, Row::GpuHe, Row::GpuLatticeMg];
 
     /// Identifier in the JSON.
     fn key(self) -> &'static str {
@@ -247,6 +252,7 @@ impl Row {
             Row::LatticeMg => "lattice_newton_mg",
             Row::GpuSm => "gpu_sm",
             Row::GpuHe => "gpu_he",
+            Row::GpuLatticeMg => "gpu_lattice_newton_mg",
         }
     }
 
@@ -262,6 +268,7 @@ impl Row {
             Row::LatticeMg => "lattice hexahedra, Newton–multigrid",
             Row::GpuSm => "GPU Jacobi, shape matching",
             Row::GpuHe => "GPU Jacobi, hyperelastic",
+            Row::GpuLatticeMg => "GPU lattice hexahedra, Newton–multigrid",
         }
     }
 
@@ -273,7 +280,9 @@ impl Row {
     /// CPU method (the GPU always runs Jacobi).
     fn method(self) -> Method {
         match self {
-            Row::SmGs | Row::HeGs | Row::LatticeGs | Row::LatticeMg => Method::GaussSeidel,
+            Row::SmGs | Row::HeGs | Row::LatticeGs | Row::LatticeMg | Row::GpuLatticeMg => {
+                Method::GaussSeidel
+            }
             _ => Method::Jacobi,
         }
     }
@@ -281,12 +290,12 @@ impl Row {
     /// The lattice discretisation (hexahedral elements on the sampling lattice), else the
     /// paper's clusters.
     fn lattice(self) -> bool {
-        matches!(self, Row::LatticeGs | Row::LatticeMg)
+        matches!(self, Row::LatticeGs | Row::LatticeMg | Row::GpuLatticeMg)
     }
 
-    /// Runs on the GPU world.
+    /// Runs on the GPU (the world's kernels, or the lattice's).
     fn gpu(self) -> bool {
-        matches!(self, Row::GpuSm | Row::GpuHe)
+        matches!(self, Row::GpuSm | Row::GpuHe | Row::GpuLatticeMg)
     }
 }
 
@@ -436,7 +445,7 @@ fn settings(scenario: Scenario, row: Row, cfg: &Config) -> SolverSettings {
         },
         particle_contacts: false,
         threads: 1,
-        element_solver: if row == Row::LatticeMg {
+        element_solver: if matches!(row, Row::LatticeMg | Row::GpuLatticeMg) {
             ElementSolver::Multigrid
         } else {
             ElementSolver::Xpbd
@@ -704,6 +713,50 @@ fn run_gpu(
     })
 }
 
+/// Runs `steps` steps of Newton–multigrid on the GPU (`GpuLattice`) in chunks, checking
+/// the particles for divergence after each (as the CPU solver does after every step);
+/// stops at the first chunk that diverged.
+fn run_gpu_lattice(
+    g: &Headless,
+    model: &Model,
+    state: &State,
+    control: &Control,
+    settings: SolverSettings,
+    steps: u32,
+) -> Result<RunEnd, String> {
+    let kernels = LatticeKernels::new(&g.device).map_err(|e| e.to_string())?;
+    let mut world =
+        GpuLattice::new(&g.device, &kernels, model, state, &settings).map_err(|e| e.to_string())?;
+    world
+        .set_colliders(&g.queue, &control.colliders)
+        .map_err(|e| e.to_string())?;
+    let mut st = state.clone();
+    let chunk = steps.div_ceil(20).max(1);
+    let (mut done, mut diverged) = (0, None);
+    while done < steps {
+        let k = chunk.min(steps - done);
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &kernels, k, None);
+        g.queue.submit([enc.finish()]);
+        world.download(&g.device, &g.queue, &mut st);
+        if let Some(worst) = diagnose::worst_particle(&st.x, &st.v, settings.max_speed) {
+            let e = diagnose::diverged(model, &settings, st.step + (done + k) as u64, worst, 0.0);
+            diverged = Some((
+                done + k,
+                format!("{e} (in steps {}..={})", done + 1, done + k),
+            ));
+            break;
+        }
+        done += k;
+    }
+    Ok(RunEnd {
+        x: st.x,
+        v: st.v,
+        steps_run: done,
+        diverged,
+    })
+}
+
 /// Classifies an end state from its divergence, volume ratio and shape error.
 fn classify(diverged: bool, volume: f32, shape: f32) -> Outcome {
     if diverged || !volume.is_finite() || !shape.is_finite() {
@@ -759,7 +812,10 @@ fn run_cell(
         cell.note = "the lattice has no neighbourhoods (K)".into();
         return cell;
     }
-    if scenario == Scenario::OverRelaxed && row.method() == Method::GaussSeidel && !row.gpu() {
+    if scenario == Scenario::OverRelaxed
+        && row.method() == Method::GaussSeidel
+        && (!row.gpu() || row.lattice())
+    {
         cell.note = "Gauss–Seidel applies each correction in full; this solver's ω is Jacobi's \
                      (no successive over-relaxation)"
             .into();
@@ -770,6 +826,7 @@ fn run_cell(
             return Err("the measuring model's particles differ".into());
         }
         match gpu {
+            Some(g) if row.lattice() => run_gpu_lattice(g, &model, &state, &control, s, steps),
             Some(g) => run_gpu(g, &model, &state, &control, s, steps),
             None => run_cpu(&model, state, &control, s, steps),
         }

@@ -238,7 +238,7 @@ fn stability_quick_fills_every_cell() {
         "lattice_newton_mg",
     ];
     if gpu {
-        methods.extend(["gpu_sm", "gpu_he"]);
+        methods.extend(["gpu_sm", "gpu_he", "gpu_lattice_newton_mg"]);
     }
     let known = [
         "recovers",
@@ -262,7 +262,7 @@ fn stability_quick_fills_every_cell() {
             assert!(known.contains(&outcome.as_str()), "{c}");
             // Only Gauss–Seidel is n/a for over-relaxation (it has no ω), and the lattice
             // rows (Gauss–Seidel too) for K = 4 (no neighbourhoods).
-            let lattice = m.starts_with("lattice_");
+            let lattice = m.starts_with("lattice_") || m.starts_with("gpu_lattice_");
             let na = (s == "over_relaxed" && (m.ends_with("_gs") || lattice))
                 || (s == "small_k" && lattice);
             assert_eq!(outcome == "n/a", na, "{c}");
@@ -276,8 +276,9 @@ fn stability_quick_fills_every_cell() {
             // The control: moderate settings, a mild squash, every method recovers.
             if s == "baseline" {
                 assert_eq!(outcome, "recovers", "baseline must recover: {c}");
-            } else if *m == "lattice_newton_mg" && !na {
-                // Newton–multigrid (energy line search, trust region) recovers everywhere.
+            } else if m.ends_with("lattice_newton_mg") && !na {
+                // Newton–multigrid (energy line search, trust region) recovers everywhere,
+                // on the CPU and the GPU.
                 assert_eq!(outcome, "recovers", "Newton–multigrid must recover: {c}");
             } else if outcome != "recovers" && outcome != "n/a" && outcome != "stuck" {
                 harsh_failures.push(format!("{m} × {s}: {outcome}"));
