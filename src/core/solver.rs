@@ -259,7 +259,7 @@ pub struct State {
     pub element_rot: Vec<Quat>,
     /// Target of each pinned particle (same order as `Model::pinned`), m.
     pub pin_targets: Vec<Vec3>,
-    /// Per particle: the grasper holding it, if any ([`ColliderShape::Grasper`](super::colliders::ColliderShape::Grasper)).
+    /// Per particle: the grasper holding it, if any ([`ColliderShape::Grasper`]).
     pub grab: Vec<Grab>,
     /// Steps taken.
     pub step: u64,

@@ -129,30 +129,52 @@ pub const SLOTS: &[Slot] = &[
 
 /// The entry points of `lattice.wgsl`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-#[allow(missing_docs)]
 pub enum Kernel {
+    /// `predict`: inertial targets, first iterates, grasps.
     Predict,
+    /// `energy`: energy changes of candidate steps (first iterate, line search).
     Energy,
+    /// `pick`: sums partial sums and picks a step (one workgroup).
     Pick,
+    /// `advance`: takes the picked step.
     Advance,
+    /// `forces`: element forces and rotations.
     Forces,
+    /// `residual`: the Newton residual, level 0's right-hand side.
     Residual,
+    /// `coarsen_rot`: coarse elements' rotations from their children's.
     CoarsenRot,
+    /// `diag`: inverted diagonal blocks of a level.
     Diag,
+    /// `smooth_colour`: one colour of a Gauss–Seidel sweep.
     Smooth,
+    /// `fine_residual`: a level's residual before restriction.
     FineResidual,
+    /// `restrict_residual`: the next coarser level's right-hand side.
     Restrict,
+    /// `prolong`: the coarse correction on the finer level.
     Prolong,
+    /// `alpha_terms`: partial sums of the coarse correction's step.
     AlphaTerms,
+    /// `correct`: adds the scaled coarse correction.
     Correct,
+    /// `trust`: partial minima of the trust region's step bound.
     Trust,
+    /// `finish`: velocities and positions at the end of a substep.
     Finish,
+    /// `coarse_cycle`: the small levels' V-cycle in one workgroup.
     CoarseCycle,
+    /// `contacts`: penalty contacts with the colliders.
     Contacts,
+    /// `lump_extra`: contact stiffness lumped onto a coarse level.
     LumpExtra,
+    /// `boundary`: projection out of the colliders, grasp targets, contact forces.
     Boundary,
+    /// `force_partials`: partial sums of the forces on each collider.
     ForcePartials,
+    /// `force_total`: the step's force on each collider.
     ForceTotal,
+    /// `force_clear`: zeroes the step's collider forces.
     ForceClear,
 }
 
