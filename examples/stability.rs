@@ -667,6 +667,25 @@ fn run_cpu(
     })
 }
 
+/// Runs `steps` steps in about 20 chunks: `chunk(done, k)` takes `k` more steps after
+/// `done` and says what diverged, if anything. Returns the steps taken before the chunk
+/// that diverged (all of them otherwise) and, for that chunk, its last step and the note.
+fn in_chunks(
+    steps: u32,
+    mut chunk: impl FnMut(u32, u32) -> Option<String>,
+) -> (u32, Option<(u32, String)>) {
+    let size = steps.div_ceil(20).max(1);
+    let mut done = 0;
+    while done < steps {
+        let k = size.min(steps - done);
+        if let Some(note) = chunk(done, k) {
+            return (done, Some((done + k, note)));
+        }
+        done += k;
+    }
+    (done, None)
+}
+
 /// Runs `steps` steps on the GPU in chunks, reading the body's divergence flag after
 /// each; stops at the first chunk that raised it.
 fn run_gpu(
@@ -684,27 +703,19 @@ fn run_gpu(
         .map_err(|e| e.to_string())?;
     world.write_params(&g.queue);
     let n = world.particle_count();
-    let chunk = steps.div_ceil(20).max(1);
-    let (mut done, mut diverged) = (0, None);
-    while done < steps {
-        let k = chunk.min(steps - done);
+    let (done, diverged) = in_chunks(steps, |done, k| {
         let mut enc = g.device.create_command_encoder(&Default::default());
         world.record_steps(&mut enc, &g.kernels, k, &mut NoTiming);
         g.queue.submit([enc.finish()]);
         let flag = read_u32(&g.device, &g.queue, world.status(), 1);
-        if flag[0] != 0 {
-            diverged = Some((
-                done + k,
-                format!(
-                    "the GPU flagged the body as diverged in steps {}..={}",
-                    done + 1,
-                    done + k
-                ),
-            ));
-            break;
-        }
-        done += k;
-    }
+        (flag[0] != 0).then(|| {
+            format!(
+                "the GPU flagged the body as diverged in steps {}..={}",
+                done + 1,
+                done + k
+            )
+        })
+    });
     Ok(RunEnd {
         x: read_vec3(&g.device, &g.queue, world.positions(), n),
         v: read_vec3(&g.device, &g.queue, world.velocities(), n),
@@ -731,24 +742,15 @@ fn run_gpu_lattice(
         .set_colliders(&g.queue, &control.colliders)
         .map_err(|e| e.to_string())?;
     let mut st = state.clone();
-    let chunk = steps.div_ceil(20).max(1);
-    let (mut done, mut diverged) = (0, None);
-    while done < steps {
-        let k = chunk.min(steps - done);
+    let (done, diverged) = in_chunks(steps, |done, k| {
         let mut enc = g.device.create_command_encoder(&Default::default());
         world.record(&mut enc, &kernels, k, None);
         g.queue.submit([enc.finish()]);
         world.download(&g.device, &g.queue, &mut st);
-        if let Some(worst) = diagnose::worst_particle(&st.x, &st.v, settings.max_speed) {
-            let e = diagnose::diverged(model, &settings, st.step + (done + k) as u64, worst, 0.0);
-            diverged = Some((
-                done + k,
-                format!("{e} (in steps {}..={})", done + 1, done + k),
-            ));
-            break;
-        }
-        done += k;
-    }
+        let worst = diagnose::worst_particle(&st.x, &st.v, settings.max_speed)?;
+        let e = diagnose::diverged(model, &settings, st.step + (done + k) as u64, worst, 0.0);
+        Some(format!("{e} (in steps {}..={})", done + 1, done + k))
+    });
     Ok(RunEnd {
         x: st.x,
         v: st.v,

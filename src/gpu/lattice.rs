@@ -788,22 +788,29 @@ impl GpuLattice {
                 pass.set_bind_group(0, &self.groups[clear], &[]);
                 pass.dispatch_workgroups(1, 1, 1);
             }
-            for (d, &pi) in self.dispatches.iter().zip(&self.pass_index) {
-                let k = LatticeKernels::index(d.kernel);
-                pass.set_pipeline(&kernels.pipelines[k].0);
-                let uses_pc = super::kernels::lattice::ENTRIES[k].uses.contains(&"pc");
-                let offsets: &[u32] = if uses_pc {
-                    &[pi * PASS_STRIDE as u32]
-                } else {
-                    &[]
-                };
-                pass.set_bind_group(0, &self.groups[k], offsets);
-                if d.indirect {
-                    pass.dispatch_workgroups_indirect(&self.args, 0);
-                } else {
-                    pass.dispatch_workgroups(d.groups, 1, 1);
-                }
+            for i in 0..self.dispatches.len() {
+                self.encode(&mut pass, kernels, i);
             }
+        }
+    }
+
+    /// Encodes dispatch `i` of the plan into `pass`: its pipeline, its bind group at its
+    /// range's offset, and its workgroups (or the indirect count).
+    fn encode(&self, pass: &mut wgpu::ComputePass<'_>, kernels: &LatticeKernels, i: usize) {
+        let d = &self.dispatches[i];
+        let k = LatticeKernels::index(d.kernel);
+        pass.set_pipeline(&kernels.pipelines[k].0);
+        let offset = [self.pass_index[i] * PASS_STRIDE as u32];
+        let offsets: &[u32] = if super::kernels::lattice::ENTRIES[k].uses.contains(&"pc") {
+            &offset
+        } else {
+            &[]
+        };
+        pass.set_bind_group(0, &self.groups[k], offsets);
+        if d.indirect {
+            pass.dispatch_workgroups_indirect(&self.args, 0);
+        } else {
+            pass.dispatch_workgroups(d.groups, 1, 1);
         }
     }
 
@@ -828,13 +835,11 @@ impl GpuLattice {
             "smooth_colour L7",
         ];
         for _ in 0..steps * self.substeps {
-            for (d, &pi) in self.dispatches.iter().zip(&self.pass_index) {
-                let k = LatticeKernels::index(d.kernel);
-                let entry = &super::kernels::lattice::ENTRIES[k];
+            for (i, d) in self.dispatches.iter().enumerate() {
                 let name = if d.kernel == Kernel::Smooth {
                     SMOOTH[(d.pass.level as usize).min(7)]
                 } else {
-                    entry.name
+                    super::kernels::lattice::ENTRIES[LatticeKernels::index(d.kernel)].name
                 };
                 let ts = rec.timestamps(name);
                 let timestamp_writes =
@@ -847,18 +852,7 @@ impl GpuLattice {
                     label: Some(name),
                     timestamp_writes,
                 });
-                pass.set_pipeline(&kernels.pipelines[k].0);
-                let offsets: &[u32] = if entry.uses.contains(&"pc") {
-                    &[pi * PASS_STRIDE as u32]
-                } else {
-                    &[]
-                };
-                pass.set_bind_group(0, &self.groups[k], offsets);
-                if d.indirect {
-                    pass.dispatch_workgroups_indirect(&self.args, 0);
-                } else {
-                    pass.dispatch_workgroups(d.groups, 1, 1);
-                }
+                self.encode(&mut pass, kernels, i);
             }
         }
     }
