@@ -1171,10 +1171,11 @@ impl Lockstep {
         let mut enc = g.device.create_command_encoder(&Default::default());
         world.record(&mut enc, &self.kernels, 1, None);
         g.queue.submit([enc.finish()]);
-        world.download(&g.device, &g.queue, state);
+        let gpu_forces = world.download(&g.device, &g.queue, state);
+        assert_eq!(gpu_forces, world.read_forces(&g.device, &g.queue));
         Compared {
             cpu_forces: stats.collider_forces,
-            gpu_forces: world.read_forces(&g.device, &g.queue),
+            gpu_forces,
             diff: max_dist(&state.x, &self.cpu.1.x),
             own: max_dist(&self.nudged.1.x, &self.cpu.1.x),
             moved: max_dist(&self.start, &self.cpu.1.x),

@@ -912,25 +912,44 @@ impl GpuLattice {
             self.force_out as u64 * 4,
             self.colliders as u64 * 16,
         );
-        bytemuck::cast_slice::<u8, [f32; 4]>(&bytes)
-            .iter()
-            .map(|f| Vec3::new(f[0], f[1], f[2]))
-            .collect()
+        forces_of(&bytes)
     }
 
     /// Blocking read of positions, velocities, level-0 element rotations and grasps into
-    /// `state` (its step count is the caller's to advance).
-    pub fn download(&self, device: &RenderDevice, queue: &RenderQueue, state: &mut State) {
-        let n = self.n as u64;
-        let read = |off: u64, count: u64, buf: &Buffer| -> Vec<[f32; 4]> {
-            let bytes = super::world::read_buffer(device, queue, buf, off * 16, count * 16);
-            bytemuck::cast_slice(&bytes).to_vec()
-        };
-        let x = read(0, n, &self.pos);
-        let v = read(3 * n, n, &self.pos);
-        let r = read(0, self.ne as u64, &self.rot);
-        let grabs = read(2 * n, n, &self.ccol);
-        for (g, s) in grabs.iter().zip(state.grab.iter_mut()) {
+    /// `state` (its step count is the caller's to advance), in one submission with the
+    /// forces on the colliders, which it returns (as [`GpuLattice::read_forces`]).
+    pub fn download(
+        &self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        state: &mut State,
+    ) -> Vec<Vec3> {
+        let n = self.n as u64 * 16;
+        let parts = super::world::read_buffers(
+            device,
+            queue,
+            &[
+                (&self.pos, 0, n),
+                (&self.pos, 3 * n, n),
+                (&self.rot, 0, self.ne as u64 * 16),
+                (&self.ccol, 2 * n, n),
+                (
+                    &self.red,
+                    self.force_out as u64 * 4,
+                    self.colliders as u64 * 16,
+                ),
+            ],
+        );
+        // Copied out (a byte vector need not be aligned for f32, an empty one is not).
+        let vec4s = |i: usize| -> Vec<[f32; 4]> { bytemuck::pod_collect_to_vec(&parts[i]) };
+        for (i, (a, b)) in vec4s(0).iter().zip(&vec4s(1)).enumerate() {
+            state.x[i] = Vec3::new(a[0], a[1], a[2]);
+            state.v[i] = Vec3::new(b[0], b[1], b[2]);
+        }
+        for (e, q) in vec4s(2).iter().enumerate() {
+            state.element_rot[e] = Quat::from_array(*q);
+        }
+        for (g, s) in vec4s(3).iter().zip(state.grab.iter_mut()) {
             *s = if g[3] > 0.5 {
                 crate::core::colliders::Grab {
                     collider: g[3] as u32 - 1,
@@ -940,14 +959,16 @@ impl GpuLattice {
                 crate::core::colliders::Grab::FREE
             };
         }
-        for (i, (a, b)) in x.iter().zip(&v).enumerate() {
-            state.x[i] = Vec3::new(a[0], a[1], a[2]);
-            state.v[i] = Vec3::new(b[0], b[1], b[2]);
-        }
-        for (e, q) in r.iter().enumerate() {
-            state.element_rot[e] = Quat::from_array(*q);
-        }
+        forces_of(&parts[4])
     }
+}
+
+/// Collider forces (vec4 each, N) as `Vec3`s.
+fn forces_of(bytes: &[u8]) -> Vec<Vec3> {
+    bytemuck::pod_collect_to_vec::<u8, [f32; 4]>(bytes)
+        .iter()
+        .map(|f| Vec3::new(f[0], f[1], f[2]))
+        .collect()
 }
 
 /// The `ccol` buffer's regions for `state`: no collider corrections yet (w = −1),

@@ -1319,19 +1319,49 @@ pub fn read_buffer(
     offset: u64,
     size: u64,
 ) -> Vec<u8> {
+    read_buffers(device, queue, &[(buffer, offset, size)])
+        .pop()
+        .unwrap_or_default()
+}
+
+/// Blocking read of several `(buffer, byte offset, bytes)` ranges (offsets and sizes
+/// multiples of 4) with one copy submission and one wait.
+pub fn read_buffers(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    ranges: &[(&Buffer, u64, u64)],
+) -> Vec<Vec<u8>> {
+    let total: u64 = ranges.iter().map(|r| r.2).sum();
     let staging = device.create_buffer(&BufferDescriptor {
         label: Some("tissue readback"),
-        size: size.max(4),
+        size: total.max(4),
         usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
     let mut enc = device.create_command_encoder(&Default::default());
-    enc.copy_buffer_to_buffer(buffer, offset, &staging, 0, size);
+    let mut at = 0;
+    for &(buffer, offset, size) in ranges {
+        if size > 0 {
+            enc.copy_buffer_to_buffer(buffer, offset, &staging, at, size);
+        }
+        at += size;
+    }
     queue.submit([enc.finish()]);
     let slice = staging.slice(..);
     slice.map_async(MapMode::Read, |_| {});
     let _ = device.poll(bevy::render::render_resource::PollType::wait_indefinitely());
-    let out = slice.get_mapped_range()[..size as usize].to_vec();
+    let out = {
+        let data = slice.get_mapped_range();
+        let mut at = 0usize;
+        ranges
+            .iter()
+            .map(|r| {
+                let part = data[at..at + r.2 as usize].to_vec();
+                at += r.2 as usize;
+                part
+            })
+            .collect()
+    };
     staging.unmap();
     out
 }

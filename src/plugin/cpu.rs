@@ -232,8 +232,7 @@ impl CpuWorld {
         let mut enc = device.create_command_encoder(&Default::default());
         world.record(&mut enc, &g.kernels, steps, None);
         queue.submit([enc.finish()]);
-        world.download(device, queue, state);
-        let forces = world.read_forces(device, queue);
+        let forces = world.download(device, queue, state);
         state.step += steps as u64;
         if let Some(worst) =
             crate::core::diagnose::worst_particle(&state.x, &state.v, settings.max_speed)
