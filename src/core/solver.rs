@@ -162,6 +162,8 @@ pub struct SolverSettings {
     /// Vertex block descent: start from the last substep's acceleration along gravity
     /// (Chen et al. 2024's adaptive initialisation) instead of the velocity alone.
     pub descent_adaptive_init: bool,
+    /// [`ElementSolver::Multigrid`]: how the V-cycle smooths each level.
+    pub smoother: super::multigrid::Smoother,
 }
 
 /// What the coarse levels of hierarchical PBD solve. Level 0 is solved last in every
@@ -208,6 +210,7 @@ impl Default for SolverSettings {
             element_solver: ElementSolver::Xpbd,
             newton_iterations: 0,
             descent_adaptive_init: false,
+            smoother: Default::default(),
         }
     }
 }
@@ -1092,6 +1095,9 @@ impl Solver {
         });
         if stale {
             self.mg = Some(Box::new(LatticeMultigrid::new(model, 64, 8)));
+        }
+        if let Some(mg) = self.mg.as_mut() {
+            mg.smoother = self.settings.smoother;
         }
         let Some(mg) = self.mg.take() else {
             return;

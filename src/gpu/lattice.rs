@@ -17,7 +17,7 @@ use super::kernels::lattice::{Kernel, LatticeKernels, MAX_COLLIDERS, SLOTS, WORK
 use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
-use crate::core::multigrid::{COLOURS, LatticeMultigrid};
+use crate::core::multigrid::{COLOURS, LatticeMultigrid, Smoother};
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferUsages,
@@ -38,9 +38,11 @@ const RED_BASE: usize = 16;
 const RED_STRIDE: usize = 16;
 /// Most workgroups of a reduction (see [`reduction_groups`]).
 const MAX_PARTIALS: u32 = 1024;
-/// Gauss–Seidel sweeps before and after the coarse correction, and on the coarsest
-/// level (as the CPU solver's V-cycle).
+/// Smoothing sweeps before and after the coarse correction, and on the coarsest
+/// level (as the CPU solver's V-cycle; even, for the Chebyshev smoother's buffers).
 const SWEEPS: (u32, u32, u32) = (2, 2, 30);
+/// Most workgroups of a Chebyshev sweep (they stride over larger levels).
+const CHEBYSHEV_GROUPS: u32 = 8192;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -62,6 +64,8 @@ struct Params {
     sweeps: [u32; 4],
     colours: [[u32; 4]; 18],
     misc: [u32; 4],
+    cheb: [[f32; 4]; MAX_LEVELS],
+    smoother: [u32; 4],
 }
 
 /// Byte offset of `misc` (the collider count first) in the parameter block.
@@ -106,6 +110,8 @@ pub struct Shape {
     /// The level from which the rest of the V-cycle runs in one workgroup (one dispatch),
     /// if its levels are small enough.
     pub fold: Option<usize>,
+    /// How each level is smoothed.
+    pub smoother: Smoother,
 }
 
 /// Most nodes the levels below [`Shape::fold`] may have together: one workgroup of 256
@@ -208,6 +214,22 @@ fn sweeps(
     count: u32,
     push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32),
 ) {
+    if shape.smoother == Smoother::Chebyshev {
+        // An even count ends in the correction's own region (see `chebyshev_node`).
+        debug_assert!(count % 2 == 0, "Chebyshev sweeps come in pairs");
+        let [first, len, _, _] = shape.levels[l];
+        for k in 0..count {
+            push(
+                Kernel::Chebyshev,
+                first,
+                len,
+                l as u32,
+                k,
+                len.div_ceil(8).min(CHEBYSHEV_GROUPS),
+            );
+        }
+        return;
+    }
     let c = &shape.colours[l];
     for _ in 0..count {
         for k in 0..COLOURS {
@@ -441,6 +463,11 @@ fn pack(
             force_base,
             force_base + force_partials,
         ],
+        cheb: std::array::from_fn(|l| {
+            let [inv_theta, rho2] = mg.chebyshev.get(l).copied().unwrap_or([1.0, 0.0]);
+            [inv_theta, rho2, 0.0, 0.0]
+        }),
+        smoother: [(mg.smoother == Smoother::Chebyshev) as u32, 0, 0, 0],
     };
     let shape = Shape {
         levels: (0..nl)
@@ -455,6 +482,7 @@ fn pack(
             .collect(),
         fold: (0..nl).find(|&l| node_off[nl] - node_off[l] <= options.fold_nodes),
         colours,
+        smoother: mg.smoother,
     };
     Packed {
         params,
@@ -567,7 +595,8 @@ impl GpuLattice {
                 expected: "a State made for this model",
             });
         }
-        let mg = LatticeMultigrid::new(model, 64, 8);
+        let mut mg = LatticeMultigrid::new(model, 64, 8);
+        mg.smoother = settings.smoother;
         let packed = pack(model, &mg, settings, options);
         let limit = device.limits().max_storage_buffer_binding_size;
         let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
@@ -834,10 +863,22 @@ impl GpuLattice {
             "smooth_colour L6",
             "smooth_colour L7",
         ];
+        const CHEBYSHEV: [&str; 8] = [
+            "smooth_chebyshev L0",
+            "smooth_chebyshev L1",
+            "smooth_chebyshev L2",
+            "smooth_chebyshev L3",
+            "smooth_chebyshev L4",
+            "smooth_chebyshev L5",
+            "smooth_chebyshev L6",
+            "smooth_chebyshev L7",
+        ];
         for _ in 0..steps * self.substeps {
             for (i, d) in self.dispatches.iter().enumerate() {
                 let name = if d.kernel == Kernel::Smooth {
                     SMOOTH[(d.pass.level as usize).min(7)]
+                } else if d.kernel == Kernel::Chebyshev {
+                    CHEBYSHEV[(d.pass.level as usize).min(7)]
                 } else {
                     super::kernels::lattice::ENTRIES[LatticeKernels::index(d.kernel)].name
                 };
@@ -1022,7 +1063,30 @@ mod tests {
                 [120, 121, 122, 123, 124, 125, 126, 127, 128],
             ],
             fold: None,
+            smoother: Smoother::GaussSeidel,
         }
+    }
+
+    /// The Chebyshev smoother is one dispatch per level and sweep (over the whole level,
+    /// its sweep index the pass's mode), where Gauss–Seidel is one per colour.
+    #[test]
+    fn a_chebyshev_plan_sweeps_each_level_at_once() {
+        let s = Shape {
+            smoother: Smoother::Chebyshev,
+            ..shape()
+        };
+        let p = plan(&s, 2);
+        let cheb: Vec<&Dispatch> = p.iter().filter(|d| d.kernel == Kernel::Chebyshev).collect();
+        assert_eq!(p.iter().filter(|d| d.kernel == Kernel::Smooth).count(), 0);
+        assert_eq!(cheb.len(), 2 * (4 + 4 + 30));
+        for d in &cheb {
+            let [first, count, _, _] = s.levels[d.pass.level as usize];
+            assert_eq!((d.pass.first, d.pass.count), (first, count));
+            assert_eq!(d.groups, count.div_ceil(8));
+        }
+        // Each smoothing run counts its sweeps from 0 (the Chebyshev weights restart).
+        let modes: Vec<u32> = cheb.iter().take(4).map(|d| d.pass.mode).collect();
+        assert_eq!(modes, [0, 1, 0, 1]);
     }
 
     /// With the coarse levels folded into one workgroup, level 1 and below are one

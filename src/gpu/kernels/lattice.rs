@@ -148,6 +148,8 @@ pub enum Kernel {
     Diag,
     /// `smooth_colour`: one colour of a Gauss–Seidel sweep.
     Smooth,
+    /// `smooth_chebyshev`: one Chebyshev–Jacobi sweep of a level.
+    Chebyshev,
     /// `fine_residual`: a level's residual before restriction.
     FineResidual,
     /// `restrict_residual`: the next coarser level's right-hand side.
@@ -238,6 +240,13 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Smooth,
         name: "smooth_colour",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::Chebyshev,
+        name: "smooth_chebyshev",
         uses: &[
             "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
         ],

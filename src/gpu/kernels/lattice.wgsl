@@ -72,6 +72,8 @@ struct LatticeParams {
                              // where the last ends (9 entries a level)
     misc: vec4<u32>,         // x: colliders; y: substeps; z, w: where the collider
                              // forces' partial sums and totals start in `red`
+    cheb: array<vec4<f32>, 8>, // per level: the Chebyshev smoother's 1/θ and ρ²
+    smoother: vec4<u32>,     // x: 0 Gauss–Seidel by colour, 1 Chebyshev–Jacobi
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -775,6 +777,10 @@ fn apply_part(j: u32, region: u32, slot: u32, split: u32) -> vec3<f32> {
 // each node's row over 8 or 64 threads (summed in workgroup memory), so that its
 // latency is one element's or one block's loads rather than all of them.
 fn cycle_sweeps(l: u32, count: u32, lid: u32) {
+    if (params.smoother.x == 1u) {
+        chebyshev_sweeps(l, count, lid);
+        return;
+    }
     var widest = 0u;
     for (var c = 0u; c < 8u; c = c + 1u) {
         let r = colour_range(l, c);
@@ -804,13 +810,13 @@ fn cycle_sweeps(l: u32, count: u32, lid: u32) {
     }
 }
 
-// Part of a Gauss–Seidel update split `split` ways: thread `lid` adds its part of
-// (A δ) for the node at topo[i] (none past `end`) into `part`, and the node's first
-// thread applies the update. Every thread of the workgroup calls it.
-fn smooth_split(i: u32, end: u32, lid: u32, split: u32) {
+// (A x)_j of region `region` split `split` ways (8 or 64): thread `lid` adds its part
+// into `part`, the node's first thread gets the sum. Every thread of the workgroup calls
+// it (`valid` false: no node).
+fn split_row(j: u32, valid: bool, region: u32, lid: u32, split: u32) -> vec3<f32> {
     var p = vec3<f32>(0.0);
-    if (i < end) {
-        p = apply_part(topo[i], V_DELTA, lid % split, split);
+    if (valid) {
+        p = apply_part(j, region, lid % split, split);
     }
     part[lid] = p;
     for (var st = split / 2u; st > 0u; st = st / 2u) {
@@ -820,15 +826,107 @@ fn smooth_split(i: u32, end: u32, lid: u32, split: u32) {
         }
     }
     workgroupBarrier();
+    return part[lid];
+}
+
+// Part of a Gauss–Seidel update split `split` ways: the node at topo[i] (none past
+// `end`), updated by its first thread. Every thread of the workgroup calls it.
+fn smooth_split(i: u32, end: u32, lid: u32, split: u32) {
+    var j = 0u;
+    if (i < end) {
+        j = topo[i];
+    }
+    let ax = split_row(j, i < end, V_DELTA, lid, split);
     if (lid % split == 0u && i < end) {
-        let j = topo[i];
         if (!held(j)) {
             let o = 3u * j;
             let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
             let dj = V_DELTA * params.n_total + j;
-            let rr = vecs[V_RHS * params.n_total + j].xyz - part[lid];
+            let rr = vecs[V_RHS * params.n_total + j].xyz - ax;
             vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * rr, 0.0);
         }
+    }
+}
+
+// Chebyshev weight ω_{k+1} of sweep k (core::multigrid::chebyshev_weight).
+fn chebyshev_weight(k: u32, rho2: f32) -> f32 {
+    var w = 1.0;
+    for (var i = 1u; i <= k; i = i + 1u) {
+        if (i == 1u) {
+            w = 2.0 / (2.0 - rho2);
+        } else {
+            w = 4.0 / (4.0 - rho2 * w);
+        }
+    }
+    return w;
+}
+
+// Chebyshev sweep k of level l for node j given ax = (A x_k)_j: x_k is in region
+// V_DELTA for even k (V_PE for odd), x_{k+1} replaces x_{k−1} in the other region
+// (core::multigrid's smooth_chebyshev). An even number of sweeps ends in V_DELTA.
+fn chebyshev_node(j: u32, ax: vec3<f32>, l: u32, k: u32) {
+    let n = params.n_total;
+    let odd = (k & 1u) == 1u;
+    let src = select(V_DELTA, V_PE, odd);
+    let dst = select(V_PE, V_DELTA, odd);
+    let cur = vecs[src * n + j].xyz;
+    var next = cur;
+    if (!held(j)) {
+        let o = 3u * j;
+        let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+        let c = params.cheb[l];
+        let xh = cur + dinv * (vecs[V_RHS * n + j].xyz - ax) * c.x;
+        var prev = cur;
+        if (k > 0u) {
+            prev = vecs[dst * n + j].xyz;
+        }
+        next = (xh - prev) * chebyshev_weight(k, c.y) + prev;
+    }
+    vecs[dst * n + j] = vec4<f32>(next, 0.0);
+}
+
+// Chebyshev sweep k of level l for the node at `first + i` (none from `end`), its row
+// split `split` ways. Every thread of the workgroup calls it.
+fn chebyshev_split(i: u32, end: u32, lid: u32, split: u32, l: u32, k: u32) {
+    let ax = split_row(i, i < end, select(V_DELTA, V_PE, (k & 1u) == 1u), lid, split);
+    if (lid % split == 0u && i < end) {
+        chebyshev_node(i, ax, l, k);
+    }
+}
+
+// Chebyshev sweep pc.mode of level pc.level over its nodes pc.first ..
+// [.. pc.count], eight threads a node (one element each), eight nodes a workgroup,
+// the workgroups striding over the level.
+@compute @workgroup_size(64)
+fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                    @builtin(local_invocation_index) lid: u32) {
+    for (var base = wg.x * 8u; base < pc.count; base = base + nwg.x * 8u) {
+        chebyshev_split(pc.first + base + lid / 8u, pc.first + pc.count, lid, 8u, pc.level, pc.mode);
+    }
+}
+
+// `count` Chebyshev sweeps of level l by the workgroup, rows split as `cycle_sweeps`.
+fn chebyshev_sweeps(l: u32, count: u32, lid: u32) {
+    let lv = params.lv[l];
+    let nodes = lv.y - lv.x;
+    var split = 1u;
+    if (nodes <= CWG / 64u) {
+        split = 64u;
+    } else if (nodes <= CWG) {
+        split = 8u;
+    }
+    let per = CWG / split;
+    for (var k = 0u; k < count; k = k + 1u) {
+        if (split == 1u) {
+            for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+                chebyshev_node(j, apply_row(j, select(V_DELTA, V_PE, (k & 1u) == 1u)), l, k);
+            }
+        } else {
+            for (var base = lv.x; base < lv.y; base = base + per) {
+                chebyshev_split(base + lid / split, lv.y, lid, split, l, k);
+            }
+        }
+        storageBarrier();
     }
 }
 
