@@ -13,14 +13,23 @@
 //!    the static answer of the same model (`core::statics`), E from 1 kPa to 1 MPa
 //!    (gravity scaled with E), critically damped as in `accuracy -- --only-realtime`.
 //!
-//! Markdown on stdout.
+//! 3. **Organ meshes** (`--organs`): the meshes of `$BEVY_TISSUE_MESHES` (else
+//!    `../shared/meshes`) scaled to 20 cm, E = 5 kPa, ν = 0.45, 1060 kg/m³, at 4,000 and
+//!    40,000 particles, resting on the ground and hung from their top 10%, 1 s each at
+//!    1/60 s × 2 Newton iterations on the GPU: whether every position stays finite,
+//!    the volume over the rest volume, the lowest point against the ground.
+//!
+//! Speed and accuracy run once per V-cycle smoother (`--smoother chebyshev` or `gs` for
+//! one of them). Markdown on stdout.
 //!
 //! ```text
 //! cargo run --release --example lattice_bench            # everything (a real GPU)
 //! cargo run --release --example lattice_bench -- --quick # small sizes (lavapipe: a minute)
 //! ```
-//! Options: `--no-speed`, `--no-accuracy`, `--bodies N` (default 1,000), `--profile`
-//! (GPU time per kernel: every dispatch in its own timed pass).
+//! Options: `--no-speed`, `--no-accuracy`, `--organs`, `--bodies N` (default 1,000),
+//! `--smoother chebyshev|gs`, `--fold N,...` (speed only: `LatticeOptions::fold_nodes`
+//! values to compare, default the library's), `--profile` (GPU time per kernel: every
+//! dispatch in its own timed pass).
 #[path = "support/accuracy.rs"]
 mod accuracy;
 #[path = "support/bench.rs"]
@@ -28,12 +37,15 @@ mod bench;
 
 use accuracy::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
+use bevy_tissue::core::colliders::Collider;
+use bevy_tissue::core::mesh::TriMesh;
 use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
+use bevy_tissue::core::multigrid::Smoother;
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{ElementSolver, Method, SolverSettings, State};
 use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
-use bevy_tissue::gpu::lattice::GpuLattice;
+use bevy_tissue::gpu::lattice::{FOLD_NODES, GpuLattice, LatticeOptions};
 use bevy_tissue::gpu::profile::GpuProfiler;
 use bevy_tissue::gpu::world::read_buffer;
 use bevy_tissue::gpu::{PassRecorder, device_with};
@@ -45,8 +57,9 @@ fn fail(what: &str, e: impl std::fmt::Display) -> ! {
     std::process::exit(1)
 }
 
-fn settings(iterations: u32, gravity: Vec3, damping: f32) -> SolverSettings {
+fn settings(iterations: u32, gravity: Vec3, damping: f32, smoother: Smoother) -> SolverSettings {
     SolverSettings {
+        smoother,
         method: Method::GaussSeidel,
         element_solver: ElementSolver::Multigrid,
         substeps: 1,
@@ -118,9 +131,19 @@ fn wait(g: &Gpu, world: &GpuLattice) {
 }
 
 /// GPU ms per step (timestamps), wall ms per step (median of 5), dispatches per step.
-fn time(g: &Gpu, model: &Model, s: &SolverSettings, steps: u32) -> (Option<f64>, f64, usize) {
+fn time(
+    g: &Gpu,
+    model: &Model,
+    s: &SolverSettings,
+    steps: u32,
+    fold: u32,
+) -> (Option<f64>, f64, usize) {
     let state = State::new(model);
-    let world = GpuLattice::new(&g.device, &g.kernels, model, &state, s)
+    let options = LatticeOptions {
+        fold_nodes: fold,
+        ..Default::default()
+    };
+    let world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
     // Warm up (pipelines, caches, the first steps' larger line-search work).
     let mut enc = g.device.create_command_encoder(&Default::default());
@@ -184,10 +207,17 @@ fn profile(g: &Gpu, name: &str, model: &Model, s: &SolverSettings) {
     println!("| sum | {sum:.4} | |");
 }
 
-fn speed(g: &Gpu, quick: bool, bodies: u32, profile_kernels: bool) {
+fn speed(
+    g: &Gpu,
+    quick: bool,
+    bodies: u32,
+    profile_kernels: bool,
+    smoothers: &[Smoother],
+    folds: &[u32],
+) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | Newton iterations | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | fold limit (nodes) | Newton iterations | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|"
     );
     let scenes: Vec<(String, Model)> = if quick {
         vec![
@@ -202,35 +232,50 @@ fn speed(g: &Gpu, quick: bool, bodies: u32, profile_kernels: bool) {
     };
     let steps = if quick { 5 } else { 60 };
     for (name, model) in &scenes {
-        for it in [1u32, 2] {
-            eprintln!("speed: {name}, {it} Newton iteration(s) ...");
-            let s = settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0);
-            let (gpu_ms, wall, dispatches) = time(g, model, &s, steps);
-            println!(
-                "| {name} | {} | {} | {it} | {} | {wall:.3} | {dispatches} |",
-                model.particle_count(),
-                model.elements.len(),
-                gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
-            );
+        for &sm in smoothers {
+            for &fold in folds {
+                for it in [1u32, 2] {
+                    eprintln!("speed: {name}, {sm:?}, fold {fold}, {it} Newton iteration(s) ...");
+                    let s = settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0, sm);
+                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, fold);
+                    println!(
+                        "| {name} | {} | {} | {sm:?} | {fold} | {it} | {} | {wall:.3} | {dispatches} |",
+                        model.particle_count(),
+                        model.elements.len(),
+                        gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
+                    );
+                }
+            }
         }
     }
     if profile_kernels {
         for (name, model) in &scenes {
-            profile(
-                g,
-                name,
-                model,
-                &settings(2, Vec3::new(0.0, -9.81, 0.0), 0.0),
-            );
+            for &sm in smoothers {
+                profile(
+                    g,
+                    &format!("{name}, {sm:?}"),
+                    model,
+                    &settings(2, Vec3::new(0.0, -9.81, 0.0), 0.0, sm),
+                );
+            }
         }
     }
 }
 
 /// Settles `model` on the GPU for `secs` and returns the final positions.
-fn settle_gpu(g: &Gpu, model: &Model, s: &SolverSettings, secs: f32) -> Vec<Vec3> {
+fn settle_gpu(
+    g: &Gpu,
+    model: &Model,
+    s: &SolverSettings,
+    secs: f32,
+    colliders: &[Collider],
+) -> Vec<Vec3> {
     let mut state = State::new(model);
-    let world = GpuLattice::new(&g.device, &g.kernels, model, &state, s)
+    let mut world = GpuLattice::new(&g.device, &g.kernels, model, &state, s)
         .unwrap_or_else(|e| fail("GPU lattice", e));
+    world
+        .set_colliders(&g.queue, colliders)
+        .unwrap_or_else(|e| fail("colliders", e));
     let steps = (secs * 60.0).round() as u32;
     let mut done = 0;
     while done < steps {
@@ -245,12 +290,12 @@ fn settle_gpu(g: &Gpu, model: &Model, s: &SolverSettings, secs: f32) -> Vec<Vec3
     state.x
 }
 
-fn accuracy(g: &Gpu, quick: bool) {
+fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother]) {
     println!(
         "\n## Accuracy on the GPU: the settled cantilever (lattice) against its static answer\n"
     );
     println!(
-        "| across | particles | E (Pa) | Newton iterations per 1/60 s step | simulated s | tip / static |\n|---|---|---|---|---|---|"
+        "| across | particles | E (Pa) | smoother | Newton iterations per 1/60 s step | simulated s | tip / static |\n|---|---|---|---|---|---|---|"
     );
     let cases: &[(u32, f32)] = if quick {
         &[(6, 1e5)]
@@ -267,16 +312,145 @@ fn accuracy(g: &Gpu, quick: bool) {
         } else {
             (8.0 / w1).clamp(1.0, 20.0) as f32
         };
-        for it in [1u32, 2] {
-            eprintln!("accuracy: {across} across, E = {e}, {it} iteration(s) ...");
-            let s = settings(it, Vec3::new(0.0, -gv as f32, 0.0), (2.0 * w1) as f32);
-            let x = settle_gpu(g, &model, &s, secs);
-            let tip = bar_tip(&model, &displacements(&model, &x));
-            println!(
-                "| {across} | {} | {e} | {it} | {secs:.1} | {:.4} |",
-                model.particle_count(),
-                tip / stat
-            );
+        for &sm in smoothers {
+            for it in [1u32, 2] {
+                eprintln!("accuracy: {across} across, E = {e}, {sm:?}, {it} iteration(s) ...");
+                let s = settings(it, Vec3::new(0.0, -gv as f32, 0.0), (2.0 * w1) as f32, sm);
+                let x = settle_gpu(g, &model, &s, secs, &[]);
+                let tip = bar_tip(&model, &displacements(&model, &x));
+                println!(
+                    "| {across} | {} | {e} | {sm:?} | {it} | {secs:.1} | {:.4} |",
+                    model.particle_count(),
+                    tip / stat
+                );
+            }
+        }
+    }
+}
+
+/// An OBJ file as one triangle mesh.
+fn load_obj(path: &std::path::Path) -> TriMesh {
+    let (models, _) = tobj::load_obj(
+        path,
+        &tobj::LoadOptions {
+            triangulate: true,
+            single_index: true,
+            ..Default::default()
+        },
+    )
+    .unwrap_or_else(|e| fail(&path.display().to_string(), e));
+    let mut mesh = TriMesh::default();
+    for m in models {
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend(
+            m.mesh
+                .positions
+                .chunks_exact(3)
+                .map(|p| Vec3::new(p[0], p[1], p[2])),
+        );
+        mesh.indices.extend(m.mesh.indices.iter().map(|i| i + base));
+    }
+    mesh
+}
+
+/// The organ meshes resting on the ground and hanging from their top 10% on the GPU.
+fn organs(g: &Gpu, quick: bool) {
+    let dir = std::env::var_os("BEVY_TISSUE_MESHES")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::PathBuf::from("../shared/meshes"));
+    if !dir.is_dir() {
+        eprintln!("organs: skipped, no meshes folder {}", dir.display());
+        return;
+    }
+    println!(
+        "\n## Organ meshes on the GPU: 1 s resting on the ground and hanging, 2 Newton iterations per 1/60 s step\n"
+    );
+    println!(
+        "| mesh | particles | scene | finite | volume / rest | lowest − ground (mm) |\n|---|---|---|---|---|---|"
+    );
+    let all = [
+        "liver2.obj",
+        "bunny.obj",
+        "spot_low_resolution.obj",
+        "Armadillo_verysimplified.obj",
+        "odedstein_torus.obj",
+    ];
+    let sizes: &[(u32, &[&str])] = if quick {
+        &[(4000, &all[..1])]
+    } else {
+        &[(4000, &all), (40_000, &all)]
+    };
+    for &(particles, names) in sizes {
+        for &name in names {
+            let path = dir.join(name);
+            if !path.is_file() {
+                eprintln!("organs: {} missing", path.display());
+                continue;
+            }
+            let mut mesh = load_obj(&path);
+            let Some((lo, hi)) = mesh.bounds() else {
+                continue;
+            };
+            let scale = 0.2 / (hi - lo).max_element();
+            let centre = (lo + hi) * 0.5;
+            for p in &mut mesh.positions {
+                *p = (*p - centre) * scale;
+            }
+            let (top, bottom) = ((hi.y - centre.y) * scale, (lo.y - centre.y) * scale);
+            for hang in [false, true] {
+                let mut model = Model::new();
+                let desc = BodyDesc {
+                    resolution: Resolution::Particles(particles),
+                    material: Material::Hyperelastic {
+                        youngs_modulus: 5e3,
+                        poisson_ratio: 0.45,
+                    },
+                    density: 1060.0,
+                    discretisation: Discretisation::Lattice,
+                    pins: if hang {
+                        vec![PinRegion::HalfSpace {
+                            point: Vec3::new(0.0, top - 0.1 * (top - bottom), 0.0),
+                            normal: Vec3::Y,
+                        }]
+                    } else {
+                        vec![]
+                    },
+                    ..Default::default()
+                };
+                if let Err(e) = model.add_body(&mesh, &desc) {
+                    println!("| {name} | {particles} | build failed: {e} | | | |");
+                    continue;
+                }
+                let ground = bottom - model.bodies[0].radius - 0.005;
+                let colliders = if hang {
+                    vec![]
+                } else {
+                    vec![Collider::ground(ground)]
+                };
+                eprintln!("organs: {name}, {particles}, hanging {hang} ...");
+                let s = SolverSettings {
+                    newton_iterations: 2,
+                    iterations: 2,
+                    element_solver: ElementSolver::Multigrid,
+                    particle_contacts: false,
+                    ..Default::default()
+                };
+                let x = settle_gpu(g, &model, &s, 1.0, &colliders);
+                let finite = x.iter().all(|p| p.is_finite());
+                let v = material_volume(&model, &x) / material_volume(&model, &model.rest);
+                let low = x.iter().map(|p| p.y).fold(f32::INFINITY, f32::min);
+                println!(
+                    "| {name} | {} | {} | {} | {v:.4} | {} |",
+                    model.particle_count(),
+                    if hang { "hanging" } else { "resting" },
+                    if finite { "yes" } else { "**no**" },
+                    if hang {
+                        "".into()
+                    } else {
+                        format!("{:.2}", (low - ground) * 1e3)
+                    },
+                );
+            }
         }
     }
 }
@@ -284,6 +458,12 @@ fn accuracy(g: &Gpu, quick: bool) {
 fn main() {
     let a = bench::Args::new();
     let quick = a.flag("--quick");
+    let smoothers: Vec<Smoother> = match a.text("--smoother").map(String::as_str) {
+        None => vec![Smoother::Chebyshev, Smoother::GaussSeidel],
+        Some("chebyshev") => vec![Smoother::Chebyshev],
+        Some("gs") => vec![Smoother::GaussSeidel],
+        Some(other) => fail("--smoother", format!("{other}: expected chebyshev or gs")),
+    };
     let (device, queue, adapter) = device_with(bevy::render::settings::WgpuSettings::default())
         .unwrap_or_else(|e| fail("GPU", e));
     let kernels = LatticeKernels::new(&device).unwrap_or_else(|e| fail("kernels", e));
@@ -294,9 +474,19 @@ fn main() {
         kernels,
     };
     if !a.flag("--no-speed") {
-        speed(&g, quick, a.num("--bodies", 1000u32), a.flag("--profile"));
+        speed(
+            &g,
+            quick,
+            a.num("--bodies", 1000u32),
+            a.flag("--profile"),
+            &smoothers,
+            &a.list("--fold", &[FOLD_NODES]),
+        );
     }
     if !a.flag("--no-accuracy") {
-        accuracy(&g, quick);
+        accuracy(&g, quick, &smoothers);
+    }
+    if a.flag("--organs") {
+        organs(&g, quick);
     }
 }

@@ -374,13 +374,22 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
 @compute @workgroup_size(64)
 fn pick(@builtin(local_invocation_index) lid: u32) {
     let mode = pc.mode;
+    // The sums this mode reads.
+    var used = 2u;
+    if (mode == 0u) {
+        used = FIRST_CANDIDATES;
+    } else if (mode == 1u) {
+        used = part_a();
+    } else if (mode == 4u) {
+        used = LINE_CANDIDATES - part_a();
+    }
     var acc: array<f32, 16>;
     if (mode == 2u) {
         acc[0] = 1.0;
     }
     for (var w = lid; w < pc.count; w = w + LWG) {
         let o = RED_BASE + w * RED_STRIDE;
-        for (var k = 0u; k < 16u; k = k + 1u) {
+        for (var k = 0u; k < used; k = k + 1u) {
             let v = red[o + k];
             if (mode == 2u && k == 0u) {
                 acc[0] = min(acc[0], v);
@@ -389,13 +398,13 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
             }
         }
     }
-    for (var k = 0u; k < 16u; k = k + 1u) {
+    for (var k = 0u; k < used; k = k + 1u) {
         wsum[lid][k] = acc[k];
     }
     for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
         workgroupBarrier();
         if (lid < stride) {
-            for (var k = 0u; k < 16u; k = k + 1u) {
+            for (var k = 0u; k < used; k = k + 1u) {
                 if (mode == 2u && k == 0u) {
                     wsum[lid][k] = min(wsum[lid][k], wsum[lid + stride][k]);
                 } else {
