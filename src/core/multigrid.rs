@@ -6,8 +6,8 @@
 //! `A = M/h² + K`, `K` the elements' corotated stiffness (each element's
 //! incompatible-mode stiffness [`super::element::cube_stiffness`] turned by the
 //! element's rotation `R = polar(F)`), then sets `y ← y + δ`. The solve is one V-cycle
-//! (Briggs, Henson & McCormick, "A Multigrid Tutorial", 2000): Gauss–Seidel smoothing
-//! on each level, the residual restricted to the next coarser lattice (cells of 2 × 2 × 2,
+//! (Briggs, Henson & McCormick, "A Multigrid Tutorial", 2000): smoothing on each level
+//! ([`Smoother`]: Chebyshev-accelerated block Jacobi or colour-ordered Gauss–Seidel), the residual restricted to the next coarser lattice (cells of 2 × 2 × 2,
 //! restriction = transposed trilinear prolongation), the coarse operator re-discretised
 //! with the same element at twice the edge (so a coarse level carries bending as well as
 //! the fine one), the coarse correction prolongated back. The hierarchy only speeds the

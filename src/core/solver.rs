@@ -62,8 +62,8 @@ pub enum ElementSolver {
     VertexDescent,
     /// Newton's method on each substep's implicit-Euler equations, each iteration's
     /// linear solve one multigrid V-cycle on the lattice ([`super::multigrid`]): the
-    /// residual `M/h² (x̃ − y) + f(y)`, the corotated element stiffness, Gauss–Seidel
-    /// smoothing, coarse lattices of 2 × 2 × 2 cells with the same element. Starts from
+    /// residual `M/h² (x̃ − y) + f(y)`, the corotated element stiffness, smoothing by
+    /// [`SolverSettings::smoother`], coarse lattices of 2 × 2 × 2 cells with the same element. Starts from
     /// the previous positions moved by their velocity, so a body at rest starts at rest
     /// and its static equilibrium is the fixed point; the coarse levels carry bending
     /// across the body in one iteration. Colliders enter the solve as stiff penalties

@@ -4,7 +4,8 @@
 //!
 //! Each substep: predict the inertial target and the first iterate; then per Newton
 //! iteration the element forces and rotations, the residual, one V-cycle of
-//! colour-ordered block Gauss–Seidel on every level of the hierarchy (coarse corrections
+//! the configured smoother on every level of the hierarchy (Chebyshev-accelerated block
+//! Jacobi, one dispatch a sweep, or block Gauss–Seidel by colour; coarse corrections
 //! taken with their energy-minimising step), a trust region and a backtracking line
 //! search on the substep energy; finally the velocity update. The sequence of dispatches
 //! is [`plan`], a pure function of the hierarchy's shape and the settings; recording
@@ -216,7 +217,7 @@ fn sweeps(
 ) {
     if shape.smoother == Smoother::Chebyshev {
         // An even count ends in the correction's own region (see `chebyshev_node`).
-        debug_assert!(count % 2 == 0, "Chebyshev sweeps come in pairs");
+        debug_assert!(count.is_multiple_of(2), "Chebyshev sweeps come in pairs");
         let [first, len, _, _] = shape.levels[l];
         for k in 0..count {
             push(

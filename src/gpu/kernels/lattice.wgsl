@@ -1,5 +1,6 @@
 // Newton–multigrid on lattice bodies: one implicit-Euler substep's Newton iterations,
-// each a V-cycle of colour-ordered block Gauss–Seidel and an energy line search.
+// each a V-cycle (Chebyshev-accelerated block Jacobi or colour-ordered block
+// Gauss–Seidel smoothing) and an energy line search.
 // CPU twin: core::multigrid (element_forces, element_energy, LatticeMultigrid::prepare,
 // vcycle) and the solver's Newton iteration (ElementSolver::Multigrid).
 // The bindings are declared by the table in lattice.rs (prepended to this file).
@@ -65,7 +66,7 @@ struct LatticeParams {
     restr_base: u32,         // start of the restriction lists in `topo`
     child_base: u32,         // start of the child element lists in `topo`
     lv: array<vec4<u32>, 8>, // per level: first node, end node, first element, end element
-    sweeps: vec4<u32>,       // Gauss–Seidel sweeps: before and after the coarse
+    sweeps: vec4<u32>,       // smoothing sweeps: before and after the coarse
                              // correction, on the coarsest level; w: the line search's
                              // candidates in its first pass
     colours: array<vec4<u32>, 18>, // per level, where its 8 colours start in `topo` and
