@@ -1026,7 +1026,7 @@ fn lattice_settings() -> SolverSettings {
 fn lattice_newton_multigrid_matches_the_cpu() {
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
     use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
-    // Folds the coarse levels of both bars into one workgroup (the default limit).
+    // Folds the coarse levels of both bars into one workgroup.
     const FOLD: u32 = 4096;
     if gpu().is_none() {
         return;

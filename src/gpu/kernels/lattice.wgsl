@@ -619,8 +619,8 @@ fn apply_row(j: u32, region: u32) -> vec3<f32> {
     return y;
 }
 
-// Inverted diagonal blocks M/h² + S + Σ_e R K_jj Rᵀ of level pc.level's nodes (zero
-// where singular).
+// Inverted diagonal blocks M/h² + S + Σ_e R K_jj Rᵀ of the nodes pc.first ..
+// [.. pc.count] (every level in one dispatch; zero where singular).
 @compute @workgroup_size(64)
 fn diag(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= pc.count) {
