@@ -19,15 +19,15 @@
 //!    1/60 s × 2 Newton iterations on the GPU: whether every position stays finite,
 //!    the volume over the rest volume, the lowest point against the ground.
 //!
-//! Speed and accuracy run once per V-cycle smoother (`--smoother chebyshev` or `gs` for
-//! one of them). Markdown on stdout.
+//! Speed and accuracy run once per V-cycle smoother (`--smoother hybrid`, `chebyshev` or
+//! `gs` for one of them). Markdown on stdout.
 //!
 //! ```text
 //! cargo run --release --example lattice_bench            # everything (a real GPU)
 //! cargo run --release --example lattice_bench -- --quick # small sizes (lavapipe: a minute)
 //! ```
 //! Options: `--no-speed`, `--no-accuracy`, `--organs`, `--bodies N` (default 1,000),
-//! `--smoother chebyshev|gs`, `--fold N,...` (speed only: `LatticeOptions::fold_nodes`
+//! `--smoother hybrid|chebyshev|gs`, `--fold N,...` (speed only: `LatticeOptions::fold_nodes`
 //! values to compare, default the library's), `--profile` (GPU time per kernel: every
 //! dispatch in its own timed pass).
 #[path = "support/accuracy.rs"]
@@ -459,10 +459,14 @@ fn main() {
     let a = bench::Args::new();
     let quick = a.flag("--quick");
     let smoothers: Vec<Smoother> = match a.text("--smoother").map(String::as_str) {
-        None => vec![Smoother::Chebyshev, Smoother::GaussSeidel],
+        None => vec![Smoother::Hybrid, Smoother::Chebyshev, Smoother::GaussSeidel],
+        Some("hybrid") => vec![Smoother::Hybrid],
         Some("chebyshev") => vec![Smoother::Chebyshev],
         Some("gs") => vec![Smoother::GaussSeidel],
-        Some(other) => fail("--smoother", format!("{other}: expected chebyshev or gs")),
+        Some(other) => fail(
+            "--smoother",
+            format!("{other}: expected hybrid, chebyshev or gs"),
+        ),
     };
     let (device, queue, adapter) = device_with(bevy::render::settings::WgpuSettings::default())
         .unwrap_or_else(|e| fail("GPU", e));

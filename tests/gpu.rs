@@ -1021,7 +1021,8 @@ fn lattice_settings() -> SolverSettings {
 /// dispatched (4 across), the whole cycle in one workgroup (4 across), and level 0
 /// dispatched with the coarse levels in one workgroup (8 across, 5,265 particles); then
 /// every line-search candidate in the second pass; Gauss–Seidel by colour dispatched (4
-/// across) and folded (8 across).
+/// across) and folded (8 across); the hybrid (Gauss–Seidel on level 0, Chebyshev below)
+/// dispatched, folded whole and folded below level 0.
 #[test]
 fn lattice_newton_multigrid_matches_the_cpu() {
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
@@ -1039,7 +1040,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     let kernels = LatticeKernels::new(&device).expect("the lattice kernels fit WebGPU's limits");
     // The fourth run tries every line-search candidate in the second, indirect pass; the
     // last two smooth by colour-ordered Gauss–Seidel instead of Chebyshev–Jacobi.
-    use bevy_tissue::core::multigrid::Smoother::{Chebyshev, GaussSeidel};
+    use bevy_tissue::core::multigrid::Smoother::{Chebyshev, GaussSeidel, Hybrid};
     for (spacing, fold, first, smoother) in [
         (0.0075f32, 0, 4, Chebyshev),
         (0.0075, FOLD, 4, Chebyshev),
@@ -1047,6 +1048,9 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         (0.0075, FOLD, 0, Chebyshev),
         (0.0075, 0, 4, GaussSeidel),
         (0.00375, FOLD, 4, GaussSeidel),
+        (0.0075, 0, 4, Hybrid),
+        (0.0075, FOLD, 4, Hybrid),
+        (0.00375, FOLD, 4, Hybrid),
     ] {
         let model = lattice_bar(spacing);
         let s = SolverSettings {

@@ -219,7 +219,7 @@ fn sweeps(
     count: u32,
     push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32),
 ) {
-    if shape.smoother == Smoother::Chebyshev {
+    if shape.smoother.on_level(l) == Smoother::Chebyshev {
         // An even count ends in the correction's own region (see `chebyshev_node`).
         debug_assert!(count.is_multiple_of(2), "Chebyshev sweeps come in pairs");
         let [first, len, _, _] = shape.levels[l];
@@ -472,7 +472,16 @@ fn pack(
             let [inv_theta, rho2] = mg.chebyshev.get(l).copied().unwrap_or([1.0, 0.0]);
             [inv_theta, rho2, 0.0, 0.0]
         }),
-        smoother: [(mg.smoother == Smoother::Chebyshev) as u32, 0, 0, 0],
+        smoother: [
+            match mg.smoother {
+                Smoother::GaussSeidel => 0,
+                Smoother::Chebyshev => 1,
+                Smoother::Hybrid => 2,
+            },
+            0,
+            0,
+            0,
+        ],
     };
     let shape = Shape {
         levels: (0..nl)
@@ -1092,6 +1101,31 @@ mod tests {
         // Each smoothing run counts its sweeps from 0 (the Chebyshev weights restart).
         let modes: Vec<u32> = cheb.iter().take(4).map(|d| d.pass.mode).collect();
         assert_eq!(modes, [0, 1, 0, 1]);
+        // The hybrid: Gauss–Seidel by colour on level 0, Chebyshev below.
+        let p = plan(
+            &Shape {
+                smoother: Smoother::Hybrid,
+                ..shape()
+            },
+            2,
+        );
+        let on = |k: Kernel| -> Vec<u32> {
+            let mut l: Vec<u32> = p
+                .iter()
+                .filter(|d| d.kernel == k)
+                .map(|d| d.pass.level)
+                .collect();
+            l.dedup();
+            l.sort();
+            l.dedup();
+            l
+        };
+        assert_eq!(on(Kernel::Smooth), [0]);
+        assert_eq!(on(Kernel::Chebyshev), [1, 2]);
+        assert_eq!(
+            p.iter().filter(|d| d.kernel == Kernel::Smooth).count(),
+            2 * 8 * 4
+        );
     }
 
     /// With the coarse levels folded into one workgroup, level 1 and below are one

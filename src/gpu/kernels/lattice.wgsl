@@ -74,7 +74,8 @@ struct LatticeParams {
     misc: vec4<u32>,         // x: colliders; y: substeps; z, w: where the collider
                              // forces' partial sums and totals start in `red`
     cheb: array<vec4<f32>, 8>, // per level: the Chebyshev smoother's 1/θ and ρ²
-    smoother: vec4<u32>,     // x: 0 Gauss–Seidel by colour, 1 Chebyshev–Jacobi
+    smoother: vec4<u32>,     // x: 0 Gauss–Seidel by colour, 1 Chebyshev–Jacobi, 2
+                             // Gauss–Seidel on level 0 and Chebyshev below
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -787,7 +788,7 @@ fn apply_part(j: u32, region: u32, slot: u32, split: u32) -> vec3<f32> {
 // each node's row over 8 or 64 threads (summed in workgroup memory), so that its
 // latency is one element's or one block's loads rather than all of them.
 fn cycle_sweeps(l: u32, count: u32, lid: u32) {
-    if (params.smoother.x == 1u) {
+    if (params.smoother.x == 1u || (params.smoother.x == 2u && l > 0u)) {
         chebyshev_sweeps(l, count, lid);
         return;
     }
