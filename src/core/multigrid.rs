@@ -89,8 +89,7 @@ pub enum Smoother {
     /// parallel pass a sweep where Gauss–Seidel needs eight. On the finest level, where
     /// collider contacts add stiff penalties to single nodes, its damped node updates
     /// leave part of a penalty unresolved after a few sweeps, and the contact force
-    /// reported from it spikes (measured in the plugin's liver: a probe's peak force 5–9x
-    /// Gauss–Seidel's).
+    /// reported from it spikes well above Gauss–Seidel's.
     Chebyshev,
     /// Gauss–Seidel on the finest level (where the work is large and the contacts are:
     /// each node's block, its contact penalty included, solved exactly) and Chebyshev on
