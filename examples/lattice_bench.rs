@@ -34,11 +34,12 @@
 mod accuracy;
 #[path = "support/bench.rs"]
 mod bench;
+#[path = "../tests/common/mod.rs"]
+mod common;
 
 use accuracy::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy_tissue::core::colliders::Collider;
-use bevy_tissue::core::mesh::TriMesh;
 use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
 use bevy_tissue::core::multigrid::Smoother;
 use bevy_tissue::core::procedural;
@@ -328,40 +329,11 @@ fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother]) {
     }
 }
 
-/// An OBJ file as one triangle mesh.
-fn load_obj(path: &std::path::Path) -> TriMesh {
-    let (models, _) = tobj::load_obj(
-        path,
-        &tobj::LoadOptions {
-            triangulate: true,
-            single_index: true,
-            ..Default::default()
-        },
-    )
-    .unwrap_or_else(|e| fail(&path.display().to_string(), e));
-    let mut mesh = TriMesh::default();
-    for m in models {
-        let base = mesh.positions.len() as u32;
-        mesh.positions.extend(
-            m.mesh
-                .positions
-                .chunks_exact(3)
-                .map(|p| Vec3::new(p[0], p[1], p[2])),
-        );
-        mesh.indices.extend(m.mesh.indices.iter().map(|i| i + base));
-    }
-    mesh
-}
-
 /// The organ meshes resting on the ground and hanging from their top 10% on the GPU.
 fn organs(g: &Gpu, quick: bool) {
-    let dir = std::env::var_os("BEVY_TISSUE_MESHES")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| std::path::PathBuf::from("../shared/meshes"));
-    if !dir.is_dir() {
-        eprintln!("organs: skipped, no meshes folder {}", dir.display());
+    let Some(dir) = common::meshes_dir() else {
         return;
-    }
+    };
     println!(
         "\n## Organ meshes on the GPU: 1 s resting on the ground and hanging, 2 Newton iterations per 1/60 s step\n"
     );
@@ -387,41 +359,15 @@ fn organs(g: &Gpu, quick: bool) {
                 eprintln!("organs: {} missing", path.display());
                 continue;
             }
-            let mut mesh = load_obj(&path);
-            let Some((lo, hi)) = mesh.bounds() else {
-                continue;
-            };
-            let scale = 0.2 / (hi - lo).max_element();
-            let centre = (lo + hi) * 0.5;
-            for p in &mut mesh.positions {
-                *p = (*p - centre) * scale;
-            }
-            let (top, bottom) = ((hi.y - centre.y) * scale, (lo.y - centre.y) * scale);
+            let mesh = common::load_obj(&path);
             for hang in [false, true] {
-                let mut model = Model::new();
-                let desc = BodyDesc {
-                    resolution: Resolution::Particles(particles),
-                    material: Material::Hyperelastic {
-                        youngs_modulus: 5e3,
-                        poisson_ratio: 0.45,
-                    },
-                    density: 1060.0,
-                    discretisation: Discretisation::Lattice,
-                    pins: if hang {
-                        vec![PinRegion::HalfSpace {
-                            point: Vec3::new(0.0, top - 0.1 * (top - bottom), 0.0),
-                            normal: Vec3::Y,
-                        }]
-                    } else {
-                        vec![]
-                    },
-                    ..Default::default()
+                let (model, ground) = match common::organ(&mesh, particles, hang) {
+                    Ok(m) => m,
+                    Err(e) => {
+                        println!("| {name} | {particles} | build failed: {e} | | | |");
+                        continue;
+                    }
                 };
-                if let Err(e) = model.add_body(&mesh, &desc) {
-                    println!("| {name} | {particles} | build failed: {e} | | | |");
-                    continue;
-                }
-                let ground = bottom - model.bodies[0].radius - 0.005;
                 let colliders = if hang {
                     vec![]
                 } else {

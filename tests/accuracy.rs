@@ -517,42 +517,11 @@ fn rest_and_hang(names: &[&str], particles: u32) {
         return;
     };
     for &name in names {
-        let mut mesh = common::load_obj(&dir.join(name));
-        let (lo, hi) = mesh.bounds().unwrap();
-        let scale = 0.2 / (hi - lo).max_element();
-        let centre = (lo + hi) * 0.5;
-        for p in &mut mesh.positions {
-            *p = (*p - centre) * scale;
-        }
+        let mesh = common::load_obj(&dir.join(name));
         for hang in [false, true] {
-            let top = (hi.y - centre.y) * scale;
-            let bottom = (lo.y - centre.y) * scale;
-            let mut model = Model::new();
-            model
-                .add_body(
-                    &mesh,
-                    &BodyDesc {
-                        resolution: Resolution::Particles(particles),
-                        material: Material::Hyperelastic {
-                            youngs_modulus: 5e3,
-                            poisson_ratio: 0.45,
-                        },
-                        density: 1060.0,
-                        discretisation: Discretisation::Lattice,
-                        pins: if hang {
-                            vec![bevy_tissue::core::model::PinRegion::HalfSpace {
-                                point: Vec3::new(0.0, top - 0.1 * (top - bottom), 0.0),
-                                normal: Vec3::Y,
-                            }]
-                        } else {
-                            vec![]
-                        },
-                        ..Default::default()
-                    },
-                )
-                .unwrap_or_else(|e| panic!("{name}: {e}"));
+            let (model, ground) =
+                common::organ(&mesh, particles, hang).unwrap_or_else(|e| panic!("{name}: {e}"));
             let r = model.bodies[0].radius;
-            let ground = bottom - r - 0.005;
             let control = Control {
                 colliders: if hang {
                     vec![]

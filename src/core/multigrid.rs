@@ -306,6 +306,15 @@ impl LatticeMultigrid {
             }
         }
         let free = |j: usize| !lv.fixed[j] && diag[j].determinant().abs() > f32::MIN_POSITIVE;
+        let diag_inv: Vec<Mat3> = (0..lv.nodes)
+            .map(|j| {
+                if free(j) {
+                    diag[j].inverse()
+                } else {
+                    Mat3::ZERO
+                }
+            })
+            .collect();
         // A deterministic start with every frequency in it.
         let mut x: Vec<Vec3> = (0..lv.nodes)
             .map(|j| {
@@ -345,11 +354,7 @@ impl LatticeMultigrid {
             lambda = (num / den) as f32;
             let mut norm = 0.0f64;
             for j in 0..lv.nodes {
-                x[j] = if free(j) {
-                    diag[j].inverse() * y[j]
-                } else {
-                    Vec3::ZERO
-                };
+                x[j] = diag_inv[j] * y[j];
                 norm += x[j].length_squared() as f64;
             }
             let inv = (1.0 / norm.sqrt().max(f64::MIN_POSITIVE)) as f32;

@@ -66,7 +66,6 @@ struct Params {
     colours: [[u32; 4]; 18],
     misc: [u32; 4],
     cheb: [[f32; 4]; MAX_LEVELS],
-    smoother: [u32; 4],
 }
 
 /// Byte offset of `misc` (the collider count first) in the parameter block.
@@ -470,18 +469,9 @@ fn pack(
         ],
         cheb: std::array::from_fn(|l| {
             let [inv_theta, rho2] = mg.chebyshev.get(l).copied().unwrap_or([1.0, 0.0]);
-            [inv_theta, rho2, 0.0, 0.0]
+            let chebyshev = mg.smoother.on_level(l) == Smoother::Chebyshev;
+            [inv_theta, rho2, chebyshev as u32 as f32, 0.0]
         }),
-        smoother: [
-            match mg.smoother {
-                Smoother::GaussSeidel => 0,
-                Smoother::Chebyshev => 1,
-                Smoother::Hybrid => 2,
-            },
-            0,
-            0,
-            0,
-        ],
     };
     let shape = Shape {
         levels: (0..nl)

@@ -260,3 +260,53 @@ pub fn lattice_body() -> (
         }),
     )
 }
+
+/// An organ scene of the rest-and-hang checks: `mesh` centred and scaled to 20 cm, one
+/// lattice body of `particles` particles (E = 5 kPa, ν = 0.45, 1060 kg/m³), pinned in its
+/// top 10% when `hang`; with the height (m) of a ground 5 mm below it, for the resting
+/// scene.
+pub fn organ(
+    mesh: &TriMesh,
+    particles: u32,
+    hang: bool,
+) -> Result<(bevy_tissue::core::model::Model, f32), bevy_tissue::core::TissueError> {
+    use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
+    let (lo, hi) = mesh
+        .bounds()
+        .ok_or(bevy_tissue::core::TissueError::InvalidParameter {
+            name: "mesh",
+            value: "no vertices".into(),
+            expected: "a surface mesh",
+        })?;
+    let scale = 0.2 / (hi - lo).max_element();
+    let centre = (lo + hi) * 0.5;
+    let mut scaled = mesh.clone();
+    for p in &mut scaled.positions {
+        *p = (*p - centre) * scale;
+    }
+    let (top, bottom) = ((hi.y - centre.y) * scale, (lo.y - centre.y) * scale);
+    let mut model = Model::new();
+    model.add_body(
+        &scaled,
+        &BodyDesc {
+            resolution: bevy_tissue::core::sampling::Resolution::Particles(particles),
+            material: Material::Hyperelastic {
+                youngs_modulus: 5e3,
+                poisson_ratio: 0.45,
+            },
+            density: 1060.0,
+            discretisation: Discretisation::Lattice,
+            pins: if hang {
+                vec![PinRegion::HalfSpace {
+                    point: Vec3::new(0.0, top - 0.1 * (top - bottom), 0.0),
+                    normal: Vec3::Y,
+                }]
+            } else {
+                vec![]
+            },
+            ..Default::default()
+        },
+    )?;
+    let ground = bottom - model.bodies[0].radius - 0.005;
+    Ok((model, ground))
+}

@@ -73,9 +73,8 @@ struct LatticeParams {
                              // where the last ends (9 entries a level)
     misc: vec4<u32>,         // x: colliders; y: substeps; z, w: where the collider
                              // forces' partial sums and totals start in `red`
-    cheb: array<vec4<f32>, 8>, // per level: the Chebyshev smoother's 1/θ and ρ²
-    smoother: vec4<u32>,     // x: 0 Gauss–Seidel by colour, 1 Chebyshev–Jacobi, 2
-                             // Gauss–Seidel on level 0 and Chebyshev below
+    cheb: array<vec4<f32>, 8>, // per level: the Chebyshev smoother's 1/θ and ρ²; z: 1 if
+                             // the level is smoothed by Chebyshev (else Gauss–Seidel)
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -784,11 +783,23 @@ fn apply_part(j: u32, region: u32, slot: u32, split: u32) -> vec3<f32> {
     return y + element_term(topo[s], off, slot % per, per);
 }
 
-// `count` Gauss–Seidel sweeps of level l by the workgroup. A colour of few nodes splits
+// Threads per node's row when the workgroup updates `nodes` nodes at once: 64 (one per
+// corner block) or 8 (one per element) where they fit, else 1.
+fn row_split(nodes: u32) -> u32 {
+    if (nodes <= CWG / 64u) {
+        return 64u;
+    } else if (nodes <= CWG) {
+        return 8u;
+    }
+    return 1u;
+}
+
+// `count` sweeps of level l by the workgroup: Chebyshev where the level is so smoothed,
+// else Gauss–Seidel by colour. A colour of few nodes splits
 // each node's row over 8 or 64 threads (summed in workgroup memory), so that its
 // latency is one element's or one block's loads rather than all of them.
 fn cycle_sweeps(l: u32, count: u32, lid: u32) {
-    if (params.smoother.x == 1u || (params.smoother.x == 2u && l > 0u)) {
+    if (params.cheb[l].z > 0.5) {
         chebyshev_sweeps(l, count, lid);
         return;
     }
@@ -797,12 +808,7 @@ fn cycle_sweeps(l: u32, count: u32, lid: u32) {
         let r = colour_range(l, c);
         widest = max(widest, r.y - r.x);
     }
-    var split = 1u;
-    if (widest <= CWG / 64u) {
-        split = 64u;
-    } else if (widest <= CWG) {
-        split = 8u;
-    }
+    let split = row_split(widest);
     let per = CWG / split;
     for (var s = 0u; s < count; s = s + 1u) {
         for (var c = 0u; c < 8u; c = c + 1u) {
@@ -919,13 +925,7 @@ fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
 // `count` Chebyshev sweeps of level l by the workgroup, rows split as `cycle_sweeps`.
 fn chebyshev_sweeps(l: u32, count: u32, lid: u32) {
     let lv = params.lv[l];
-    let nodes = lv.y - lv.x;
-    var split = 1u;
-    if (nodes <= CWG / 64u) {
-        split = 64u;
-    } else if (nodes <= CWG) {
-        split = 8u;
-    }
+    let split = row_split(lv.y - lv.x);
     let per = CWG / split;
     for (var k = 0u; k < count; k = k + 1u) {
         if (split == 1u) {
