@@ -66,6 +66,7 @@ struct Params {
     colours: [[u32; 4]; 18],
     misc: [u32; 4],
     cheb: [[f32; 4]; MAX_LEVELS],
+    pair: [u32; 4],
 }
 
 /// Byte offset of `misc` (the collider count first) in the parameter block.
@@ -112,6 +113,9 @@ pub struct Shape {
     pub fold: Option<usize>,
     /// How each level is smoothed.
     pub smoother: Smoother,
+    /// With particle contacts between bodies: their projection runs after every this
+    /// many Newton iterations and after the last (as the CPU's `contact_every`).
+    pub pairs: Option<u32>,
 }
 
 /// Most nodes the levels below [`Shape::fold`] may have together: one workgroup of 256
@@ -201,7 +205,13 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         push(Kernel::Energy, 0, ne + n, 0, 2, g);
         push(Kernel::Pick, 0, g, 0, 4, 1);
         push(Kernel::Advance, 0, n, 0, 1, groups(n));
-        push(Kernel::Boundary, 0, n, 0, 0, groups(n));
+        let pairs = shape
+            .pairs
+            .is_some_and(|every| (it + 1) % every.max(1) == 0 || it + 1 == newton);
+        if pairs {
+            push(Kernel::PairProject, 0, n, 0, 0, groups(n));
+        }
+        push(Kernel::Boundary, 0, n, 0, pairs as u32, groups(n));
     }
     push(Kernel::Finish, 0, n, 0, 0, groups(n));
     push(Kernel::ForcePartials, 0, n, 0, 0, reduction_groups(n));
@@ -298,6 +308,7 @@ fn pack(
 ) -> Packed {
     let nl = mg.levels.len().min(MAX_LEVELS);
     let levels = &mg.levels[..nl];
+    let pairs = pair_capacity(model, settings) > 0;
     let mut node_off = vec![0u32];
     let mut elem_off = vec![0u32];
     for lv in levels {
@@ -472,6 +483,7 @@ fn pack(
             let chebyshev = mg.smoother.on_level(l) == Smoother::Chebyshev;
             [inv_theta, rho2, chebyshev as u32 as f32, 0.0]
         }),
+        pair: [pairs as u32, 0, settings.contact_relaxation.to_bits(), 0],
     };
     let shape = Shape {
         levels: (0..nl)
@@ -487,6 +499,7 @@ fn pack(
         fold: (0..nl).find(|&l| node_off[nl] - node_off[l] <= options.fold_nodes),
         colours,
         smoother: mg.smoother,
+        pairs: pairs.then_some(settings.contact_every),
     };
     Packed {
         params,
@@ -497,6 +510,17 @@ fn pack(
         nodes,
         mats,
     }
+}
+
+/// Entries each of the particle-contact lists (a node's candidates, and the nodes that
+/// list it) can hold: the contact neighbours per node when the world has particle
+/// contacts between bodies, else 0.
+fn pair_capacity(model: &Model, settings: &SolverSettings) -> usize {
+    let n = model.particle_count();
+    if !settings.particle_contacts || model.bodies.len() < 2 {
+        return 0;
+    }
+    n * (settings.contact_neighbours as usize).min(n.saturating_sub(1))
 }
 
 /// Floats of the reduction buffer for `misc` (see `pack`).
@@ -538,6 +562,8 @@ pub struct GpuLattice {
     /// Where the collider force totals start in `red` (floats).
     force_out: u32,
     colliders: usize,
+    /// Entries each particle-contact list can hold (0: no particle contacts).
+    pair_capacity: usize,
     _keep: Vec<Buffer>,
 }
 
@@ -672,7 +698,13 @@ impl GpuLattice {
             bytemuck::cast_slice(&packed.mats),
             st,
         )?;
-        let ccol_init = ccol_regions(state);
+        let mut ccol_init = ccol_regions(state);
+        let pair_capacity = pair_capacity(model, settings);
+        if pair_capacity > 0 {
+            // Region 4 (every node's list ranges, empty) and the lists (both of them,
+            // four u32 a vec4).
+            ccol_init.resize(5 * n + (2 * pair_capacity).div_ceil(4), [0.0; 4]);
+        }
         let ccol = make(
             "tissue lattice collider state",
             bytemuck::cast_slice(&ccol_init),
@@ -776,6 +808,7 @@ impl GpuLattice {
             force_out: packed.params.misc[3],
             red,
             colliders: 0,
+            pair_capacity,
             _keep: vec![ef, vecs, nblk, elems, kmat, topo, nodes, mats, passes],
         })
     }
@@ -928,6 +961,98 @@ impl GpuLattice {
         Ok(())
     }
 
+    /// Whether this world solves particle contacts between its bodies (made with
+    /// `particle_contacts` on and more than one body); their candidates come from
+    /// [`GpuLattice::set_contacts`].
+    pub fn has_particle_contacts(&self) -> bool {
+        self.pair_capacity > 0
+    }
+
+    /// Sets the particle-contact candidates of the next steps, as the CPU solver's
+    /// [`crate::core::solver::Solver::contact_lists`] gives them (CSR: node `i`'s
+    /// candidates are `list[start[i]..start[i + 1]]`, other bodies' nodes). Each pair
+    /// closer than the two radii pushes as a stiff penalty inside the Newton iterations
+    /// and is projected apart (Jacobi, relaxed by `contact_relaxation`) after every
+    /// `contact_every`-th Newton iteration and the last, as on the CPU under
+    /// [`crate::core::solver::Method::Jacobi`]. Errors when the world has no particle
+    /// contacts or the lists do not fit it (nothing is written then).
+    pub fn set_contacts(
+        &mut self,
+        queue: &RenderQueue,
+        start: &[u32],
+        list: &[u32],
+    ) -> Result<(), TissueError> {
+        let n = self.n as usize;
+        if self.pair_capacity == 0 {
+            return Err(TissueError::InvalidParameter {
+                name: "particle contacts",
+                value: "a world made without them".into(),
+                expected: "particle_contacts on and at least two bodies when the GPU lattice world is made",
+            });
+        }
+        let sorted = start.windows(2).all(|w| w[0] <= w[1]);
+        if start.len() != n + 1
+            || start.last().copied() != Some(list.len() as u32)
+            || !sorted
+            || list.iter().any(|&i| i as usize >= n)
+        {
+            return Err(TissueError::InvalidParameter {
+                name: "contact lists",
+                value: format!("{} starts, {} candidates", start.len(), list.len()),
+                expected: "CSR lists of this world's nodes (one start per node and one more)",
+            });
+        }
+        if list.len() > self.pair_capacity {
+            return Err(TissueError::InvalidParameter {
+                name: "contact lists",
+                value: format!("{} candidates", list.len()),
+                expected: "at most contact_neighbours per node",
+            });
+        }
+        // The reverse lists: for each node, the nodes whose candidates it is.
+        let mut rev_start = vec![0u32; n + 1];
+        for &i in list {
+            rev_start[i as usize + 1] += 1;
+        }
+        for i in 0..n {
+            rev_start[i + 1] += rev_start[i];
+        }
+        let mut fill = rev_start.clone();
+        let mut rev = vec![0u32; list.len()];
+        for owner in 0..n {
+            for &i in &list[start[owner] as usize..start[owner + 1] as usize] {
+                rev[fill[i as usize] as usize] = owner as u32;
+                fill[i as usize] += 1;
+            }
+        }
+        let base = list.len() as u32;
+        let ranges: Vec<[u32; 4]> = (0..n)
+            .map(|j| {
+                [
+                    start[j],
+                    start[j + 1],
+                    base + rev_start[j],
+                    base + rev_start[j + 1],
+                ]
+            })
+            .collect();
+        queue.write_buffer(
+            &self.ccol,
+            (4 * n * 16) as u64,
+            bytemuck::cast_slice(&ranges),
+        );
+        let mut lists = list.to_vec();
+        lists.extend(&rev);
+        if !lists.is_empty() {
+            queue.write_buffer(
+                &self.ccol,
+                (5 * n * 16) as u64,
+                bytemuck::cast_slice(&lists),
+            );
+        }
+        Ok(())
+    }
+
     /// Writes `state`'s positions, velocities, pin targets, element rotations and grasps
     /// (the colliders touched in the last substep are forgotten).
     pub fn upload(&mut self, queue: &RenderQueue, model: &Model, state: &State) {
@@ -1068,6 +1193,48 @@ mod tests {
             ],
             fold: None,
             smoother: Smoother::GaussSeidel,
+            pairs: None,
+        }
+    }
+
+    /// Particle contacts are projected after every `contact_every`-th Newton iteration
+    /// and after the last, each time right before the colliders' projection, which then
+    /// starts from its result (mode 1); without them nothing is dispatched for them.
+    #[test]
+    fn particle_contacts_are_projected_on_their_schedule() {
+        assert!(
+            plan(&shape(), 3)
+                .iter()
+                .all(|d| d.kernel != Kernel::PairProject)
+        );
+        for (every, newton, expect) in [
+            (1, 3, vec![0, 1, 2]),
+            (2, 3, vec![1, 2]),
+            (2, 4, vec![1, 3]),
+            (5, 2, vec![1]),
+        ] {
+            let s = Shape {
+                pairs: Some(every),
+                ..shape()
+            };
+            let p = plan(&s, newton);
+            let boundaries: Vec<&Dispatch> =
+                p.iter().filter(|d| d.kernel == Kernel::Boundary).collect();
+            assert_eq!(boundaries.len(), newton as usize);
+            let with: Vec<usize> = (0..boundaries.len())
+                .filter(|&k| boundaries[k].pass.mode == 1)
+                .collect();
+            assert_eq!(with, expect, "every {every}, {newton} Newton iterations");
+            for (k, d) in p.iter().enumerate() {
+                if d.kernel == Kernel::PairProject {
+                    assert_eq!(p[k + 1].kernel, Kernel::Boundary);
+                    assert_eq!(p[k + 1].pass.mode, 1);
+                }
+            }
+            assert_eq!(
+                p.iter().filter(|d| d.kernel == Kernel::PairProject).count(),
+                expect.len()
+            );
         }
     }
 

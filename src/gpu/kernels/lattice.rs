@@ -170,6 +170,8 @@ pub enum Kernel {
     Contacts,
     /// `lump_extra`: contact stiffness lumped onto a coarse level.
     LumpExtra,
+    /// `pair_project`: the particle contacts' Jacobi projection between bodies.
+    PairProject,
     /// `boundary`: projection out of the colliders, grasp targets, contact forces.
     Boundary,
     /// `force_partials`: partial sums of the forces on each collider.
@@ -310,9 +312,16 @@ pub const ENTRIES: &[Entry] = &[
         uses: &["params", "pc", "nblk", "topo"],
     },
     Entry {
+        kernel: Kernel::PairProject,
+        name: "pair_project",
+        uses: &["params", "pos", "vecs", "ccol", "nodes", "mats"],
+    },
+    Entry {
         kernel: Kernel::Boundary,
         name: "boundary",
-        uses: &["params", "cols", "pos", "ccol", "nodes", "mats"],
+        uses: &[
+            "params", "pc", "cols", "pos", "vecs", "ccol", "nodes", "mats",
+        ],
     },
     Entry {
         kernel: Kernel::ForcePartials,

@@ -48,6 +48,10 @@ const C_GRAB: u32 = 2u;
 // iteration (xyz, N; w: the collider, −1: none): a grasped node's residual, or the
 // penalty of its last collider contact.
 const C_NF: u32 = 3u;
+// Region 4 of `ccol` (present when the world has particle contacts): per node, where
+// its particle-contact candidates (other bodies' nodes) are, as u32 indices into the
+// lists after the regions (x..y), and where the nodes whose candidates it is are (z..w).
+const C_PAIR: u32 = 4u;
 // Penalty stiffness over a particle's own stiffness scale m/h² + (λ + 2μ) s.
 const PENALTY: f32 = 1.0e3;
 
@@ -75,6 +79,8 @@ struct LatticeParams {
                              // forces' partial sums and totals start in `red`
     cheb: array<vec4<f32>, 8>, // per level: the Chebyshev smoother's 1/θ and ρ²; z: 1 if
                              // the level is smoothed by Chebyshev (else Gauss–Seidel)
+    pair: vec4<u32>,         // x: 1 if `ccol` holds particle-contact lists; z: the
+                             // contacts' Jacobi relaxation ω_c (f32 bits)
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -119,6 +125,21 @@ fn grasp_target(j: u32) -> vec4<f32> {
     }
     let c = cols[k];
     return vec4<f32>(c.pos.xyz + quat_rotate(c.rot, g.xyz), 1.0);
+}
+
+// Node j's particle-contact candidates (x..y) and the nodes that list it (z..w), as
+// positions in the lists (empty without particle contacts).
+fn pair_range(j: u32) -> vec4<u32> {
+    if (params.pair.x == 0u) {
+        return vec4<u32>(0u);
+    }
+    return bitcast<vec4<u32>>(ccol[C_PAIR * params.n + j]);
+}
+
+// The node at position s of the particle-contact lists.
+fn pair_at(s: u32) -> u32 {
+    let v = ccol[(C_PAIR + 1u) * params.n + s / 4u];
+    return bitcast<u32>(v[s % 4u]);
 }
 
 // Deformation gradient at the centre of a cube of edge `size` (core::element::element_gradient).
@@ -352,6 +373,32 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                         let d0 = sc.x - collider_sdf(cols[c], y).w;
                         for (var k = 0u; k < kc; k = k + 1u) {
                             let da = sc.x - collider_sdf(cols[c], y + d * candidate(k0 + k, mode)).w;
+                            acc[k] = acc[k] + 0.5 * sc.y * (da * da - d0 * d0);
+                        }
+                    }
+                }
+                // Particle contacts this node holds (line search only): ½ k depth² with
+                // both nodes moving along the step.
+                let pr = pair_range(j);
+                if (mode != 0u && pr.x < pr.y) {
+                    let sc = contact_scale(j);
+                    let y = pos[R_Y * n + j].xyz;
+                    for (var s = pr.x; s < pr.y; s = s + 1u) {
+                        let i = pair_at(s);
+                        let yi = pos[R_Y * n + i].xyz;
+                        let reach = sc.x + contact_scale(i).x;
+                        let len0 = length(y - yi);
+                        if (len0 >= reach || len0 <= 1e-12) {
+                            continue;
+                        }
+                        var di = direction(i, mode);
+                        if (held_now(i)) {
+                            di = vec3<f32>(0.0);
+                        }
+                        let d0 = reach - len0;
+                        for (var k = 0u; k < kc; k = k + 1u) {
+                            let a = candidate(k0 + k, mode);
+                            let da = reach - length(y + d * a - yi - di * a);
                             acc[k] = acc[k] + 0.5 * sc.y * (da * da - d0 * d0);
                         }
                     }
@@ -1074,10 +1121,14 @@ fn contact_scale(j: u32) -> vec2<f32> {
     return vec2<f32>(m.z, PENALTY * (nodes[j].x / params.h2 + modulus * m.w));
 }
 
-// Penalty contacts of node j with the colliders (core::solver's Newton contacts): every
-// collider it is inside now, and the one it touched in the last substep while within a
-// radius of it. Adds k depth n to its right-hand side, sets its extra stiffness k n nᵀ
-// (zero without contacts) and records which colliders are in contact.
+// Penalty contacts of node j (core::solver's Newton contacts): with every collider it
+// is inside now, and the one it touched in the last substep while within a radius of
+// it; and with another body's node closer than their radii, for the pairs in its own
+// candidate list and those in the lists of others (each pair is one contact, held by
+// the node whose list has it, with that node's stiffness; a free partner counts it twice
+// in its block, the coupling the V-cycle does not see). Adds the penalty forces to its
+// right-hand side, sets its extra stiffness k n nᵀ (zero without contacts) and records
+// which colliders are in contact.
 @compute @workgroup_size(64)
 fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -1087,7 +1138,8 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
     let n = params.n;
     var extra = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     var mask = 0u;
-    if (!held_now(j) && params.misc.x > 0u) {
+    let pr = pair_range(j);
+    if (!held_now(j) && (params.misc.x > 0u || pr.x < pr.y || pr.z < pr.w)) {
         let sc = contact_scale(j);
         let r = sc.x;
         let y = pos[R_Y * n + j].xyz;
@@ -1107,6 +1159,34 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
             rhs = rhs + dn.xyz * (sc.y * (r - d));
             extra = extra + outer(dn.xyz, dn.xyz) * sc.y;
             mask = mask | (1u << k);
+        }
+        for (var s = pr.x; s < pr.y; s = s + 1u) {
+            let i = pair_at(s);
+            let d = y - pos[R_Y * n + i].xyz;
+            let reach = r + contact_scale(i).x;
+            let len = length(d);
+            if (len >= reach || len <= 1e-12) {
+                continue;
+            }
+            let nn = d / len;
+            rhs = rhs + nn * (sc.y * (reach - len));
+            extra = extra + outer(nn, nn) * (sc.y * select(1.0, 2.0, !held_now(i)));
+        }
+        for (var s = pr.z; s < pr.w; s = s + 1u) {
+            let i = pair_at(s);
+            if (held_now(i)) {
+                continue;
+            }
+            let d = pos[R_Y * n + i].xyz - y;
+            let si = contact_scale(i);
+            let reach = r + si.x;
+            let len = length(d);
+            if (len >= reach || len <= 1e-12) {
+                continue;
+            }
+            let nn = d / len;
+            rhs = rhs - nn * (si.y * (reach - len));
+            extra = extra + outer(nn, nn) * (si.y * 2.0);
         }
         vecs[ri] = vec4<f32>(rhs, 0.0);
     }
@@ -1137,30 +1217,85 @@ fn lump_extra(@builtin(global_invocation_id) gid: vec3<u32>) {
     nblk[o + 2u] = vec4<f32>(s[2], 0.0);
 }
 
-// The colliders' projection after a Newton iteration (pins already hold their targets):
-// every free node pushed out of each collider it penetrates, with friction
-// (core::solver's boundary), the corrections recorded for the touched colliders.
+// Inverse mass of node j for the particle contacts' projection (0 when pinned).
+fn pair_inv_mass(j: u32) -> f32 {
+    if (pos[R_PIN * params.n + j].w > 0.5) {
+        return 0.0;
+    }
+    return 1.0 / nodes[j].x;
+}
+
+// Particle contacts' projection after a Newton iteration, Jacobi (core::solver's pass
+// C): node j moves by ω_c times the mean of the pushes out of its candidates it
+// overlaps (core::constraints::solve_contact), from the positions all nodes had before
+// this pass; the result goes to `vecs`' residual region for `boundary`.
 @compute @workgroup_size(64)
-fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n || held(j) || params.misc.x == 0u) {
+    if (j >= params.n) {
         return;
     }
     let n = params.n;
+    let y = pos[R_Y * n + j].xyz;
+    var q = y;
+    let wj = pair_inv_mass(j);
+    let pr = pair_range(j);
+    if (wj > 0.0 && pr.x < pr.y) {
+        let rj = contact_scale(j).x;
+        var sum = vec3<f32>(0.0);
+        var count = 0u;
+        for (var s = pr.x; s < pr.y; s = s + 1u) {
+            let i = pair_at(s);
+            let delta = y - pos[R_Y * n + i].xyz;
+            let dist = rj + contact_scale(i).x;
+            let l2 = dot(delta, delta);
+            let w = wj + pair_inv_mass(i);
+            if (l2 >= dist * dist || l2 <= 1e-24 || w <= 0.0) {
+                continue;
+            }
+            let l = sqrt(l2);
+            sum = sum + delta * ((dist - l) / l * wj / w);
+            count = count + 1u;
+        }
+        if (count > 0u) {
+            q = y + sum / f32(count) * bitcast<f32>(params.pair.z);
+        }
+    }
+    vecs[V_RES * params.n_total + j] = vec4<f32>(q, 0.0);
+}
+
+// The colliders' projection after a Newton iteration (pins already hold their targets),
+// from the particle contacts' projection when it ran (pc.mode 1): every free node
+// pushed out of each collider it penetrates, with friction (core::solver's boundary),
+// the corrections recorded for the touched colliders.
+@compute @workgroup_size(64)
+fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n || held(j)) {
+        return;
+    }
+    let n = params.n;
+    let y = pos[R_Y * n + j].xyz;
+    var q = y;
+    if (pc.mode == 1u) {
+        q = vecs[V_RES * params.n_total + j].xyz;
+    }
+    if (params.misc.x == 0u) {
+        pos[R_Y * n + j] = vec4<f32>(q, 0.0);
+        return;
+    }
     let gt = grasp_target(j);
     if (gt.w > 0.0) {
         // A grasped node goes to its target; the correction is the grasper's.
         let old = ccol[C_COL * n + j];
-        let y = pos[R_Y * n + j].xyz;
-        ccol[C_COL * n + j] = vec4<f32>(old.xyz + gt.xyz - y, ccol[C_GRAB * n + j].w - 1.0);
+        ccol[C_COL * n + j] = vec4<f32>(old.xyz + gt.xyz - q, ccol[C_GRAB * n + j].w - 1.0);
         pos[R_Y * n + j] = vec4<f32>(gt.xyz, 0.0);
         return;
     }
     let sc = contact_scale(j);
     let r = sc.x;
     let x = pos[R_X * n + j].xyz;
-    var q = pos[R_Y * n + j].xyz;
-    // The penalty forces at the new positions: the tissue presses on a collider with
+    // The penalty forces at the Newton iterate: the tissue presses on a collider with
     // −k depth n (the last of its contacts reported).
     let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
     if (mask != 0u) {
@@ -1168,7 +1303,7 @@ fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
             if ((mask & (1u << k)) == 0u) {
                 continue;
             }
-            let dn = collider_sdf(cols[k], q);
+            let dn = collider_sdf(cols[k], y);
             let depth = r - dn.w;
             if (depth > 0.0) {
                 ccol[C_NF * n + j] = vec4<f32>(-dn.xyz * (sc.y * depth), f32(k));
@@ -1188,8 +1323,8 @@ fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (id >= 0.0) {
         let old = ccol[C_COL * n + j];
         ccol[C_COL * n + j] = vec4<f32>(old.xyz + total, id);
-        pos[R_Y * n + j] = vec4<f32>(q, 0.0);
     }
+    pos[R_Y * n + j] = vec4<f32>(q, 0.0);
 }
 
 // The forces a node put on the colliders in this substep: −m/h² times its projection's
