@@ -1127,13 +1127,20 @@ fn lattice_box_at(half: Vec3, at: Vec3) -> Model {
     model
 }
 
-/// The CPU solver, the CPU solver started 0.1 µm away (how sensitive the run is), and
-/// the GPU lattice solver, stepped together.
+/// The CPU solver, perturbed CPU solvers (how sensitive the run is) and the GPU lattice
+/// solver, stepped together.
 struct Lockstep {
     model: Model,
     start: Vec<Vec3>,
     cpu: (Solver, State),
-    nudged: (Solver, State),
+    /// The CPU started 0.1 µm away (each particle in a direction of its own: a rigid
+    /// shift would leave the contact equilibrium, and the friction decided from it, as
+    /// they were), and the CPU with Young's modulus a part in a million above and below:
+    /// a contact penalty (a thousand times a node's own stiffness) dominates its node's
+    /// diagonal block, whose inverse in f32 carries rounding of that size into the Newton
+    /// direction and from it into the contacts' decisions, and the GPU's arithmetic
+    /// (fused multiply–adds, summation order) rounds differently from the CPU's.
+    probes: Vec<(Model, Solver, State)>,
     gpu: (bevy_tissue::gpu::lattice::GpuLattice, State),
     kernels: bevy_tissue::gpu::kernels::lattice::LatticeKernels,
     /// Builds the GPU's particle-contact lists from the GPU's own positions (the CPU's
@@ -1149,7 +1156,7 @@ struct Compared {
     gpu_forces: Vec<Vec3>,
     /// Largest GPU − CPU distance, m.
     diff: f32,
-    /// Largest distance between the CPU and the nudged CPU, m.
+    /// Largest distance between the CPU and a perturbed CPU, m.
     own: f32,
     /// Largest distance the CPU's particles moved from the start, m.
     moved: f32,
@@ -1170,19 +1177,35 @@ impl Lockstep {
         use bevy_tissue::gpu::lattice::GpuLattice;
         let kernels = LatticeKernels::new(&g.device).unwrap();
         let mut nudged = cpu.clone();
-        // Each particle 0.1 µm away in a direction of its own (a rigid shift would leave
-        // the contact equilibrium, and the friction decided from it, as they were).
         for (i, p) in nudged.x.iter_mut().enumerate() {
             let h =
                 |k: u32| ((i as u32).wrapping_mul(2_654_435_761) ^ k.wrapping_mul(40_503)) % 2001;
             *p += Vec3::new(h(1) as f32, h(2) as f32, h(3) as f32) * (1e-7 / 1000.0)
                 - Vec3::splat(1e-7);
         }
+        let stiffer = |factor: f32| {
+            let mut m = model.clone();
+            for b in &mut m.bodies {
+                if let Material::Hyperelastic { youngs_modulus, .. } = &mut b.material {
+                    *youngs_modulus *= factor;
+                }
+            }
+            m
+        };
+        let mut probes = Vec::new();
+        for (m, x) in [
+            (model.clone(), nudged),
+            (stiffer(1.0 + 1e-6), cpu.clone()),
+            (stiffer(1.0 - 1e-6), cpu.clone()),
+        ] {
+            let solver = Solver::new(&m, s.clone()).unwrap();
+            probes.push((m, solver, x));
+        }
         let gpu = GpuLattice::new(&g.device, &kernels, &model, &cpu, &s).unwrap();
         Self {
             start: cpu.x.clone(),
             cpu: (Solver::new(&model, s.clone()).unwrap(), cpu.clone()),
-            nudged: (Solver::new(&model, s.clone()).unwrap(), nudged),
+            probes,
             lists: Solver::new(&model, s).unwrap(),
             gpu: (gpu, cpu),
             kernels,
@@ -1196,9 +1219,9 @@ impl Lockstep {
             .0
             .step(&self.model, &mut self.cpu.1, control)
             .unwrap();
-        (self.nudged.0)
-            .step(&self.model, &mut self.nudged.1, control)
-            .unwrap();
+        for (m, solver, x) in &mut self.probes {
+            solver.step(m, x, control).unwrap();
+        }
         let (world, state) = &mut self.gpu;
         world.set_colliders(&g.queue, &control.colliders).unwrap();
         if world.has_particle_contacts() {
@@ -1215,7 +1238,11 @@ impl Lockstep {
             cpu_forces: stats.collider_forces,
             gpu_forces,
             diff: max_dist(&state.x, &self.cpu.1.x),
-            own: max_dist(&self.nudged.1.x, &self.cpu.1.x),
+            own: self
+                .probes
+                .iter()
+                .map(|p| max_dist(&p.2.x, &self.cpu.1.x))
+                .fold(0.0, f32::max),
             moved: max_dist(&self.start, &self.cpu.1.x),
         }
     }
@@ -1318,11 +1345,14 @@ fn lattice_bodies_in_contact_match_the_cpu() {
     let mut own_centre = 0.0f32;
     for step in 0..40u32 {
         let c = run.step(g, &control);
-        let [cpu, gpu, nudged] = [&run.cpu.1.x, &run.gpu.1.x, &run.nudged.1.x].map(|x| centres(x));
+        let [cpu, gpu] = [&run.cpu.1.x, &run.gpu.1.x].map(|x| centres(x));
         let centre_diff = (0..2).map(|b| gpu[b].distance(cpu[b])).fold(0.0, f32::max);
-        own_centre = (0..2)
-            .map(|b| nudged[b].distance(cpu[b]))
-            .fold(own_centre, f32::max);
+        for p in &run.probes {
+            let probe = centres(&p.2.x);
+            own_centre = (0..2)
+                .map(|b| probe[b].distance(cpu[b]))
+                .fold(own_centre, f32::max);
+        }
         if touched.is_none() && gap(&run.cpu.1.x) < reach {
             touched = Some(step);
         }
@@ -1523,4 +1553,135 @@ fn lattice_kernels_name_the_limit_a_downlevel_adapter_lacks() {
         err.contains("storage buffers per shader stage needs 8, the adapter allows 4"),
         "{err}"
     );
+}
+
+/// The lattice kernels' block inverse (`spd_inverse` in lattice.wgsl) equals its CPU twin
+/// (`core::multigrid::spd_inverse`) on well-conditioned and contact-loaded blocks (a
+/// penalty of 2.4e5 N/m along one direction on a node held by ~1 N/m in the others).
+#[test]
+fn the_block_inverse_equals_the_cpu() {
+    use bevy::render::render_resource::*;
+    use bevy_tissue::core::multigrid::spd_inverse;
+    use glam::Mat3;
+    let Some(g) = gpu() else {
+        return;
+    };
+    let src = bevy_tissue::gpu::kernels::lattice::source();
+    let start = src
+        .find("fn spd_inverse")
+        .expect("spd_inverse in lattice.wgsl");
+    let end = start + src[start..].find("\n}\n").expect("its end") + 3;
+    let shader = format!(
+        "@group(0) @binding(0) var<storage, read_write> m: array<mat3x3<f32>>;\n{}\n\
+         @compute @workgroup_size(1) fn main(@builtin(global_invocation_id) id: vec3<u32>) {{\n\
+         m[id.x] = spd_inverse(m[id.x]);\n}}\n",
+        &src[start..end]
+    );
+    let n = Vec3::new(0.6, 0.7, -0.4).normalize();
+    let blocks = [
+        Mat3::from_cols(
+            Vec3::new(4.0, 1.0, 0.5),
+            Vec3::new(1.0, 3.0, 0.2),
+            Vec3::new(0.5, 0.2, 2.0),
+        ),
+        Mat3::from_cols(n * n.x, n * n.y, n * n.z) * 2.4e5
+            + Mat3::from_diagonal(Vec3::new(0.6, 0.9, 0.7)),
+        Mat3::from_diagonal(Vec3::new(1.0, -1.0, 1.0)),
+    ];
+    // mat3x3<f32> in a storage array: three columns of vec3 padded to 16 bytes.
+    let bytes: Vec<f32> = blocks
+        .iter()
+        .flat_map(|m| {
+            m.to_cols_array_2d()
+                .into_iter()
+                .flat_map(|c| [c[0], c[1], c[2], 0.0])
+        })
+        .collect();
+    let buf = g.device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some("blocks"),
+        contents: bytemuck::cast_slice(&bytes),
+        usage: BufferUsages::STORAGE | BufferUsages::COPY_SRC,
+    });
+    let module = g
+        .device
+        .create_and_validate_shader_module(ShaderModuleDescriptor {
+            label: Some("spd_inverse"),
+            source: ShaderSource::Wgsl(shader.into()),
+        });
+    let layout = g.device.create_bind_group_layout(
+        "spd_inverse",
+        &[BindGroupLayoutEntry {
+            binding: 0,
+            visibility: ShaderStages::COMPUTE,
+            ty: BindingType::Buffer {
+                ty: BufferBindingType::Storage { read_only: false },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        }],
+    );
+    let pl = g.device.create_pipeline_layout(&PipelineLayoutDescriptor {
+        label: None,
+        bind_group_layouts: &[Some(&*layout)],
+        immediate_size: 0,
+    });
+    let pipeline = g
+        .device
+        .create_compute_pipeline(&RawComputePipelineDescriptor {
+            label: None,
+            layout: Some(&pl),
+            module: &module,
+            entry_point: Some("main"),
+            compilation_options: PipelineCompilationOptions::default(),
+            cache: None,
+        });
+    let bg = g.device.create_bind_group(
+        "spd_inverse",
+        &layout,
+        &[BindGroupEntry {
+            binding: 0,
+            resource: buf.as_entire_binding(),
+        }],
+    );
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&pipeline);
+        pass.set_bind_group(0, &bg, &[]);
+        pass.dispatch_workgroups(blocks.len() as u32, 1, 1);
+    }
+    g.queue.submit([enc.finish()]);
+    let out: Vec<f32> = bytemuck::pod_collect_to_vec(&read_buffer(
+        &g.device,
+        &g.queue,
+        &buf,
+        0,
+        (bytes.len() * 4) as u64,
+    ));
+    for (k, m) in blocks.iter().enumerate() {
+        let cpu = spd_inverse(*m);
+        let c = |i: usize| {
+            Vec3::new(
+                out[12 * k + 4 * i],
+                out[12 * k + 4 * i + 1],
+                out[12 * k + 4 * i + 2],
+            )
+        };
+        let gpu = Mat3::from_cols(c(0), c(1), c(2));
+        let scale = cpu
+            .to_cols_array()
+            .iter()
+            .fold(0.0f32, |a, v| a.max(v.abs()))
+            .max(1e-30);
+        let diff = (gpu - cpu)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f32, |a, v| a.max(v.abs()));
+        eprintln!("block {k}: CPU {cpu}, GPU {gpu}");
+        assert!(
+            diff <= 1e-5 * scale,
+            "block {k}: GPU − CPU {diff} of {scale}"
+        );
+    }
 }

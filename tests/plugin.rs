@@ -914,6 +914,76 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     assert!(sag > 1e-4, "the body did not move: {sag} m");
 }
 
+/// Two lattice bodies touching each other step on the GPU: the upper one, dropped onto
+/// the lower (held whole) one, rests on it through particle contacts instead of passing
+/// through (the scene of the CPU backend's `cpu_bodies_touch_each_other`; contacts
+/// searched every step).
+#[test]
+fn lattice_bodies_touch_each_other_on_the_gpu() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    app.world_mut().resource_mut::<TissueSettings>().knn_every = 1;
+    let (body, _) = common::lattice_body();
+    // The lower body held whole (every particle pinned): a fixed shelf.
+    let shelf = Pinned::region(PinShape::HalfSpace {
+        point: Vec3::new(0.0, 1.0, 0.0),
+        normal: -Vec3::Y,
+    });
+    let low = spawn_on_main_world_path(&mut app, Vec3::ZERO, body.clone(), shelf);
+    // 10 cm above: a gap of about 4 cm between the 5 cm boxes' lattices.
+    let high = spawn_body(&mut app, Vec3::new(0.0, 0.10, 0.0), body, None);
+    app.world_mut()
+        .entity_mut(high)
+        .insert(ReadbackParticles { continuous: true });
+    let built = until(&mut app, 600, |app| {
+        app.world()
+            .get::<bevy_tissue::plugin::cpu::CpuBody>(high)
+            .is_some()
+    });
+    assert!(built, "the upper body never reached the main world's path");
+    step_frames(&mut app, 60);
+    let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
+    assert!(
+        world.stepped_on_gpu(),
+        "the touching bodies stepped on the CPU"
+    );
+    let state = world.state().unwrap();
+    let part = |e: Entity| {
+        app.world()
+            .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
+            .unwrap()
+            .particles
+            .clone()
+    };
+    let top_of_low = state.x[part(low)]
+        .iter()
+        .map(|p| p.y)
+        .fold(f32::MIN, f32::max);
+    let bottom_of_high = state.x[part(high)]
+        .iter()
+        .map(|p| p.y)
+        .fold(f32::MAX, f32::min);
+    assert!(
+        bottom_of_high < top_of_low + 0.02,
+        "did not fall: {bottom_of_high} m (the lower top {top_of_low} m)"
+    );
+    assert!(
+        bottom_of_high > top_of_low,
+        "passed into the lower body: its bottom {bottom_of_high} m, the lower top {top_of_low} m"
+    );
+    let speed = state.v[part(high)]
+        .iter()
+        .map(|v| v.length())
+        .fold(0.0, f32::max);
+    assert!(
+        speed < 0.2,
+        "the upper body settles (fastest particle {speed} m/s)"
+    );
+}
+
 /// A lattice body steps on the GPU (Newton–multigrid, `GpuLattice`) from the plugin and
 /// lands where the core's CPU solver does with the same settings.
 #[test]

@@ -98,7 +98,11 @@ pub struct SolverSettings {
     /// the whole overlap, which holds piles more firmly under Jacobi (an ensemble of
     /// dropped piles: 68% of the contact distance deep against 86%; BENCHMARKS.md, "The
     /// plugin's contact schedule"). The plugin defaults to 2
-    /// (`plugin::components::TissueSettings`).
+    /// (`plugin::components::TissueSettings`). Particles of lattice bodies under
+    /// [`ElementSolver::Multigrid`] take at most 1: their contacts already push as
+    /// penalties inside the Newton iterations, and the projection after them only removes
+    /// what overlap is left; over-relaxed, it overshoots against a held or heavier
+    /// partner and the bodies bounce and jitter where they rest on each other.
     pub contact_relaxation: f32,
     /// Jacobi relaxation ω (1 = plain averaging; above 1 over-relaxes): shape-matching
     /// corrections are scaled by `ω/s_c`, XPBD multiplier increments (solved with split
@@ -1268,7 +1272,8 @@ impl Solver {
             }
         }
         for (j, dj) in d.iter().enumerate() {
-            if !held[j] {
+            // At α = 0 nothing moves (a direction that is not finite must not either).
+            if !held[j] && alpha > 0.0 {
                 self.p[j] += *dj * alpha;
             }
         }
@@ -1588,6 +1593,12 @@ impl Solver {
         let omega = self.settings.relaxation;
         let contacts = self.settings.particle_contacts && self.contacts_now;
         let contact_omega = self.settings.contact_relaxation;
+        // Lattice particles under Newton–multigrid: never over-relaxed (see the field).
+        let lattice_omega = if self.settings.element_solver == ElementSolver::Multigrid {
+            contact_omega.min(1.0)
+        } else {
+            contact_omega
+        };
         let t = std::time::Instant::now();
         // Lattice bodies under a Newton-type element solver: solved first, on their own
         // (their particles belong to no cluster; the passes below add nothing to them
@@ -1679,7 +1690,12 @@ impl Solver {
                             }
                         }
                         if cnt > 0 {
-                            q += sum / cnt as f32 * contact_omega;
+                            let omega = if model.elements_of(j).is_empty() {
+                                contact_omega
+                            } else {
+                                lattice_omega
+                            };
+                            q += sum / cnt as f32 * omega;
                         }
                     }
                     let (q, id, dp) =

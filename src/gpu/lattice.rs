@@ -483,7 +483,13 @@ fn pack(
             let chebyshev = mg.smoother.on_level(l) == Smoother::Chebyshev;
             [inv_theta, rho2, chebyshev as u32 as f32, 0.0]
         }),
-        pair: [pairs as u32, 0, settings.contact_relaxation.to_bits(), 0],
+        // The contacts' relaxation, never above 1 on lattice bodies (core::solver's rule).
+        pair: [
+            pairs as u32,
+            0,
+            settings.contact_relaxation.min(1.0).to_bits(),
+            0,
+        ],
     };
     let shape = Shape {
         levels: (0..nl)
@@ -972,7 +978,7 @@ impl GpuLattice {
     /// [`crate::core::solver::Solver::contact_lists`] gives them (CSR: node `i`'s
     /// candidates are `list[start[i]..start[i + 1]]`, other bodies' nodes). Each pair
     /// closer than the two radii pushes as a stiff penalty inside the Newton iterations
-    /// and is projected apart (Jacobi, relaxed by `contact_relaxation`) after every
+    /// and is projected apart (Jacobi, relaxed by `contact_relaxation` up to 1) after every
     /// `contact_every`-th Newton iteration and the last, as on the CPU under
     /// [`crate::core::solver::Method::Jacobi`]. Errors when the world has no particle
     /// contacts or the lists do not fit it (nothing is written then).

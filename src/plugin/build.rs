@@ -154,11 +154,17 @@ pub fn start_builds(
         Option<&BuiltBody>,
     )>,
     changed: Query<Entity, Or<(Changed<SoftBody>, Changed<Pinned>)>>,
+    fresh: Query<(), Added<GlobalTransform>>,
     settings: Res<TissueSettings>,
 ) {
     for (entity, body, pinned, mesh3d, source, to_world, mut status, built) in &mut bodies {
         let is_changed = changed.contains(entity) && built.is_some();
         if !(matches!(*status, SoftBodyStatus::Pending) || is_changed) {
+            continue;
+        }
+        if fresh.contains(entity) {
+            // Spawned since the last build pass: its world transform may not have been
+            // propagated yet (it would be built at the origin); wait one frame.
             continue;
         }
         let handle = source.map_or(mesh3d.0.clone(), |s| s.0.clone());

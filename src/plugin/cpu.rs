@@ -8,11 +8,12 @@
 //! these bodies alone ([`runs_on_cpu`]).
 //!
 //! Under [`TissueBackend::Auto`], when every body of this world is a hyperelastic lattice
-//! body and they cannot touch each other (one body, or particle contacts off), the steps
-//! run on the GPU ([`GpuLattice`]: the same Newton–multigrid, colliders and graspers) and
-//! the positions are read back for the skinning; the CPU's solver takes over where that
-//! is not possible (the GPU path cannot be set up, more than
-//! [`crate::gpu::kernels::lattice::MAX_COLLIDERS`] colliders).
+//! body, the steps run on the GPU ([`GpuLattice`]: the same Newton–multigrid, colliders,
+//! graspers and particle contacts between bodies) and the positions are read back for
+//! the skinning; the contact candidates are searched on the CPU from those positions
+//! (every [`TissueSettings::knn_every`] steps, as the CPU solver does) and uploaded. The
+//! CPU's solver takes over where the GPU path is not possible (it cannot be set up, more
+//! than [`crate::gpu::kernels::lattice::MAX_COLLIDERS`] colliders).
 //!
 //! Not done on this path (yet): sleeping, and [`ColliderForce`] while some bodies are
 //! stepped by the render graph (it is written when every built body is in this world).
@@ -79,17 +80,17 @@ struct LatticeOnGpu {
     world: Option<GpuLattice>,
     /// The GPU holds the CPU state's latest positions.
     synced: bool,
+    /// The GPU's particle-contact candidates were searched from its current bodies.
+    lists: bool,
 }
 
-/// Whether the GPU can step every body of `model` under `settings` (hyperelastic lattice
-/// bodies that cannot touch each other).
-fn gpu_can_step(model: &Model, settings: &SolverSettings) -> bool {
+/// Whether the GPU can step every body of `model` (hyperelastic lattice bodies).
+fn gpu_can_step(model: &Model) -> bool {
     !model.bodies.is_empty()
         && model.bodies.iter().all(|b| {
             b.discretisation == Discretisation::Lattice
                 && matches!(b.material, Material::Hyperelastic { .. })
         })
-        && (model.bodies.len() == 1 || !settings.particle_contacts)
 }
 
 impl CpuWorld {
@@ -172,9 +173,7 @@ impl CpuWorld {
     ) -> Option<Result<Vec<Vec3>, TissueError>> {
         let (device, queue) = render;
         let settings = self.settings.as_ref()?;
-        if self.gpu_failed
-            || control.colliders.len() > MAX_COLLIDERS
-            || !gpu_can_step(&self.model, settings)
+        if self.gpu_failed || control.colliders.len() > MAX_COLLIDERS || !gpu_can_step(&self.model)
         {
             return None;
         }
@@ -186,6 +185,7 @@ impl CpuWorld {
                         kernels,
                         world: None,
                         synced: false,
+                        lists: false,
                     })
                 }
                 Err(e) => {
@@ -201,6 +201,7 @@ impl CpuWorld {
                 Ok(w) => {
                     g.world = Some(w);
                     g.synced = true;
+                    g.lists = false;
                 }
                 Err(e) => {
                     warn!("bevy_tissue: lattice bodies step on the CPU: {e}");
@@ -213,9 +214,25 @@ impl CpuWorld {
         if !g.synced {
             world.upload(queue, &self.model, state);
             g.synced = true;
+            g.lists = false;
         }
         if let Err(e) = world.set_colliders(queue, &control.colliders) {
             return Some(Err(e));
+        }
+        // Particle-contact candidates, searched from the positions read back last frame
+        // when one of this frame's steps is due a search (the CPU solver's rule).
+        let every = settings.knn_every.max(1) as u64;
+        let due = !g.lists || (state.step..state.step + steps as u64).any(|s| s % every == 0);
+        if world.has_particle_contacts()
+            && due
+            && let Some(solver) = self.solver.as_mut()
+        {
+            solver.refresh_contacts(&self.model, &state.x);
+            let (start, list) = solver.contact_lists();
+            if let Err(e) = world.set_contacts(queue, start, list) {
+                return Some(Err(e));
+            }
+            g.lists = true;
         }
         // The fastest particle of each body before the steps (for a divergence's advice).
         let before: Vec<f32> = self

@@ -510,14 +510,15 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
     }
 }
 
-// y += α d for the free nodes (mode as `direction`).
+// y += α d for the free nodes (mode as `direction`; nothing at α = 0, where a
+// direction that is not finite must not touch y).
 @compute @workgroup_size(64)
 fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n || held_now(j)) {
+    let a = red[S_ALPHA];
+    if (j >= params.n || held_now(j) || a == 0.0) {
         return;
     }
-    let a = red[S_ALPHA];
     let y = pos[R_Y * params.n + j].xyz;
     pos[R_Y * params.n + j] = vec4<f32>(y + direction(j, pc.mode) * a, 0.0);
 }
@@ -666,6 +667,46 @@ fn apply_row(j: u32, region: u32) -> vec3<f32> {
     return y;
 }
 
+// The inverse of a symmetric positive definite block (of ½ (a + aᵀ)) by its Cholesky
+// factor, zero where a pivot is not positive (core::multigrid::spd_inverse: stable where a contact penalty
+// makes the block a large rank-one term plus a small one, which cofactors are not).
+fn spd_inverse(a: mat3x3<f32>) -> mat3x3<f32> {
+    let z = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    if (!(a[0].x > 0.0)) {
+        return z;
+    }
+    let a10 = 0.5 * (a[0].y + a[1].x);
+    let a20 = 0.5 * (a[0].z + a[2].x);
+    let a21 = 0.5 * (a[1].z + a[2].y);
+    let l00 = sqrt(a[0].x);
+    let l10 = a10 / l00;
+    let l20 = a20 / l00;
+    let t11 = a[1].y - l10 * l10;
+    if (!(t11 > 0.0)) {
+        return z;
+    }
+    let l11 = sqrt(t11);
+    let l21 = (a21 - l20 * l10) / l11;
+    let t22 = a[2].z - l20 * l20 - l21 * l21;
+    if (!(t22 > 0.0)) {
+        return z;
+    }
+    let l22 = sqrt(t22);
+    let i00 = 1.0 / l00;
+    let i11 = 1.0 / l11;
+    let i22 = 1.0 / l22;
+    let i10 = -(l10 * i00) * i11;
+    let i21 = -(l21 * i11) * i22;
+    let i20 = -(l20 * i00 + l21 * i10) * i22;
+    let b00 = i00 * i00 + i10 * i10 + i20 * i20;
+    let b10 = i11 * i10 + i21 * i20;
+    let b20 = i22 * i20;
+    let b11 = i11 * i11 + i21 * i21;
+    let b21 = i22 * i21;
+    let b22 = i22 * i22;
+    return mat3x3<f32>(vec3<f32>(b00, b10, b20), vec3<f32>(b10, b11, b21), vec3<f32>(b20, b21, b22));
+}
+
 // Inverted diagonal blocks M/h² + S + Σ_e R K_jj Rᵀ of the nodes pc.first ..
 // [.. pc.count] (every level in one dispatch; zero where singular).
 @compute @workgroup_size(64)
@@ -685,15 +726,7 @@ fn diag(@builtin(global_invocation_id) gid: vec3<u32>) {
         let r = quat_mat(rot[e]);
         d = d + r * (kblock(bitcast<u32>(ki.x), a, a) * ki.y) * transpose(r);
     }
-    // glam's Mat3::inverse.
-    let t0 = cross(d[1], d[2]);
-    let t1 = cross(d[2], d[0]);
-    let t2 = cross(d[0], d[1]);
-    let det = dot(d[2], t2);
-    var inv = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
-    if (abs(det) > 1.17549435e-38) {
-        inv = transpose(mat3x3<f32>(t0, t1, t2)) * (1.0 / det);
-    }
+    let inv = spd_inverse(d);
     nblk[3u * j] = vec4<f32>(inv[0], 0.0);
     nblk[3u * j + 1u] = vec4<f32>(inv[1], 0.0);
     nblk[3u * j + 2u] = vec4<f32>(inv[2], 0.0);
