@@ -53,6 +53,7 @@ fn ball() -> Model {
         resolution: Resolution::Particles(512),
         neighbours: 32,
         material: Material::ShapeMatching { stiffness: 1.0 },
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     one.add_body(&procedural::icosphere(0.05, 2), &desc)
@@ -102,6 +103,7 @@ fn slab() -> Model {
                 poisson_ratio: 0.3,
             },
             translation: Vec3::new(0.0, y, 0.0),
+            discretisation: bevy_tissue::core::model::Discretisation::Clusters,
             ..Default::default()
         };
         model.add_body(mesh, &desc).expect("slab scene");

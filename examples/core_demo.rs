@@ -21,6 +21,7 @@ fn main() {
         resolution: Resolution::Particles(2048),
         neighbours: 32,
         pins: vec![PinRegion::Box { min: lo, max: hi }],
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     let t = Instant::now();

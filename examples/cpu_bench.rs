@@ -101,6 +101,7 @@ fn scale() {
         neighbours: 32,
         material: Material::ShapeMatching { stiffness: 1.0 },
         pins: vec![PinRegion::Box { min: lo, max: hi }],
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     let mut base = Model::new();
@@ -176,6 +177,7 @@ fn main() {
                 neighbours: 32,
                 material,
                 pins: vec![PinRegion::Box { min: lo, max: hi }],
+                discretisation: bevy_tissue::core::model::Discretisation::Clusters,
                 ..Default::default()
             };
             let t = Instant::now();

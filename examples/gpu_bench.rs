@@ -55,6 +55,7 @@ fn liver(resolution: Resolution, k: u32, material: Material) -> Model {
         neighbours: k,
         material,
         pins: vec![PinRegion::Box { min: lo, max: hi }],
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     model
@@ -69,6 +70,7 @@ fn many(bodies: u32, particles: u32, k: u32, material: Material, apart: f32) -> 
         resolution: Resolution::Particles(particles),
         neighbours: k,
         material,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     one.add_body(&procedural::icosphere(0.05, 2), &desc)

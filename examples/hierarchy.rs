@@ -224,6 +224,7 @@ fn scene(name: &str, n: u32, h: Option<HierarchyDesc>) -> (Model, State) {
                 normal: -Vec3::X,
             }],
             hierarchy: h,
+            discretisation: bevy_tissue::core::model::Discretisation::Clusters,
             ..Default::default()
         };
         model
@@ -246,6 +247,7 @@ fn scene(name: &str, n: u32, h: Option<HierarchyDesc>) -> (Model, State) {
             },
             pins: vec![PinRegion::Box { min: lo, max: hi }],
             hierarchy: h,
+            discretisation: bevy_tissue::core::model::Discretisation::Clusters,
             ..Default::default()
         };
         model.add_body(&procedural::liver(4), &desc).expect("liver");

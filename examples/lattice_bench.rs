@@ -44,7 +44,7 @@ use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinReg
 use bevy_tissue::core::multigrid::Smoother;
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::solver::{ElementSolver, Method, SolverSettings, State};
+use bevy_tissue::core::solver::{ElementSolver, Method, Solver, SolverSettings, State};
 use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
 use bevy_tissue::gpu::lattice::{FOLD_NODES, GpuLattice, LatticeOptions};
 use bevy_tissue::gpu::profile::GpuProfiler;
@@ -96,12 +96,17 @@ fn liver(particles: u32) -> Model {
 }
 
 fn cubes(bodies: u32) -> Model {
+    cubes_at(bodies, 0.1)
+}
+
+/// `bodies` cubes of 512 particles on a square grid of `pitch` (m) between centres.
+fn cubes_at(bodies: u32, pitch: f32) -> Model {
     let mut model = Model::new();
     let side = (bodies as f32).sqrt().ceil() as u32;
     // 8 particles across a 5 cm cube: spacing 5 cm / 7.
     let mesh = procedural::cuboid(Vec3::splat(0.025), 1);
     for b in 0..bodies {
-        let at = Vec3::new((b % side) as f32 * 0.1, 0.5, (b / side) as f32 * 0.1);
+        let at = Vec3::new((b % side) as f32 * pitch, 0.5, (b / side) as f32 * pitch);
         model
             .add_body(
                 &mesh,
@@ -144,8 +149,17 @@ fn time(
         fold_nodes: fold,
         ..Default::default()
     };
-    let world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
+    let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
+    if world.has_particle_contacts() {
+        // The contact candidates of the start (the bodies fall together, side by side).
+        let mut lists = Solver::new(model, s.clone()).unwrap_or_else(|e| fail("solver", e));
+        lists.refresh_contacts(model, &state.x);
+        let (start, list) = lists.contact_lists();
+        world
+            .set_contacts(&g.queue, start, list)
+            .unwrap_or_else(|e| fail("contact lists", e));
+    }
     // Warm up (pipelines, caches, the first steps' larger line-search work).
     let mut enc = g.device.create_command_encoder(&Default::default());
     world.record(&mut enc, &g.kernels, 5, None);
@@ -220,15 +234,22 @@ fn speed(
     println!(
         "| scene | particles | elements | smoother | fold limit (nodes) | Newton iterations | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|"
     );
+    // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
+    // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
     let scenes: Vec<(String, Model)> = if quick {
         vec![
             ("liver".into(), liver(3000)),
             ("cubes × 20".into(), cubes(20)),
+            ("touching cubes × 20".into(), cubes_at(20, 0.057)),
         ]
     } else {
         vec![
             ("liver (paper's size)".into(), liver(37_982)),
             (format!("{bodies} cubes × 512"), cubes(bodies)),
+            (
+                format!("{bodies} touching cubes × 512"),
+                cubes_at(bodies, 0.057),
+            ),
         ]
     };
     let steps = if quick { 5 } else { 60 };
@@ -237,7 +258,12 @@ fn speed(
             for &fold in folds {
                 for it in [1u32, 2] {
                     eprintln!("speed: {name}, {sm:?}, fold {fold}, {it} Newton iteration(s) ...");
-                    let s = settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0, sm);
+                    let s = SolverSettings {
+                        // Particle contacts in every Newton iteration where bodies touch.
+                        particle_contacts: name.contains("touching"),
+                        contact_every: 1,
+                        ..settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0, sm)
+                    };
                     let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, fold);
                     println!(
                         "| {name} | {} | {} | {sm:?} | {fold} | {it} | {} | {wall:.3} | {dispatches} |",

@@ -221,6 +221,7 @@ fn build(scene: Scene, c: &Config, sizes: &Sizes) -> Model {
             min_particles: 32,
             ..Default::default()
         }),
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     let mut model = Model::new();

@@ -450,6 +450,8 @@ fn settings(scenario: Scenario, row: Row, cfg: &Config) -> SolverSettings {
         } else {
             ElementSolver::Xpbd
         },
+        // Every iteration a Newton iteration under Newton–multigrid.
+        newton_iterations: 0,
         ..Default::default()
     };
     match scenario {

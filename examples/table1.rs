@@ -86,6 +86,7 @@ fn liver(particles: u32, k: u32) -> Model {
         neighbours: k,
         material: Material::ShapeMatching { stiffness: 1.0 },
         pins: vec![PinRegion::Box { min: lo, max: hi }],
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     let mut model = Model::new();

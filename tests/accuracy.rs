@@ -219,6 +219,7 @@ fn lattice_rest_and_momentum() {
             gravity: Vec3::ZERO,
             method,
             element_solver,
+            newton_iterations: 0,
             damping: 0.0,
             ..Default::default()
         };

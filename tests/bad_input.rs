@@ -25,6 +25,7 @@ fn small() -> BodyDesc {
     BodyDesc {
         resolution: Resolution::Particles(300),
         neighbours: 8,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     }
 }

@@ -84,6 +84,7 @@ fn body_resting_on_ground_reports_its_weight_as_collider_force() {
         resolution: Resolution::Particles(500),
         neighbours: 16,
         translation: Vec3::new(0.0, 0.06, 0.0),
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     model
@@ -121,6 +122,7 @@ fn residual_falls_with_more_iterations() {
     let desc = BodyDesc {
         resolution: Resolution::Particles(600),
         neighbours: 16,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     model

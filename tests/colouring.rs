@@ -20,6 +20,7 @@ fn colours_are_valid_and_bounded() {
             resolution: Resolution::Particles(particles),
             neighbours: k,
             pins: vec![PinRegion::Box { min: lo, max: hi }],
+            discretisation: bevy_tissue::core::model::Discretisation::Clusters,
             ..Default::default()
         };
         model.add_body(&procedural::liver(4), &desc).unwrap();

@@ -44,6 +44,7 @@ fn body(material: Material, at: Vec3, particles: u32, pins: Vec<PinRegion>) -> B
         pins,
         translation: at,
         rotation: Quat::from_rotation_z(0.3),
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     }
 }

@@ -14,6 +14,7 @@ fn body(mesh: &bevy_tissue::core::mesh::TriMesh, particles: u32) -> (Vec<Vec3>, 
     let desc = BodyDesc {
         resolution: Resolution::Particles(particles),
         neighbours: 8,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     model.add_body(mesh, &desc).unwrap();
@@ -181,6 +182,7 @@ fn bar(n: u32, half: Vec3, material: Material, hierarchy: Option<HierarchyDesc>)
             normal: -Vec3::X,
         }],
         hierarchy,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     model.add_body(&procedural::cuboid(half, 2), &desc).unwrap();

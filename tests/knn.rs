@@ -164,6 +164,7 @@ fn contact_lists_with_the_broad_phase_equal_a_full_search() {
             resolution: Resolution::Particles(250),
             material: Material::default(),
             translation: at,
+            discretisation: bevy_tissue::core::model::Discretisation::Clusters,
             ..Default::default()
         };
         model.add_body(&sphere, &desc).unwrap();

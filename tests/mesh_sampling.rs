@@ -107,6 +107,7 @@ fn masses_come_from_density() {
         resolution: Resolution::Particles(2000),
         density: 1000.0,
         neighbours: 8,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     model
@@ -155,6 +156,7 @@ fn every_closed_shared_mesh_loads_and_dragon_is_refused() {
         let desc = BodyDesc {
             resolution: Resolution::Particles(1000),
             neighbours: 16,
+            discretisation: bevy_tissue::core::model::Discretisation::Clusters,
             ..Default::default()
         };
         let id = model

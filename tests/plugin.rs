@@ -135,6 +135,7 @@ fn body_of(material: TissueMaterial) -> (SoftBody, Pinned) {
             resolution: TissueResolution::Particles(500),
             neighbours: 16,
             material,
+            discretisation: TissueDiscretisation::Clusters,
             ..default()
         },
         Pinned::region(PinShape::HalfSpace {
@@ -340,6 +341,8 @@ fn a_bad_mesh_is_an_error_message_and_the_app_keeps_running() {
         SoftBody {
             resolution: TissueResolution::Particles(20),
             neighbours: 64,
+            discretisation: TissueDiscretisation::Clusters,
+            material: TissueMaterial::ShapeMatching { stiffness: 1.0 },
             ..default()
         },
         None,
@@ -405,6 +408,8 @@ fn a_body_too_big_for_the_adapter_is_a_clear_error() {
         SoftBody {
             resolution: TissueResolution::Particles(3000),
             neighbours: 8,
+            discretisation: TissueDiscretisation::Clusters,
+            material: TissueMaterial::ShapeMatching { stiffness: 1.0 },
             ..default()
         },
         None,
@@ -526,6 +531,7 @@ fn a_diverging_body_is_put_back_at_rest_reported_and_the_others_simulate_on() {
                 youngs_modulus: 1.0e9,
                 poisson_ratio: 0.499,
             },
+            discretisation: TissueDiscretisation::Clusters,
             ..default()
         },
         None,

@@ -12,6 +12,7 @@ fn model() -> Model {
     let desc = BodyDesc {
         resolution: Resolution::Particles(800),
         neighbours: 16,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     m.add_body(&procedural::liver(3), &desc).unwrap();

@@ -30,6 +30,7 @@ fn body(
         neighbours: k,
         material,
         pins,
+        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
         ..Default::default()
     };
     m.add_body(mesh, &desc).unwrap();
@@ -604,6 +605,7 @@ fn two_bodies_collide_without_passing_through() {
                 poisson_ratio: 0.3,
             },
             translation: Vec3::new(0.0, y, 0.0),
+            discretisation: bevy_tissue::core::model::Discretisation::Clusters,
             ..Default::default()
         };
         model.add_body(mesh, &desc).unwrap();

@@ -433,6 +433,8 @@ impl Stepping {
             method: self.method,
             warm_start: self.warm_start,
             element_solver: self.element_solver,
+            // Every iteration a Newton iteration under Newton–multigrid.
+            newton_iterations: 0,
             threads: if self.method == Method::GaussSeidel {
                 1
             } else {

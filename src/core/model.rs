@@ -86,14 +86,15 @@ pub enum Discretisation {
     /// tetrahedron; Müller et al. 2005, 2022). Fast and robust, but its hyperelastic
     /// material is softer than E and ν say and does not converge to them as the
     /// resolution grows (BENCHMARKS.md, "Accuracy against FEM").
-    #[default]
     Clusters,
     /// Hexahedral finite elements on the sampling lattice: the lattice cells whose
     /// centres are inside the surface, with their corners as particles; each cell's
-    /// centre gradient and hourglass modes as XPBD constraints ([`super::element`]).
-    /// Converges to the material set (a finite-element discretisation with the
-    /// incompatible-mode hexahedron's stiffness). Hyperelastic material only; the CPU
-    /// solver runs it (the GPU world does not yet); no hierarchy.
+    /// centre gradient and hourglass modes ([`super::element`]). Converges to the
+    /// material set (a finite-element discretisation with the incompatible-mode
+    /// hexahedron's stiffness). Hyperelastic material only; no hierarchy. The default:
+    /// solved by Newton–multigrid ([`super::solver::ElementSolver::Multigrid`]) on the
+    /// CPU ([`super::solver::Solver`]) or the GPU (`gpu::lattice::GpuLattice`).
+    #[default]
     Lattice,
 }
 
@@ -162,6 +163,9 @@ pub struct BodyDesc {
 }
 
 impl Default for BodyDesc {
+    /// A lattice body ([`Discretisation::Lattice`]) of soft tissue: hyperelastic,
+    /// E = 10 kPa, ν = 0.45 ([`Material::default`]), 1060 kg/m³, 4,096 particles
+    /// ([`Resolution::default`]), unpinned, at the origin.
     fn default() -> Self {
         Self {
             resolution: Resolution::default(),
@@ -172,7 +176,7 @@ impl Default for BodyDesc {
             translation: Vec3::ZERO,
             rotation: Quat::IDENTITY,
             hierarchy: None,
-            discretisation: Discretisation::Clusters,
+            discretisation: Discretisation::Lattice,
         }
     }
 }

@@ -29,13 +29,13 @@ pub enum TissueMaterial {
 }
 
 impl Default for TissueMaterial {
-    /// Shape matching with k = 1 (as stiff as the iterations allow). Under the GPU's
-    /// Jacobi iteration each cluster's correction is averaged over the ~K clusters that
-    /// share a particle, so softer k collapse bodies under gravity (k = 0.5 flattened a
-    /// dropped ball), and the hyperelastic model still blows up on impacts there
-    /// (BENCHMARKS.md, "GPU"): the hierarchy is the cure for both.
+    /// Soft tissue: hyperelastic, E = 10 kPa, ν = 0.45 (the core's
+    /// [`crate::core::model::Material::default`]).
     fn default() -> Self {
-        TissueMaterial::ShapeMatching { stiffness: 1.0 }
+        TissueMaterial::Hyperelastic {
+            youngs_modulus: 10_000.0,
+            poisson_ratio: 0.45,
+        }
     }
 }
 
@@ -58,15 +58,18 @@ impl TissueMaterial {
 /// How a body's elasticity is discretised over its particles.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum TissueDiscretisation {
-    /// The paper's clusters: each particle and its K nearest rest neighbours (runs on the
-    /// GPU). Softer than its E and ν say, and it does not converge to them with
-    /// resolution.
-    #[default]
+    /// The paper's clusters: each particle and its K nearest rest neighbours (stepped
+    /// in the render graph's compute passes). Fast; softer than its E and ν say, and it
+    /// does not converge to them with resolution. Shape matching's `k` and `K` apply to
+    /// it only.
     Clusters,
-    /// Hexahedral elements on the sampling lattice (the cells whose centres are inside
-    /// the surface; the particles are their corners). Converges to the material set
-    /// (against an independent finite-element reference). Hyperelastic material only;
-    /// simulated on the CPU by Newton–multigrid ([`TissueSettings::newton_iterations`]).
+    /// The default: hexahedral elements on the sampling lattice (the cells whose centres
+    /// are inside the surface; the particles are their corners). Converges to the
+    /// material set (against an independent finite-element reference). Hyperelastic
+    /// material only; stepped by Newton–multigrid
+    /// ([`TissueSettings::newton_iterations`]) on the GPU, or on the CPU where the GPU
+    /// cannot.
+    #[default]
     Lattice,
 }
 
@@ -182,9 +185,12 @@ impl TissueHierarchy {
 }
 
 /// A soft body: put it on an entity with a `Mesh3d` (any closed triangle mesh) and a
-/// material. The plugin samples particles inside the mesh, builds clusters (off the main
-/// thread), simulates the body on the GPU and draws the entity's mesh from the
-/// simulation. Changing any field rebuilds the body.
+/// material. The plugin samples particles inside the mesh, builds the body off the main
+/// thread, simulates it on the GPU and draws the entity's mesh from the simulation.
+/// Changing any field rebuilds the body. The default is soft tissue that means its SI
+/// parameters: hyperelastic, E = 10 kPa, ν = 0.45, 1060 kg/m³, on hexahedral lattice
+/// elements ([`TissueDiscretisation::Lattice`]); the paper's clusters are
+/// [`TissueDiscretisation::Clusters`].
 ///
 /// ```no_run
 /// use bevy::prelude::*;

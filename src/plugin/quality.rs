@@ -109,6 +109,8 @@ mod tests {
         }
     }
 
+    const SHAPE_MATCHING: TissueMaterial = TissueMaterial::ShapeMatching { stiffness: 1.0 };
+
     const HYPER: TissueMaterial = TissueMaterial::Hyperelastic {
         youngs_modulus: 30e3,
         poisson_ratio: 0.45,
@@ -116,7 +118,7 @@ mod tests {
 
     #[test]
     fn presets_grow_with_the_level_and_custom_asks_nothing() {
-        for m in [TissueMaterial::default(), HYPER] {
+        for m in [SHAPE_MATCHING, HYPER] {
             assert_eq!(TissueQuality::Custom.preset(&m), None);
             let f = TissueQuality::Fast.preset(&m).unwrap();
             let b = TissueQuality::Balanced.preset(&m).unwrap();
@@ -138,7 +140,7 @@ mod tests {
         let s = app.world().resource::<TissueSettings>();
         assert_eq!((s.iterations, s.substeps), (10, 1), "no demand: untouched");
         app.world_mut()
-            .spawn(body(TissueQuality::Fast, TissueMaterial::default()));
+            .spawn(body(TissueQuality::Fast, SHAPE_MATCHING));
         let accurate = app
             .world_mut()
             .spawn(body(TissueQuality::Accurate, HYPER))

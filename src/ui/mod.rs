@@ -388,6 +388,7 @@ mod tests {
                         youngs_modulus: 5.0e7,
                         poisson_ratio: 0.3,
                     },
+                    discretisation: crate::prelude::TissueDiscretisation::Clusters,
                     ..Default::default()
                 },
             ))

@@ -518,6 +518,8 @@ mod tests {
         let mut draft = None;
         let body = SoftBody {
             density: f32::NAN,
+            discretisation: TissueDiscretisation::Clusters,
+            material: TissueMaterial::ShapeMatching { stiffness: 1.0 },
             ..Default::default()
         };
         assert!(commit_edit(&body, &mut draft, false, |_| edit(false, false)).is_none());
@@ -694,6 +696,7 @@ mod tests {
         let sm = SoftBody {
             material: TissueMaterial::ShapeMatching { stiffness: 0.3 },
             neighbours: 20,
+            discretisation: TissueDiscretisation::Clusters,
             ..default()
         };
         let lat = switch_discretisation(&sm, TissueDiscretisation::Lattice);
