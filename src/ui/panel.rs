@@ -219,12 +219,12 @@ pub(crate) fn body_widgets(ui: &mut egui::Ui, b: &mut SoftBody) -> Edit {
     ui.label("Discretisation");
     ui.horizontal(|ui| {
         let mut d = b.discretisation;
-        let r = ui.radio_value(&mut d, TissueDiscretisation::Clusters, "clusters (GPU)")
-            | ui.radio_value(&mut d, TissueDiscretisation::Lattice, "lattice (CPU)");
+        let r = ui.radio_value(&mut d, TissueDiscretisation::Lattice, "lattice")
+            | ui.radio_value(&mut d, TissueDiscretisation::Clusters, "clusters (paper)");
         e.add(&r.on_hover_text(
-            "Clusters: the paper's model, on the GPU, softer than E and ν say. Lattice: \
-             hexahedral elements that converge to E and ν, stepped on the CPU by \
-             Newton–multigrid (hyperelastic only; rebuilds the body)",
+            "Lattice (the default): hexahedral elements that converge to E and ν, stepped \
+             by Newton–multigrid on the GPU (hyperelastic only). Clusters: the paper's \
+             model, softer than E and ν say. Switching rebuilds the body",
         ));
         if d != b.discretisation {
             *b = switch_discretisation(b, d);
