@@ -27,6 +27,7 @@
 //! cargo run --release --example lattice_bench -- --quick # small sizes (lavapipe: a minute)
 //! ```
 //! Options: `--no-speed`, `--no-accuracy`, `--organs`, `--bodies N` (default 1,000),
+//! `--newton N,...` (accuracy: Newton iterations per step to compare, default 1,2),
 //! `--smoother hybrid|chebyshev|gs`, `--fold N,...` (speed only: `LatticeOptions::fold_nodes`
 //! values to compare, default the library's), `--profile` (GPU time per kernel: every
 //! dispatch in its own timed pass).
@@ -317,7 +318,7 @@ fn settle_gpu(
     state.x
 }
 
-fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother]) {
+fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother], newtons: &[u32]) {
     println!(
         "\n## Accuracy on the GPU: the settled cantilever (lattice) against its static answer\n"
     );
@@ -340,7 +341,7 @@ fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother]) {
             (8.0 / w1).clamp(1.0, 20.0) as f32
         };
         for &sm in smoothers {
-            for it in [1u32, 2] {
+            for &it in newtons {
                 eprintln!("accuracy: {across} across, E = {e}, {sm:?}, {it} iteration(s) ...");
                 let s = settings(it, Vec3::new(0.0, -gv as f32, 0.0), (2.0 * w1) as f32, sm);
                 let x = settle_gpu(g, &model, &s, secs, &[]);
@@ -460,7 +461,7 @@ fn main() {
         );
     }
     if !a.flag("--no-accuracy") {
-        accuracy(&g, quick, &smoothers);
+        accuracy(&g, quick, &smoothers, &a.list("--newton", &[1u32, 2]));
     }
     if a.flag("--organs") {
         organs(&g, quick);

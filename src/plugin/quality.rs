@@ -1,35 +1,43 @@
-//! Quality presets: a body asks for an
-//! accuracy level ([`TissueQuality`]) instead of iteration and substep counts, and the
-//! world runs the cheapest setting on the measured Pareto front that gives every body at
-//! least what it asked for.
+//! Quality presets: a body asks for an accuracy level ([`TissueQuality`]) instead of
+//! iteration and substep counts, and the world runs the cheapest setting measured to
+//! give every body at least what it asked for.
 //!
-//! Iterations and substeps are per world (all bodies are solved in one batch), so the
-//! most demanding body sets them: [`apply_quality`] writes the largest preset over the
-//! bodies into [`TissueSettings`] whenever it differs (which rebuilds the GPU world with
-//! the poses kept). Bodies left at [`TissueQuality::Custom`] (the default) ask for
-//! nothing; with none asking, the settings are the user's. While a body asks, its
-//! preset's iterations and substeps win over edits of the settings (the egui panel's
-//! sliders included).
+//! The settings are per world (all bodies are solved in one batch), so the most
+//! demanding body sets them: [`apply_quality`] writes the largest preset over the bodies
+//! into [`TissueSettings`] whenever it differs. Bodies left at [`TissueQuality::Custom`]
+//! (the default) ask for nothing; with none asking, the settings are the user's. While a
+//! body asks, its preset wins over edits of the settings (the egui panel's sliders
+//! included).
 //!
 //! ```
 //! use bevy::prelude::*;
 //! use bevy_tissue::prelude::*;
+//! use bevy_tissue::plugin::quality::{Preset, demanded};
 //! // A background body that only has to look soft, and an organ that must be right:
 //! // the world runs the organ's preset.
 //! let background = SoftBody { quality: TissueQuality::Fast, ..default() };
-//! let organ = SoftBody {
-//!     material: TissueMaterial::Hyperelastic { youngs_modulus: 30e3, poisson_ratio: 0.45 },
-//!     quality: TissueQuality::Accurate,
-//!     ..default()
-//! };
-//! let demand = bevy_tissue::plugin::quality::demanded([&background, &organ]);
-//! assert_eq!(demand, Some((40, 4)));
+//! let organ = SoftBody { quality: TissueQuality::Accurate, ..default() };
+//! let demand = demanded([&background, &organ]).unwrap();
+//! assert_eq!(demand.newton_iterations, Some(4));
 //! ```
 //!
-//! The presets come from `examples/speed_accuracy.rs` on the H100 (BENCHMARKS.md,
-//! "Speed against accuracy"; 1,000-particle bar, GPU Jacobi, K = 32). The error is the
-//! RMS distance from a converged run over 1 s of swinging, relative to the bar's length
-//! (shape matching), and the volume change of a 20% squeeze at ν = 0.49 (hyperelastic):
+//! **Lattice bodies** (the default, [`TissueDiscretisation::Lattice`]) are stepped by
+//! Newton–multigrid at one substep of the step; a level sets its Newton iterations. The
+//! error is that of the settled cantilever's tip (24 × 3 × 3 cm, 6 and 12 particles
+//! across, E from 1 kPa to 1 MPa) against the static answer of the same model, on the
+//! GPU (BENCHMARKS.md, "Lattice bodies by default"):
+//!
+//! | preset | Newton iterations | error of the settled tip |
+//! |---|---|---|
+//! | `Fast` | 1 | 1.0% at 1 kPa, 5.2% at 100 kPa (6 across), 14% at 100 kPa (12 across), 45% at 1 MPa (not settled after 1 s) |
+//! | `Balanced` | 2 (the default) | ≤ 2.0% everywhere measured |
+//! | `Accurate` | 4 | ≤ 1.0% everywhere measured |
+//!
+//! **Cluster bodies** (the paper's model) come from `examples/speed_accuracy.rs` on the
+//! H100 (BENCHMARKS.md, "Speed against accuracy"; 1,000-particle bar, GPU Jacobi,
+//! K = 32). The error is the RMS distance from a converged run over 1 s of swinging,
+//! relative to the bar's length (shape matching), and the volume change of a 20% squeeze
+//! at ν = 0.49 (hyperelastic):
 //!
 //! | preset | shape matching: it × substeps, error | hyperelastic: it × substeps, volume error |
 //! |---|---|---|
@@ -39,8 +47,8 @@
 //!
 //! Substeps buy shape matching nothing (its k is a per-substep stiffness: more substeps
 //! make a stiffer material, not a more accurate one), so its presets only add
-//! iterations; the hyperelastic model needs substeps to converge and to stay stable under
-//! Jacobi (at one substep 20 and 40 iterations diverged in the swinging-bar run).
+//! iterations; the hyperelastic clusters need substeps to converge and to stay stable
+//! under Jacobi (at one substep 20 and 40 iterations diverged in the swinging-bar run).
 
 use super::components::*;
 use bevy::prelude::*;
@@ -49,51 +57,107 @@ use bevy::prelude::*;
 /// measured). Per body; the world takes the most demanding.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Reflect)]
 pub enum TissueQuality {
-    /// No demand: [`TissueSettings`]' iterations and substeps as set.
+    /// No demand: [`TissueSettings`] as set.
     #[default]
     Custom,
-    /// The cheapest setting on the front (games, background bodies).
+    /// The cheapest level measured (games, background bodies).
     Fast,
-    /// The middle of the front.
+    /// The middle level (the plugin's defaults for lattice bodies).
     Balanced,
-    /// The most accurate setting measured before the front flattens.
+    /// The most accurate level measured before the error stops falling.
     Accurate,
 }
 
+/// What a body's quality level asks of the world's settings (`None`: nothing).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Preset {
+    /// [`TissueSettings::iterations`] (cluster bodies).
+    pub iterations: Option<u32>,
+    /// [`TissueSettings::substeps`] (cluster bodies).
+    pub substeps: Option<u32>,
+    /// [`TissueSettings::newton_iterations`] (lattice bodies).
+    pub newton_iterations: Option<u32>,
+}
+
+impl Preset {
+    /// The larger demand of each field.
+    fn max(self, other: Preset) -> Preset {
+        let m = |a: Option<u32>, b: Option<u32>| match (a, b) {
+            (Some(a), Some(b)) => Some(a.max(b)),
+            (a, b) => a.or(b),
+        };
+        Preset {
+            iterations: m(self.iterations, other.iterations),
+            substeps: m(self.substeps, other.substeps),
+            newton_iterations: m(self.newton_iterations, other.newton_iterations),
+        }
+    }
+}
+
 impl TissueQuality {
-    /// `(iterations, substeps)` of this level for `material`, or `None` for
-    /// [`TissueQuality::Custom`].
-    pub fn preset(self, material: &TissueMaterial) -> Option<(u32, u32)> {
-        let hyper = matches!(material, TissueMaterial::Hyperelastic { .. });
-        Some(match (self, hyper) {
-            (TissueQuality::Custom, _) => return None,
+    /// What this level asks of the world for `body` (by its discretisation and
+    /// material), or `None` for [`TissueQuality::Custom`].
+    pub fn preset(self, body: &SoftBody) -> Option<Preset> {
+        if self == TissueQuality::Custom {
+            return None;
+        }
+        if body.discretisation == TissueDiscretisation::Lattice {
+            let newton = match self {
+                TissueQuality::Fast => 1,
+                TissueQuality::Balanced => 2,
+                _ => 4,
+            };
+            return Some(Preset {
+                newton_iterations: Some(newton),
+                ..Default::default()
+            });
+        }
+        let hyper = matches!(body.material, TissueMaterial::Hyperelastic { .. });
+        let (iterations, substeps) = match (self, hyper) {
             (TissueQuality::Fast, false) => (5, 1),
             (TissueQuality::Balanced, false) => (10, 1),
-            (TissueQuality::Accurate, false) => (40, 1),
+            (_, false) => (40, 1),
             (TissueQuality::Fast, true) => (10, 2),
             (TissueQuality::Balanced, true) => (20, 4),
-            (TissueQuality::Accurate, true) => (40, 4),
+            (_, true) => (40, 4),
+        };
+        Some(Preset {
+            iterations: Some(iterations),
+            substeps: Some(substeps),
+            newton_iterations: None,
         })
     }
 }
 
-/// The iterations and substeps the bodies ask for: the largest of their presets, or
+/// What the bodies ask of the world: the largest of their presets, field by field, or
 /// `None` when no body asks.
-pub fn demanded<'a>(bodies: impl IntoIterator<Item = &'a SoftBody>) -> Option<(u32, u32)> {
+pub fn demanded<'a>(bodies: impl IntoIterator<Item = &'a SoftBody>) -> Option<Preset> {
     bodies
         .into_iter()
-        .filter_map(|b| b.quality.preset(&b.material))
-        .reduce(|a, b| (a.0.max(b.0), a.1.max(b.1)))
+        .filter_map(|b| b.quality.preset(b))
+        .reduce(Preset::max)
 }
 
-/// Writes the bodies' demanded iterations and substeps into [`TissueSettings`] (only when
-/// they differ, so an unchanged demand rebuilds nothing).
+/// Writes the bodies' demand into [`TissueSettings`] (only what differs, so an
+/// unchanged demand rebuilds nothing).
 pub fn apply_quality(bodies: Query<&SoftBody>, mut settings: ResMut<TissueSettings>) {
-    if let Some((iterations, substeps)) = demanded(bodies)
-        && (settings.iterations, settings.substeps) != (iterations, substeps)
+    let Some(d) = demanded(bodies) else {
+        return;
+    };
+    let want = (
+        d.iterations.unwrap_or(settings.iterations),
+        d.substeps.unwrap_or(settings.substeps),
+        d.newton_iterations.unwrap_or(settings.newton_iterations),
+    );
+    if (
+        settings.iterations,
+        settings.substeps,
+        settings.newton_iterations,
+    ) != want
     {
-        settings.iterations = iterations;
-        settings.substeps = substeps;
+        settings.iterations = want.0;
+        settings.substeps = want.1;
+        settings.newton_iterations = want.2;
     }
 }
 
@@ -105,6 +169,7 @@ mod tests {
         SoftBody {
             quality,
             material,
+            discretisation: TissueDiscretisation::Clusters,
             ..Default::default()
         }
     }
@@ -116,15 +181,29 @@ mod tests {
         poisson_ratio: 0.45,
     };
 
+    fn work(p: Preset) -> u32 {
+        p.iterations.unwrap_or(1) * p.substeps.unwrap_or(1) * p.newton_iterations.unwrap_or(1)
+    }
+
     #[test]
     fn presets_grow_with_the_level_and_custom_asks_nothing() {
-        for m in [SHAPE_MATCHING, HYPER] {
-            assert_eq!(TissueQuality::Custom.preset(&m), None);
-            let f = TissueQuality::Fast.preset(&m).unwrap();
-            let b = TissueQuality::Balanced.preset(&m).unwrap();
-            let a = TissueQuality::Accurate.preset(&m).unwrap();
-            assert!(f.0 * f.1 < b.0 * b.1 && b.0 * b.1 < a.0 * a.1, "{m:?}");
+        let lattice = SoftBody::default();
+        for b in [
+            body(TissueQuality::Custom, SHAPE_MATCHING),
+            body(TissueQuality::Custom, HYPER),
+            lattice.clone(),
+        ] {
+            assert_eq!(TissueQuality::Custom.preset(&b), None);
+            let f = work(TissueQuality::Fast.preset(&b).unwrap());
+            let m = work(TissueQuality::Balanced.preset(&b).unwrap());
+            let a = work(TissueQuality::Accurate.preset(&b).unwrap());
+            assert!(f < m && m < a, "{b:?}");
         }
+        // Lattice bodies ask for Newton iterations only; the balanced level is the
+        // plugin's default.
+        let p = TissueQuality::Balanced.preset(&lattice).unwrap();
+        assert_eq!(p.iterations, None);
+        assert_eq!(p.newton_iterations, Some(TissueSettings::NEWTON_ITERATIONS));
     }
 
     #[test]
@@ -153,5 +232,14 @@ mod tests {
         app.update();
         let s = app.world().resource::<TissueSettings>();
         assert_eq!((s.iterations, s.substeps), (5, 1), "the fast body alone");
+        // A lattice body at the accurate level adds its Newton iterations and leaves the
+        // clusters' iterations to the fast body.
+        app.world_mut().spawn(SoftBody {
+            quality: TissueQuality::Accurate,
+            ..Default::default()
+        });
+        app.update();
+        let s = app.world().resource::<TissueSettings>();
+        assert_eq!((s.iterations, s.substeps, s.newton_iterations), (5, 1, 4));
     }
 }
