@@ -17,10 +17,17 @@
 //! cargo run --release --example table1                 # the full table (long on 2 cores)
 //! cargo run --release --example table1 -- --quick      # 512 and 4096 particles, seconds
 //! cargo run --release --example table1 -- --no-cpu     # the GPU rows only
+//! cargo run --release --example table1 -- --lattice    # the same sizes, the new default
 //! ```
 //! Options: `--steps N` (default 300), `--repeats N` (default 5), `--no-cpu`,
 //! `--no-gpu`, `--k 32,64` (the neighbour counts to run), `--out DIR` (default
 //! `table1_out`).
+//!
+//! `--lattice` times the plugin's and the core's default body on the same liver instead:
+//! hexahedral lattice elements of liver tissue (E = 5.5 kPa, ν = 0.45), stepped by
+//! Newton–multigrid with `SolverSettings::default()` (2 Newton iterations per 1/60 s
+//! step), on the CPU (all cores) and the GPU (`GpuLattice`). No KNN: a lattice body has
+//! no clusters. Markdown on stdout, `table1_lattice.json` in the output folder.
 
 #[path = "support/bench.rs"]
 mod bench;
@@ -28,11 +35,13 @@ mod bench;
 mod chart;
 
 use bevy_tissue::core::knn::knn_all;
-use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
+use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
-use bevy_tissue::gpu::world::read_vec3;
+use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+use bevy_tissue::gpu::lattice::GpuLattice;
+use bevy_tissue::gpu::world::{read_buffer, read_vec3};
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
 use std::fmt::Write as _;
 use std::time::Instant;
@@ -226,6 +235,153 @@ fn paper(k: u32, kind: &str, target: u32) -> Option<f64> {
         .map(|(_, _, v)| v[i])
 }
 
+/// The liver as the default body: lattice elements of liver tissue, pinned at its
+/// ligament.
+fn lattice_liver(particles: u32) -> Model {
+    let (lo, hi) = procedural::liver_ligament();
+    let desc = BodyDesc {
+        resolution: Resolution::Particles(particles),
+        material: Material::Hyperelastic {
+            youngs_modulus: 5_500.0,
+            poisson_ratio: 0.45,
+        },
+        pins: vec![PinRegion::Box { min: lo, max: hi }],
+        discretisation: Discretisation::Lattice,
+        ..Default::default()
+    };
+    let mut model = Model::new();
+    model
+        .add_body(&procedural::liver(4), &desc)
+        .expect("liver model");
+    model
+}
+
+/// The default settings, one body (no particle contacts).
+fn lattice_settings() -> SolverSettings {
+    SolverSettings {
+        particle_contacts: false,
+        threads: 0,
+        ..Default::default()
+    }
+}
+
+/// ms per step of the default body on the CPU (all cores): the median of `repeats` runs
+/// of `steps` steps after 5 warm-up steps; and whether every position stayed finite.
+fn lattice_cpu(model: &Model, steps: usize, repeats: usize) -> (f64, bool) {
+    let mut solver = Solver::new(model, lattice_settings()).expect("solver");
+    let mut state = State::new(model);
+    let control = Control::default();
+    let mut ok = true;
+    for _ in 0..5 {
+        ok &= solver.step(model, &mut state, &control).is_ok();
+    }
+    let mut runs = Vec::new();
+    for _ in 0..repeats {
+        let t = Instant::now();
+        for _ in 0..steps {
+            ok &= solver.step(model, &mut state, &control).is_ok();
+        }
+        runs.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
+    }
+    (
+        bench::median(runs),
+        ok && state.x.iter().all(|p| p.is_finite()),
+    )
+}
+
+/// ms per step of the default body on the GPU: the median of `repeats` submissions of
+/// `steps` steps, each timed from submit to completion, after a warm-up submission.
+fn lattice_gpu(
+    g: &Headless,
+    kernels: &LatticeKernels,
+    model: &Model,
+    steps: u32,
+    repeats: usize,
+) -> (f64, bool) {
+    let mut state = State::new(model);
+    let world =
+        GpuLattice::new(&g.device, kernels, model, &state, &lattice_settings()).expect("world");
+    let run = |n: u32| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, kernels, n, None);
+        let t = Instant::now();
+        g.queue.submit([enc.finish()]);
+        let _ = read_buffer(&g.device, &g.queue, world.pos_buffer(), 0, 16);
+        t.elapsed().as_secs_f64() * 1e3 / n as f64
+    };
+    run(10);
+    let runs: Vec<f64> = (0..repeats).map(|_| run(steps)).collect();
+    world.download(&g.device, &g.queue, &mut state);
+    (bench::median(runs), state.x.iter().all(|p| p.is_finite()))
+}
+
+/// `--lattice`: the default body at Table 1's sizes, CPU and GPU.
+fn lattice_table(
+    a: &bench::Args,
+    sizes: &[u32],
+    steps: usize,
+    repeats: usize,
+    out: &std::path::Path,
+) {
+    let gpu = if a.flag("--no-gpu") {
+        None
+    } else {
+        headless().ok()
+    };
+    let kernels = gpu
+        .as_ref()
+        .and_then(|g| LatticeKernels::new(&g.device).ok());
+    println!(
+        "| particles | elements | CPU Newton–multigrid, all cores (ms per step) | GPU (ms per step) | paper GPU, K = 32 (ms per step) | GPU over the paper's GPU |"
+    );
+    println!("|---|---|---|---|---|---|");
+    let mut json = String::from("{\n  \"cells\": [\n");
+    for (i, &target) in sizes.iter().enumerate() {
+        let model = lattice_liver(target);
+        let cpu = (!a.flag("--no-cpu")).then(|| lattice_cpu(&model, steps, repeats));
+        let on_gpu = match (&gpu, &kernels) {
+            (Some(g), Some(k)) => Some(lattice_gpu(g, k, &model, steps as u32, repeats)),
+            _ => None,
+        };
+        let cell = |c: Option<(f64, bool)>| {
+            c.map_or("–".to_string(), |(ms, ok)| {
+                format!("{ms:.3}{}", if ok { "" } else { " (diverged)" })
+            })
+        };
+        let paper_gpu = paper(32, "GPU", target);
+        eprintln!(
+            "lattice, {} particles: CPU {}, GPU {}",
+            model.particle_count(),
+            cell(cpu),
+            cell(on_gpu)
+        );
+        println!(
+            "| {} | {} | {} | {} | {} | {} |",
+            model.particle_count(),
+            model.elements.len(),
+            cell(cpu),
+            cell(on_gpu),
+            paper_gpu.map_or("–".into(), |v| format!("{v}")),
+            match (paper_gpu, on_gpu) {
+                (Some(p), Some((ms, _))) => ratio(p / ms),
+                _ => "–".into(),
+            }
+        );
+        let num = |c: Option<(f64, bool)>| c.map_or("null".to_string(), |v| format!("{:.6}", v.0));
+        let _ = writeln!(
+            json,
+            "    {{\"target\": {target}, \"particles\": {}, \"elements\": {}, \"cpu_ms_per_step\": {}, \"gpu_ms_per_step\": {}, \"steps\": {steps}, \"repeats\": {repeats}}}{}",
+            model.particle_count(),
+            model.elements.len(),
+            num(cpu),
+            num(on_gpu),
+            if i + 1 < sizes.len() { "," } else { "" }
+        );
+    }
+    json.push_str("  ]\n}\n");
+    std::fs::write(out.join("table1_lattice.json"), json).expect("write JSON");
+}
+
 fn main() {
     let a = bench::Args::new();
     let quick = a.flag("--quick");
@@ -234,6 +390,10 @@ fn main() {
     let out = a.path("--out", "table1_out");
     std::fs::create_dir_all(&out).expect("output folder");
     let sizes: &[u32] = if quick { &SIZES[..2] } else { &SIZES };
+    if a.flag("--lattice") {
+        lattice_table(&a, sizes, steps, repeats, &out);
+        return;
+    }
     let mut backends = Vec::new();
     if !a.flag("--no-cpu") {
         backends.extend([Backend::CpuOneThread, Backend::CpuAllCores]);
