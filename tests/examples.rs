@@ -11,10 +11,20 @@ use common::{ci, example};
 /// Runs `name --quick --out <temp dir>`, asserts it succeeded, and returns the output
 /// folder, stdout and stderr.
 fn run_quick(name: &str) -> (PathBuf, String, String) {
+    run_quick_with(name, &[])
+}
+
+/// [`run_quick`] with `extra` options.
+fn run_quick_with(name: &str, extra: &[&str]) -> (PathBuf, String, String) {
     let bin = example(name);
     assert!(bin.exists(), "{} not built", bin.display());
-    let out = std::env::temp_dir().join(format!("bevy_tissue_{name}_{}", std::process::id()));
+    let out = std::env::temp_dir().join(format!(
+        "bevy_tissue_{name}{}_{}",
+        extra.join(""),
+        std::process::id()
+    ));
     let run = Command::new(&bin)
+        .args(extra)
         .args(["--quick", "--out"])
         .arg(&out)
         .output()
@@ -88,6 +98,42 @@ fn hierarchy_quick_writes_complete_curves() {
     }
     assert!(stdout.contains("| bar |"), "summary table:\n{stdout}");
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// `table1 --lattice`: the default body at Table 1's two quick sizes, timed on the CPU
+/// and (where there is an adapter) the GPU, every run finite.
+#[test]
+fn table1_lattice_quick_times_the_default_body() {
+    let (out, stdout, stderr) = run_quick_with("table1", &["--lattice"]);
+    let json = std::fs::read_to_string(out.join("table1_lattice.json")).expect("JSON written");
+    let cells: Vec<&str> = json.lines().filter(|l| l.contains("\"target\"")).collect();
+    assert_eq!(cells.len(), 2, "{json}");
+    let gpu = !cells
+        .iter()
+        .any(|c| c.contains("\"gpu_ms_per_step\": null"));
+    if ci() {
+        assert!(gpu, "CI=true but the GPU cells are empty:\n{stderr}");
+    }
+    for c in &cells {
+        for key in ["cpu_ms_per_step", "gpu_ms_per_step"] {
+            let at = c.find(&format!("\"{key}\": ")).expect(key) + key.len() + 4;
+            let v = &c[at..at + c[at..].find([',', '}']).unwrap()];
+            if v.trim() == "null" && key == "gpu_ms_per_step" && !gpu {
+                continue;
+            }
+            let v: f64 = v.trim().parse().unwrap();
+            assert!(v.is_finite() && v > 0.0, "{key} = {v} in {c}");
+        }
+    }
+    assert!(!stdout.contains("diverged"), "a run diverged:\n{stdout}");
+    assert_eq!(
+        stdout
+            .lines()
+            .filter(|l| l.starts_with("| 512") || l.starts_with("| 4096"))
+            .count(),
+        2,
+        "{stdout}"
+    );
 }
 
 #[test]
