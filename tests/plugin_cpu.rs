@@ -252,3 +252,52 @@ fn cpu_bodies_touch_each_other() {
         "passed into the lower body: its bottom {bottom_of_high} m, the lower top {top_of_low} m"
     );
 }
+
+/// A lattice body has no clusters: changing its K (or its quality level) leaves it as it
+/// is, where changing its material rebuilds it.
+#[test]
+fn a_lattice_body_is_rebuilt_for_its_material_not_its_k() {
+    let mut app = app(TissueSettings::default());
+    let (body, pinned) = common::lattice_body();
+    let e = spawn(&mut app, Vec3::ZERO, body, pinned);
+    until_built(&mut app, e);
+    let generation = |app: &App| app.world().get::<BuiltBody>(e).unwrap().generation;
+    let first = generation(&app);
+    {
+        let mut b = app.world_mut().get_mut::<SoftBody>(e).unwrap();
+        b.neighbours = 40;
+        b.quality = TissueQuality::Accurate;
+    }
+    app.update();
+    assert!(
+        matches!(
+            app.world().get::<SoftBodyStatus>(e),
+            Some(SoftBodyStatus::Ready { .. })
+        ),
+        "K and quality started a rebuild: {:?}",
+        app.world().get::<SoftBodyStatus>(e)
+    );
+    for _ in 0..50 {
+        app.update();
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    assert_eq!(
+        generation(&app),
+        first,
+        "K and quality rebuilt the lattice body"
+    );
+    app.world_mut().get_mut::<SoftBody>(e).unwrap().material = TissueMaterial::Hyperelastic {
+        youngs_modulus: 80_000.0,
+        poisson_ratio: 0.4,
+    };
+    let mut rebuilt = false;
+    for _ in 0..200 {
+        app.update();
+        if generation(&app) > first {
+            rebuilt = true;
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    assert!(rebuilt, "the material change rebuilt the body");
+}

@@ -34,6 +34,35 @@ pub struct BuiltBody {
     pub reset: bool,
 }
 
+/// What a body was last built from: its [`SoftBody`] and [`Pinned`] as they were then.
+#[derive(Component, Debug, Clone, PartialEq)]
+pub struct BuiltFrom {
+    /// The body's settings.
+    pub body: SoftBody,
+    /// Its pinned regions.
+    pub pinned: Option<Pinned>,
+}
+
+/// Whether `new` builds the same model as `old`: the quality level sets the world's
+/// settings, not the body; a lattice body has no clusters, so K and the hierarchy mean
+/// nothing to it.
+pub fn same_model(old: &SoftBody, new: &SoftBody) -> bool {
+    let model_part = |b: &SoftBody| {
+        let lattice = b.discretisation == TissueDiscretisation::Lattice;
+        SoftBody {
+            quality: Default::default(),
+            neighbours: if lattice { 0 } else { b.neighbours },
+            hierarchy: if lattice {
+                TissueHierarchy::default()
+            } else {
+                b.hierarchy
+            },
+            ..b.clone()
+        }
+    };
+    model_part(old) == model_part(new)
+}
+
 /// Puts bodies named by [`ResetSoftBody`] messages back at rest: a new generation of the
 /// same model that the GPU world uploads from the rest state.
 pub fn reset_bodies(mut messages: MessageReader<ResetSoftBody>, mut bodies: Query<&mut BuiltBody>) {
@@ -152,13 +181,18 @@ pub fn start_builds(
         &GlobalTransform,
         &mut SoftBodyStatus,
         Option<&BuiltBody>,
+        Option<&BuiltFrom>,
     )>,
     changed: Query<Entity, Or<(Changed<SoftBody>, Changed<Pinned>)>>,
     fresh: Query<(), Added<GlobalTransform>>,
     settings: Res<TissueSettings>,
 ) {
-    for (entity, body, pinned, mesh3d, source, to_world, mut status, built) in &mut bodies {
-        let is_changed = changed.contains(entity) && built.is_some();
+    for (entity, body, pinned, mesh3d, source, to_world, mut status, built, from) in &mut bodies {
+        // A change rebuilds the body unless it leaves the model as it is (the quality
+        // level; K or the hierarchy of a lattice body).
+        let is_changed = changed.contains(entity)
+            && built.is_some()
+            && !from.is_some_and(|f| f.pinned.as_ref() == pinned && same_model(&f.body, body));
         if !(matches!(*status, SoftBodyStatus::Pending) || is_changed) {
             continue;
         }
@@ -184,7 +218,13 @@ pub fn start_builds(
         if source.is_none() {
             commands.entity(entity).insert(SourceMesh(handle));
         }
-        commands.entity(entity).insert(BuildTask(task));
+        commands.entity(entity).insert((
+            BuildTask(task),
+            BuiltFrom {
+                body: body.clone(),
+                pinned: pinned.cloned(),
+            },
+        ));
         *status = SoftBodyStatus::Building;
     }
 }

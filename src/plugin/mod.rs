@@ -163,7 +163,7 @@ impl Plugin for TissuePlugin {
 /// last pose) and the user's source mesh handle.
 fn remove_soft_body(remove: On<Remove, SoftBody>, mut commands: Commands) {
     if let Ok(mut e) = commands.get_entity(remove.entity) {
-        e.remove::<(build::BuiltBody, build::BuildTask)>();
+        e.remove::<(build::BuiltBody, build::BuildTask, build::BuiltFrom)>();
     }
 }
 
