@@ -89,8 +89,8 @@ pub enum TissueBackend {
     /// On the GPU: cluster bodies in the render graph's compute passes; lattice bodies
     /// ([`TissueDiscretisation::Lattice`]) by Newton–multigrid submitted from the main
     /// world, their positions read back and skinned on the CPU (on the CPU instead where
-    /// the GPU cannot take them: a world that mixes lattice and cluster bodies on this
-    /// path, more colliders than its kernels take, no GPU).
+    /// the GPU cannot take them: more colliders than its kernels take, kernels or
+    /// buffers that cannot be made, no GPU).
     #[default]
     Auto,
     /// Every body on the CPU, by the core's solver on the main thread (Jacobi for
