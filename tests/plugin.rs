@@ -990,6 +990,35 @@ fn lattice_bodies_touch_each_other_on_the_gpu() {
     );
 }
 
+/// On a device held to WebGPU's default limits, which the render graph's kernels exceed,
+/// a scene of lattice bodies (the default) still steps on the GPU: their kernels fit,
+/// and the world stays on `TissueBackend::Auto`.
+#[test]
+fn lattice_bodies_step_on_the_gpu_under_webgpu_limits() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings {
+        constrained_limits: Some(bevy::render::settings::WgpuLimits::default()),
+        ..default()
+    });
+    let (body, pinned) = common::lattice_body();
+    spawn_on_main_world_path(&mut app, Vec3::new(0.0, 0.3, 0.0), body, pinned);
+    step_frames(&mut app, 10);
+    assert_eq!(
+        app.world().resource::<TissueSettings>().backend,
+        TissueBackend::Auto,
+        "the world was switched to the CPU"
+    );
+    let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
+    assert!(
+        world.stepped_on_gpu(),
+        "the lattice body stepped on the CPU"
+    );
+    assert!(world.state().unwrap().step >= 10);
+}
+
 /// A lattice body steps on the GPU (Newton–multigrid, `GpuLattice`) from the plugin and
 /// lands where the core's CPU solver does with the same settings.
 #[test]

@@ -298,7 +298,10 @@ pub fn prepare_tissue(
 ) {
     let Some(ex) = extracted else { return };
     gpu.traffic = FrameTraffic::default();
-    if gpu.kernels.is_none() {
+    // The kernels are made for the first body the render graph steps (lattice bodies step
+    // from the main world with kernels of their own, which fit WebGPU's limits): an
+    // adapter that cannot run these switches the world to the CPU only once it has to.
+    if gpu.kernels.is_none() && !ex.bodies.is_empty() {
         gpu.kernels = Some(Kernels::new(&device).map_err(|e| e.to_string()));
         if let Some(Err(e)) = &gpu.kernels {
             let _ = sender.0.send(ReadbackResult::GpuUnavailable(e.clone()));
