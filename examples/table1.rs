@@ -88,21 +88,33 @@ struct Cell {
     finite: bool,
 }
 
-fn liver(particles: u32, k: u32) -> Model {
+/// The procedural liver of `particles` particles, pinned at its ligament, as `desc`
+/// says otherwise.
+fn liver_model(particles: u32, desc: BodyDesc) -> Model {
     let (lo, hi) = procedural::liver_ligament();
     let desc = BodyDesc {
         resolution: Resolution::Particles(particles),
-        neighbours: k,
-        material: Material::ShapeMatching { stiffness: 1.0 },
         pins: vec![PinRegion::Box { min: lo, max: hi }],
-        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
-        ..Default::default()
+        ..desc
     };
     let mut model = Model::new();
     model
         .add_body(&procedural::liver(4), &desc)
         .expect("liver model");
     model
+}
+
+/// The paper's liver: clusters of K neighbours, shape matching with k = 1.
+fn liver(particles: u32, k: u32) -> Model {
+    liver_model(
+        particles,
+        BodyDesc {
+            neighbours: k,
+            material: Material::ShapeMatching { stiffness: 1.0 },
+            discretisation: Discretisation::Clusters,
+            ..Default::default()
+        },
+    )
 }
 
 fn settings(method: Method, threads: usize) -> SolverSettings {
@@ -238,22 +250,17 @@ fn paper(k: u32, kind: &str, target: u32) -> Option<f64> {
 /// The liver as the default body: lattice elements of liver tissue, pinned at its
 /// ligament.
 fn lattice_liver(particles: u32) -> Model {
-    let (lo, hi) = procedural::liver_ligament();
-    let desc = BodyDesc {
-        resolution: Resolution::Particles(particles),
-        material: Material::Hyperelastic {
-            youngs_modulus: 5_500.0,
-            poisson_ratio: 0.45,
+    liver_model(
+        particles,
+        BodyDesc {
+            material: Material::Hyperelastic {
+                youngs_modulus: 5_500.0,
+                poisson_ratio: 0.45,
+            },
+            discretisation: Discretisation::Lattice,
+            ..Default::default()
         },
-        pins: vec![PinRegion::Box { min: lo, max: hi }],
-        discretisation: Discretisation::Lattice,
-        ..Default::default()
-    };
-    let mut model = Model::new();
-    model
-        .add_body(&procedural::liver(4), &desc)
-        .expect("liver model");
-    model
+    )
 }
 
 /// The default settings, one body (no particle contacts).

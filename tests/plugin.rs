@@ -856,8 +856,13 @@ fn a_body_at_rest_sleeps_without_gpu_work_and_wakes_on_settings_and_contact() {
 /// CPU (`TissueBackend::Cpu`) and the body simulates there, exactly as the core does.
 /// Spawns a body with continuous read-back and updates until it steps from the main
 /// world (`plugin::cpu`).
-fn spawn_on_main_world_path(app: &mut App, at: Vec3, body: SoftBody, pinned: Pinned) -> Entity {
-    let e = spawn_body(app, at, body, Some(pinned));
+fn spawn_on_main_world_path(
+    app: &mut App,
+    at: Vec3,
+    body: SoftBody,
+    pinned: Option<Pinned>,
+) -> Entity {
+    let e = spawn_body(app, at, body, pinned);
     app.world_mut()
         .entity_mut(e)
         .insert(ReadbackParticles { continuous: true });
@@ -896,7 +901,7 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     });
     let (body, pinned) = body_spec();
     let at = Vec3::new(0.0, 0.5, 0.0);
-    let e = spawn_on_main_world_path(&mut app, at, body, pinned);
+    let e = spawn_on_main_world_path(&mut app, at, body, Some(pinned));
     assert_eq!(
         app.world().resource::<TissueSettings>().backend,
         TissueBackend::Cpu
@@ -938,18 +943,9 @@ fn lattice_bodies_touch_each_other_on_the_gpu() {
         point: Vec3::new(0.0, 1.0, 0.0),
         normal: -Vec3::Y,
     });
-    let low = spawn_on_main_world_path(&mut app, Vec3::ZERO, body.clone(), shelf);
+    let low = spawn_on_main_world_path(&mut app, Vec3::ZERO, body.clone(), Some(shelf));
     // 10 cm above: a gap of about 4 cm between the 5 cm boxes' lattices.
-    let high = spawn_body(&mut app, Vec3::new(0.0, 0.10, 0.0), body, None);
-    app.world_mut()
-        .entity_mut(high)
-        .insert(ReadbackParticles { continuous: true });
-    let built = until(&mut app, 600, |app| {
-        app.world()
-            .get::<bevy_tissue::plugin::cpu::CpuBody>(high)
-            .is_some()
-    });
-    assert!(built, "the upper body never reached the main world's path");
+    let high = spawn_on_main_world_path(&mut app, Vec3::new(0.0, 0.10, 0.0), body, None);
     step_frames(&mut app, 60);
     let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
     assert!(
@@ -1004,7 +1000,7 @@ fn lattice_bodies_step_on_the_gpu_under_webgpu_limits() {
         ..default()
     });
     let (body, pinned) = common::lattice_body();
-    spawn_on_main_world_path(&mut app, Vec3::new(0.0, 0.3, 0.0), body, pinned);
+    spawn_on_main_world_path(&mut app, Vec3::new(0.0, 0.3, 0.0), body, Some(pinned));
     step_frames(&mut app, 10);
     assert_eq!(
         app.world().resource::<TissueSettings>().backend,
@@ -1030,7 +1026,7 @@ fn a_lattice_body_steps_on_the_gpu_like_the_core() {
     let mut app = app(WgpuSettings::default());
     let (body, pinned) = common::lattice_body();
     let at = Vec3::new(0.0, 0.3, 0.0);
-    let e = spawn_on_main_world_path(&mut app, at, body.clone(), pinned.clone());
+    let e = spawn_on_main_world_path(&mut app, at, body.clone(), Some(pinned.clone()));
     step_frames(&mut app, 30);
     let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
     assert!(

@@ -1047,14 +1047,12 @@ impl GpuLattice {
             (4 * n * 16) as u64,
             bytemuck::cast_slice(&ranges),
         );
-        let mut lists = list.to_vec();
-        lists.extend(&rev);
-        if !lists.is_empty() {
-            queue.write_buffer(
-                &self.ccol,
-                (5 * n * 16) as u64,
-                bytemuck::cast_slice(&lists),
-            );
+        // The lists after the regions: each node's candidates, then the reverse lists.
+        if !list.is_empty() {
+            let at = (5 * n * 16) as u64;
+            queue.write_buffer(&self.ccol, at, bytemuck::cast_slice(list));
+            let at = at + 4 * list.len() as u64;
+            queue.write_buffer(&self.ccol, at, bytemuck::cast_slice(&rev));
         }
         Ok(())
     }
