@@ -1,144 +1,271 @@
-//! Speed against accuracy (issue 6, SPEC §6): every method and setting — elastic model,
-//! solver (CPU Gauss–Seidel, CPU Jacobi, GPU Jacobi), iterations, substeps, hierarchy,
-//! neighbour count K — run through four measurements, each charted as ms per step against
-//! error with the Pareto front marked:
+//! Speed against accuracy: every method and setting, old and new, CPU and GPU, charted as
+//! ms per step against its error, with the Pareto front marked. The errors of panels
+//! (b)–(d) are against the independent references of the accuracy study
+//! (`examples/support/accuracy.rs`): the quadratic-tetrahedron FEM in f64 for the
+//! cantilever, and the homogeneous answer of the material between frictionless plates
+//! for the Poisson ratio and the volume.
 //!
-//! * **reference** — a bar (24 × 3 × 3 cm) pinned at one end, released straight under
-//!   gravity and swinging for 1 s; the error is the RMS distance of all particles from a
-//!   converged reference run of the same model (CPU Gauss–Seidel with 16 substeps and 50
-//!   iterations for the hyperelastic model, E = 500 kPa), sampled every 0.1 s, relative to
-//!   the bar's length. The solver is f32 throughout (SPEC asks for an f64 reference; the
-//!   core has no f64 path, and the reference self-check below shows the reference
-//!   converged far below the errors charted). Shape matching's k is a per-substep
-//!   stiffness (Müller et al. 2005) and Jacobi's averaging softens it, so the substep
-//!   count and the method change its material: its reference is the same method (CPU
-//!   Jacobi for the GPU) with 100 iterations at the same substep count.
-//! * **cantilever** — the same bar, E = 100 kPa, ν = 0.3, settled for 3 s under a
-//!   gravity of 0.2 m/s² (scaled down so that the strain is small — the tip drops about
-//!   5% of the length — while the material stays as soft as the solvers can converge);
-//!   the tip deflection against Euler–Bernoulli's `δ = q L⁴ / (8 E I)`. Hyperelastic
-//!   only (shape matching's k is no modulus).
-//! * **Poisson** — a 6 cm cube, E = 20 kPa, ν = 0.3, squeezed 5% between frictionless
-//!   plates without gravity: the measured `ν = −ε_lateral / ε_axial` against the set ν
-//!   (uniaxial stress, linear elasticity). Hyperelastic only.
-//! * **volume** — the same cube at ν = 0.49 squeezed 20%: the relative change of the
-//!   material volume `Σ V_c det F_c` (physically about 0.4% at this bulk modulus; shape
-//!   matching is measured too).
+//! The methods:
+//! * the paper's **clusters** (K = 32): shape matching (k = 0.5, a per-substep
+//!   stiffness) and the hyperelastic constraints under XPBD, iterated by CPU
+//!   Gauss–Seidel (one thread), CPU Jacobi and GPU Jacobi (the render graph's kernels),
+//!   with and without the hierarchy;
+//! * the **lattice** elements (hexahedra on the sampling lattice, the default body):
+//!   XPBD Gauss–Seidel, vertex block descent (Chen et al. 2024) and Newton–multigrid on
+//!   the CPU, Newton–multigrid on the GPU (`gpu::lattice::GpuLattice`). For
+//!   Newton–multigrid, "iterations" are Newton iterations per substep.
 //!
-//! ms per step is the wall clock of the reference scene's steps (CPU), or of the GPU's
-//! 6-step submissions from submit to completion. The sizes are small (about 1,000
-//! particles) so that the CPU grid finishes; on the GPU a step this small sits at the
-//! dispatch-latency floor.
+//! The scenes (E, ν as said; 1000 kg/m³; 1/60 s steps):
+//! * **(a) reference** — the 24 × 3 × 3 cm bar clamped at one end, released straight
+//!   under gravity (9.81 m/s², E = 500 kPa, ν = 0.3) and swinging for 1 s; the RMS
+//!   distance of all particles from a converged run of the same discretisation and
+//!   material (clusters: CPU Gauss–Seidel, 16 substeps × 50 iterations; shape matching:
+//!   the same method at 100 iterations and the same substeps, since k is a per-substep
+//!   stiffness; lattice: CPU Newton–multigrid, 16 substeps × 4 Newton iterations),
+//!   sampled every 0.1 s, relative to the length. This one is not against FEM: it is
+//!   how far a setting is from its own model's converged motion.
+//! * **(b) cantilever** — the same bar, E = 100 kPa, gravity 0.2 m/s² (small strain),
+//!   damped at twice its first bending frequency and settled for 3 s: the tip's mean
+//!   drop against the FEM's at the same points.
+//! * **(c) Poisson** — a 6 cm cube, E = 20 kPa, ν = 0.3, squeezed 5% between
+//!   frictionless plates: the Poisson ratio measured from the particles' own layers
+//!   against the homogeneous answer of the material.
+//! * **(d) volume** — the same cube at ν = 0.49 squeezed 20%: the material volume
+//!   `Σ V det F` against the homogeneous answer (shape matching too, against the tissue
+//!   it stands for).
 //!
-//! Writes `speed_accuracy.csv` (the table behind the chart) and `speed_accuracy.png`
-//! (four panels, log–log) into the output folder, and Markdown on stdout: every run and
-//! the Pareto front of each panel.
+//! `--paper` adds the cantilever at the paper's sizes (8, 12 and 17 particles across:
+//! about 4,096, 13,824 and 38,000 particles) for the real-time and converged settings of
+//! each method, each against the same FEM (clusters on the CPU only up to 15,000
+//! particles: Gauss–Seidel at 38,000 takes minutes a setting on 2 cores).
+//!
+//! ms per step is the wall clock of the steps (CPU), or from submission to completion of
+//! the GPU's batches of steps; at ~1,000 particles the GPU sits at its dispatch-latency
+//! floor, so its ms rank settings on one GPU rather than measure throughput.
+//!
+//! Writes `speed_accuracy.csv` (every run) and `speed_accuracy.png` (one log–log panel
+//! per scene, plus one per paper size with `--paper`) into the output folder, and
+//! Markdown on stdout: every run and each panel's Pareto front.
 //!
 //! ```text
-//! cargo run --release --example speed_accuracy               # the full grid (CPU: ~20 min)
-//! cargo run --release --example speed_accuracy -- --quick    # a small grid, under a minute
+//! cargo run --release --example speed_accuracy               # the ~1,000-particle grid
+//! cargo run --release --example speed_accuracy -- --paper    # and the paper's sizes
+//! cargo run --release --example speed_accuracy -- --quick    # a small grid, a minute
 //! cargo run --release --example speed_accuracy -- --no-cpu   # the GPU rows only
 //! ```
-//! Options: `--quick`, `--no-cpu`, `--no-gpu`, `--particles N` (the bar), `--cube N`,
-//! `--out DIR` (default `speed_accuracy_out`).
+//! Options: `--quick`, `--paper`, `--no-cpu`, `--no-gpu`, `--out DIR` (default
+//! `speed_accuracy_out`).
 
+#[path = "support/accuracy.rs"]
+mod accuracy;
 #[path = "support/bench.rs"]
 mod bench;
 #[path = "support/chart.rs"]
 mod chart;
 
-use bevy_tissue::core::colliders::{Collider, ColliderShape};
+use accuracy::{
+    BAR_E, BAR_GRAVITY, BAR_NU, CUBE_E, Disc, bar_body, bar_fem, bar_fem_tip_at,
+    bar_first_mode, bar_tip, cube_body, displacements, layer_strain, material_volume,
+    measured_poisson, plates, uniaxial_lateral_stretch,
+};
+use bevy_tissue::core::colliders::Collider;
+use bevy_tissue::core::fem::Solution;
 use bevy_tissue::core::hierarchy::HierarchyDesc;
-use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
-use bevy_tissue::core::procedural;
-use bevy_tissue::core::sampling::Resolution;
-use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
-use bevy_tissue::gpu::world::read_vec3;
+use bevy_tissue::core::model::{Material, Model};
+use bevy_tissue::core::solver::{Control, ElementSolver, Method, Solver, SolverSettings, State};
+use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+use bevy_tissue::gpu::lattice::GpuLattice;
+use bevy_tissue::gpu::world::{read_buffer, read_vec3};
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
-use glam::{Quat, Vec3};
+use glam::Vec3;
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::time::Instant;
 
-/// Half extents of the bar, m (length 0.24 along x).
-const BAR: Vec3 = Vec3::new(0.12, 0.015, 0.015);
-/// Half extent of the cube, m.
-const CUBE: f32 = 0.03;
-/// Density, kg/m³.
-const DENSITY: f32 = 1000.0;
-/// Gravity, m/s².
-const G: f32 = 9.81;
-/// The cantilever's gravity, m/s² (small strain at E = 100 kPa).
-const G_CANTILEVER: f32 = 0.2;
 /// Shape matching's stiffness in every scene.
 const SM_K: f32 = 0.5;
+/// Gravity of the swinging bar, m/s².
+const G: f32 = 9.81;
+/// Young's modulus of the swinging bar, Pa.
+const SWING_E: f32 = 500e3;
 
-/// The elastic model of a run.
+/// A method: discretisation, elastic model and solver.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-enum ModelKind {
-    ShapeMatching,
-    Hyperelastic,
+enum Solve {
+    /// Clusters, shape matching, CPU Gauss–Seidel.
+    SmGs,
+    /// Clusters, shape matching, CPU Jacobi.
+    SmJacobi,
+    /// Clusters, shape matching, GPU Jacobi.
+    SmGpu,
+    /// Clusters, hyperelastic XPBD, CPU Gauss–Seidel.
+    ClGs,
+    /// Clusters, hyperelastic XPBD, CPU Jacobi.
+    ClJacobi,
+    /// Clusters, hyperelastic XPBD, GPU Jacobi.
+    ClGpu,
+    /// Lattice, XPBD, CPU Gauss–Seidel.
+    LatXpbd,
+    /// Lattice, vertex block descent, CPU.
+    LatVbd,
+    /// Lattice, Newton–multigrid, CPU.
+    LatMg,
+    /// Lattice, Newton–multigrid, GPU.
+    LatMgGpu,
 }
 
-impl ModelKind {
-    fn name(self) -> &'static str {
-        match self {
-            ModelKind::ShapeMatching => "shape matching",
-            ModelKind::Hyperelastic => "hyperelastic",
+const SOLVES: [Solve; 10] = [
+    Solve::SmGs,
+    Solve::SmJacobi,
+    Solve::SmGpu,
+    Solve::ClGs,
+    Solve::ClJacobi,
+    Solve::ClGpu,
+    Solve::LatXpbd,
+    Solve::LatVbd,
+    Solve::LatMg,
+    Solve::LatMgGpu,
+];
+
+impl Solve {
+    fn lattice(self) -> bool {
+        matches!(
+            self,
+            Solve::LatXpbd | Solve::LatVbd | Solve::LatMg | Solve::LatMgGpu
+        )
+    }
+    fn shape_matching(self) -> bool {
+        matches!(self, Solve::SmGs | Solve::SmJacobi | Solve::SmGpu)
+    }
+    fn gpu(self) -> bool {
+        matches!(self, Solve::SmGpu | Solve::ClGpu | Solve::LatMgGpu)
+    }
+    fn discretisation(self) -> &'static str {
+        if self.lattice() {
+            "lattice"
+        } else {
+            "clusters"
         }
     }
-}
-
-/// Where a run is solved.
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-enum Backend {
-    GaussSeidel,
-    Jacobi,
-    Gpu,
-}
-
-impl Backend {
-    fn name(self) -> &'static str {
-        match self {
-            Backend::GaussSeidel => "CPU Gauss-Seidel",
-            Backend::Jacobi => "CPU Jacobi",
-            Backend::Gpu => "GPU Jacobi",
+    fn model(self) -> &'static str {
+        if self.shape_matching() {
+            "shape matching"
+        } else {
+            "hyperelastic"
         }
+    }
+    fn backend(self) -> &'static str {
+        match self {
+            Solve::SmGs | Solve::ClGs | Solve::LatXpbd => "CPU Gauss-Seidel",
+            Solve::SmJacobi | Solve::ClJacobi => "CPU Jacobi",
+            Solve::SmGpu | Solve::ClGpu => "GPU Jacobi",
+            Solve::LatVbd => "CPU VBD",
+            Solve::LatMg => "CPU Newton-MG",
+            Solve::LatMgGpu => "GPU Newton-MG",
+        }
+    }
+    fn name(self) -> String {
+        format!(
+            "{} {} {}",
+            self.discretisation(),
+            self.model(),
+            self.backend()
+        )
     }
 }
 
 /// One method and setting.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 struct Config {
-    model: ModelKind,
-    backend: Backend,
+    solve: Solve,
     iterations: u32,
     substeps: u32,
     hierarchy: bool,
-    k: u32,
 }
 
 impl Config {
+    fn new(solve: Solve, iterations: u32, substeps: u32) -> Self {
+        Self {
+            solve,
+            iterations,
+            substeps,
+            hierarchy: false,
+        }
+    }
+
     fn label(&self) -> String {
         format!(
-            "{} / {} / {} it / {} sub / K {}{}",
-            self.model.name(),
-            self.backend.name(),
+            "{} / {} it / {} sub{}",
+            self.solve.name(),
             self.iterations,
             self.substeps,
-            self.k,
             if self.hierarchy { " / hierarchy" } else { "" }
         )
     }
+
+    fn disc(&self) -> Disc {
+        if self.solve.lattice() {
+            Disc::Lattice
+        } else {
+            Disc::Clusters(32)
+        }
+    }
+
+    /// The solver settings under `gravity` with velocity damping `damping` (1/s).
+    fn settings(&self, gravity: Vec3, damping: f32) -> SolverSettings {
+        let gauss_seidel = matches!(self.solve, Solve::SmGs | Solve::ClGs | Solve::LatXpbd);
+        SolverSettings {
+            dt: 1.0 / 60.0,
+            substeps: self.substeps,
+            iterations: self.iterations,
+            newton_iterations: self.iterations,
+            gravity,
+            damping,
+            method: if gauss_seidel {
+                Method::GaussSeidel
+            } else {
+                Method::Jacobi
+            },
+            element_solver: match self.solve {
+                Solve::LatVbd => ElementSolver::VertexDescent,
+                Solve::LatMg | Solve::LatMgGpu => ElementSolver::Multigrid,
+                _ => ElementSolver::Xpbd,
+            },
+            threads: if gauss_seidel { 1 } else { 0 },
+            particle_contacts: false,
+            coarse_iterations: if self.hierarchy { 20 } else { 0 },
+            ..Default::default()
+        }
+    }
+
+    /// The converged run of the same model (panel (a)).
+    fn reference(&self) -> Config {
+        match self.solve {
+            Solve::SmGs | Solve::SmJacobi | Solve::SmGpu => Config {
+                solve: if self.solve == Solve::SmGs {
+                    Solve::SmGs
+                } else {
+                    Solve::SmJacobi
+                },
+                iterations: 100,
+                hierarchy: false,
+                ..*self
+            },
+            Solve::ClGs | Solve::ClJacobi | Solve::ClGpu => Config::new(Solve::ClGs, 50, 16),
+            _ => Config::new(Solve::LatMg, 4, 16),
+        }
+    }
 }
 
-/// The four measurements.
+/// The four measurements at ~1,000 particles, and the cantilever at a paper size.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Scene {
     Reference,
     Cantilever,
     Poisson,
     Volume,
+    /// The cantilever with this many particles across.
+    Paper(u32),
 }
 
 const SCENES: [Scene; 4] = [
@@ -149,39 +276,76 @@ const SCENES: [Scene; 4] = [
 ];
 
 impl Scene {
-    fn name(self) -> &'static str {
+    fn name(self) -> String {
         match self {
-            Scene::Reference => "reference",
-            Scene::Cantilever => "cantilever",
-            Scene::Poisson => "poisson",
-            Scene::Volume => "volume",
+            Scene::Reference => "reference".into(),
+            Scene::Cantilever => "cantilever".into(),
+            Scene::Poisson => "poisson".into(),
+            Scene::Volume => "volume".into(),
+            Scene::Paper(n) => format!("cantilever {n} across"),
         }
     }
 
-    fn title(self) -> &'static str {
+    fn title(self, particles: usize) -> String {
         match self {
-            Scene::Reference => "(a) RMS distance from a converged run / length",
-            Scene::Cantilever => "(b) cantilever tip vs Euler-Bernoulli",
-            Scene::Poisson => "(b) Poisson ratio under uniaxial compression",
-            Scene::Volume => "(b) volume change, nu = 0.49, 20% squeeze",
+            Scene::Reference => "(a) RMS distance from a converged run / length".into(),
+            Scene::Cantilever => "(b) cantilever tip vs FEM".into(),
+            Scene::Poisson => "(c) Poisson ratio vs the homogeneous answer".into(),
+            Scene::Volume => "(d) volume at nu = 0.49, 20% squeeze, vs homogeneous".into(),
+            Scene::Paper(n) => format!("cantilever tip vs FEM, {n} across (~{particles})"),
         }
     }
 
-    fn applies(self, model: ModelKind) -> bool {
-        model == ModelKind::Hyperelastic || matches!(self, Scene::Reference | Scene::Volume)
+    fn applies(self, solve: Solve) -> bool {
+        !solve.shape_matching() || matches!(self, Scene::Reference | Scene::Volume)
     }
 
-    fn material(self, model: ModelKind) -> Material {
-        let hyper = |e: f32, nu: f32| Material::Hyperelastic {
-            youngs_modulus: e,
-            poisson_ratio: nu,
-        };
-        match (model, self) {
-            (ModelKind::ShapeMatching, _) => Material::ShapeMatching { stiffness: SM_K },
-            (_, Scene::Reference) => hyper(500e3, 0.45),
-            (_, Scene::Cantilever) => hyper(100e3, 0.3),
-            (_, Scene::Poisson) => hyper(20e3, 0.3),
-            (_, Scene::Volume) => hyper(20e3, 0.49),
+    fn squeeze(self) -> f32 {
+        match self {
+            Scene::Poisson => 0.05,
+            Scene::Volume => 0.2,
+            _ => 0.0,
+        }
+    }
+
+    fn nu(self) -> f32 {
+        match self {
+            Scene::Volume => 0.49,
+            _ => BAR_NU,
+        }
+    }
+
+    fn material(self, solve: Solve) -> Material {
+        if solve.shape_matching() {
+            return Material::ShapeMatching { stiffness: SM_K };
+        }
+        Material::Hyperelastic {
+            youngs_modulus: match self {
+                Scene::Reference => SWING_E,
+                Scene::Cantilever | Scene::Paper(_) => BAR_E,
+                Scene::Poisson | Scene::Volume => CUBE_E,
+            },
+            poisson_ratio: self.nu(),
+        }
+    }
+
+    /// Gravity (m/s²) and damping (1/s).
+    fn loading(self) -> (Vec3, f32) {
+        match self {
+            Scene::Reference => (Vec3::new(0.0, -G, 0.0), 1.0),
+            Scene::Cantilever | Scene::Paper(_) => (
+                Vec3::new(0.0, -BAR_GRAVITY as f32, 0.0),
+                (2.0 * bar_first_mode(BAR_E as f64)) as f32,
+            ),
+            Scene::Poisson | Scene::Volume => (Vec3::ZERO, 5.0),
+        }
+    }
+
+    /// Whether the positions after `step` (0-based) of `steps` are kept.
+    fn sampled(self, step: usize, steps: usize) -> bool {
+        match self {
+            Scene::Reference => (step + 1).is_multiple_of(6),
+            _ => step + 1 == steps,
         }
     }
 }
@@ -189,128 +353,78 @@ impl Scene {
 /// Sizes and durations.
 #[derive(Clone, Copy)]
 struct Sizes {
+    /// Particles across the bar's thickness.
     bar: u32,
+    /// Particles along the cube's edge.
     cube: u32,
-    /// Simulated seconds of each scene: reference, cantilever, Poisson, volume.
+    /// Simulated seconds of the reference, cantilever, Poisson and volume scenes.
     seconds: [f32; 4],
+}
+
+impl Sizes {
+    fn seconds(&self, scene: Scene) -> f32 {
+        match scene {
+            Scene::Reference => self.seconds[0],
+            Scene::Cantilever | Scene::Paper(_) => self.seconds[1],
+            Scene::Poisson => self.seconds[2],
+            Scene::Volume => self.seconds[3],
+        }
+    }
 }
 
 /// A scene's body.
 fn build(scene: Scene, c: &Config, sizes: &Sizes) -> Model {
-    let (mesh, particles, pins) = match scene {
-        Scene::Reference | Scene::Cantilever => (
-            procedural::cuboid(BAR, 2),
-            sizes.bar,
-            vec![PinRegion::HalfSpace {
-                point: Vec3::new(-0.108, 0.0, 0.0),
-                normal: -Vec3::X,
-            }],
-        ),
-        Scene::Poisson | Scene::Volume => {
-            (procedural::cuboid(Vec3::splat(CUBE), 2), sizes.cube, vec![])
-        }
-    };
-    let desc = BodyDesc {
-        resolution: Resolution::Particles(particles),
-        density: DENSITY,
-        neighbours: c.k,
-        material: scene.material(c.model),
-        pins,
+    let hierarchy = c.hierarchy.then_some(HierarchyDesc {
         // Small bodies: coarse levels down to 32 particles, so the hierarchy is exercised.
-        hierarchy: c.hierarchy.then_some(HierarchyDesc {
-            min_particles: 32,
-            ..Default::default()
-        }),
-        discretisation: bevy_tissue::core::model::Discretisation::Clusters,
+        min_particles: 32,
         ..Default::default()
+    });
+    let material = scene.material(c.solve);
+    let model = match scene {
+        Scene::Reference | Scene::Cantilever => bar_body(c.disc(), sizes.bar, material, hierarchy),
+        Scene::Paper(n) => bar_body(c.disc(), n, material, hierarchy),
+        Scene::Poisson | Scene::Volume => cube_body(c.disc(), sizes.cube, material, hierarchy),
     };
-    let mut model = Model::new();
-    if let Err(e) = model.add_body(&mesh, &desc) {
+    model.unwrap_or_else(|e| {
         eprintln!(
             "speed_accuracy: cannot build the {} body: {e}",
             scene.name()
         );
-        std::process::exit(1);
-    }
-    model
+        std::process::exit(1)
+    })
 }
 
-fn settings(scene: Scene, c: &Config) -> SolverSettings {
-    let (gravity, damping) = match scene {
-        Scene::Reference => (Vec3::new(0.0, -G, 0.0), 1.0),
-        Scene::Cantilever => (Vec3::new(0.0, -G_CANTILEVER, 0.0), 8.0),
-        Scene::Poisson | Scene::Volume => (Vec3::ZERO, 5.0),
-    };
-    SolverSettings {
-        dt: 1.0 / 60.0,
-        substeps: c.substeps,
-        iterations: c.iterations,
-        gravity,
-        damping,
-        method: if c.backend == Backend::GaussSeidel {
-            Method::GaussSeidel
-        } else {
-            Method::Jacobi
-        },
-        threads: if c.backend == Backend::GaussSeidel {
-            1
-        } else {
-            0
-        },
-        particle_contacts: false,
-        coarse_iterations: if c.hierarchy { 20 } else { 0 },
-        ..Default::default()
-    }
-}
-
-/// The plates of the compression scenes at `step`: the ground below the cube and a plate
-/// above it moving down by `squeeze` of the height over the first 60% of the run.
-fn plates(model: &Model, squeeze: f32, step: usize, steps: usize) -> (Vec<Collider>, f32) {
-    let r = model.bodies[0].radius;
-    let top0 = model.rest.iter().map(|p| p.y).fold(f32::MIN, f32::max) + r;
-    let bottom = model.rest.iter().map(|p| p.y).fold(f32::MAX, f32::min) - r;
-    let ramp = (0.6 * steps as f32).max(1.0);
-    let f = ((step + 1) as f32 / ramp).min(1.0);
-    let y = top0 - squeeze * (top0 - bottom) * f;
-    let mut ground = Collider::ground(bottom);
-    ground.friction = 0.0;
-    let mut plate = Collider::new(
-        ColliderShape::Plane,
-        Vec3::new(0.0, y, 0.0),
-        Quat::from_rotation_x(std::f32::consts::PI),
-    );
-    plate.friction = 0.0;
-    (vec![ground, plate], (y - bottom) / (top0 - bottom))
-}
-
-/// What a run produced: positions at the sample times (the reference scene: every 0.1 s;
-/// the others: the last step only) and its cost.
+/// What a run produced: positions at the sample times and its cost.
 struct Run {
     samples: Vec<Vec<Vec3>>,
     ms_per_step: f64,
 }
 
+/// The compression plates of `scene` at `step` of `steps`, or none.
+fn colliders(scene: Scene, model: &Model, step: usize, steps: usize) -> Vec<Collider> {
+    if scene.squeeze() > 0.0 {
+        plates(model, scene.squeeze(), step, steps)
+    } else {
+        vec![]
+    }
+}
+
 /// Steps a scene on the CPU. `None` when the solver reported divergence.
 fn run_cpu(scene: Scene, c: &Config, model: &Model, seconds: f32) -> Option<Run> {
-    let s = settings(scene, c);
-    let mut solver = Solver::new(model, s).ok()?;
+    let (gravity, damping) = scene.loading();
+    let mut solver = Solver::new(model, c.settings(gravity, damping)).ok()?;
     let mut state = State::new(model);
     let steps = (seconds * 60.0).round() as usize;
-    let squeeze = squeeze(scene);
     let mut samples = Vec::new();
     let mut ms = 0.0;
     for step in 0..steps {
         let control = Control {
-            colliders: if squeeze > 0.0 {
-                plates(model, squeeze, step, steps).0
-            } else {
-                vec![]
-            },
+            colliders: colliders(scene, model, step, steps),
         };
         let t = Instant::now();
         solver.step(model, &mut state, &control).ok()?;
         ms += t.elapsed().as_secs_f64() * 1e3;
-        if sampled(scene, step, steps) {
+        if scene.sampled(step, steps) {
             samples.push(state.x.clone());
         }
     }
@@ -320,40 +434,82 @@ fn run_cpu(scene: Scene, c: &Config, model: &Model, seconds: f32) -> Option<Run>
     })
 }
 
-/// Steps a scene on the GPU (the same model and settings; the GPU always iterates Jacobi).
-fn run_gpu(g: &Headless, scene: Scene, c: &Config, model: &Model, seconds: f32) -> Option<Run> {
-    let state = State::new(model);
-    let mut world =
-        GpuWorld::new(&g.device, &g.kernels, model, &state, settings(scene, c), 0).ok()?;
+/// The GPU: the render graph's cluster kernels and the lattice kernels.
+struct Gpu {
+    g: Headless,
+    lattice: LatticeKernels,
+}
+
+/// A world on the GPU of either kind.
+enum World {
+    Clusters(Box<GpuWorld>),
+    Lattice(Box<GpuLattice>),
+}
+
+/// Steps a scene on the GPU (the same model and settings): batches of steps without
+/// per-step input in one submission, up to the next sample.
+fn run_gpu(gpu: &Gpu, scene: Scene, c: &Config, model: &Model, seconds: f32) -> Option<Run> {
+    let g = &gpu.g;
+    let (gravity, damping) = scene.loading();
+    let settings = c.settings(gravity, damping);
+    let mut state = State::new(model);
+    let mut world = if c.solve.lattice() {
+        World::Lattice(Box::new(
+            GpuLattice::new(&g.device, &gpu.lattice, model, &state, &settings).ok()?,
+        ))
+    } else {
+        World::Clusters(Box::new(
+            GpuWorld::new(&g.device, &g.kernels, model, &state, settings, 0).ok()?,
+        ))
+    };
     let steps = (seconds * 60.0).round() as usize;
-    let squeeze = squeeze(scene);
-    let n = world.particle_count();
+    let squeezed = scene.squeeze() > 0.0;
+    let n = model.particle_count();
     let mut samples = Vec::new();
     let mut ms = 0.0;
     let mut step = 0;
     while step < steps {
-        // Steps without per-step input go in one submission up to the next sample.
-        let batch = if squeeze > 0.0 {
+        let batch = if squeezed {
             1
         } else {
             (1..=steps - step)
-                .find(|b| sampled(scene, step + b - 1, steps))
+                .find(|b| scene.sampled(step + b - 1, steps))
                 .unwrap_or(steps - step)
         };
-        if squeeze > 0.0 {
-            let (colliders, _) = plates(model, squeeze, step, steps);
-            world.set_colliders(&g.queue, &colliders).ok()?;
-        }
-        world.write_params(&g.queue);
+        let cols = colliders(scene, model, step, steps);
         let mut enc = g.device.create_command_encoder(&Default::default());
-        world.record_steps(&mut enc, &g.kernels, batch as u32, &mut NoTiming);
+        match &mut world {
+            World::Clusters(w) => {
+                if squeezed {
+                    w.set_colliders(&g.queue, &cols).ok()?;
+                }
+                w.write_params(&g.queue);
+                w.record_steps(&mut enc, &g.kernels, batch as u32, &mut NoTiming);
+            }
+            World::Lattice(w) => {
+                if squeezed {
+                    w.set_colliders(&g.queue, &cols).ok()?;
+                }
+                w.record(&mut enc, &gpu.lattice, batch as u32, None);
+            }
+        }
         let t = Instant::now();
         g.queue.submit([enc.finish()]);
-        bench::sync(g, &world);
+        // A small read waits for everything submitted.
+        match &world {
+            World::Clusters(w) => drop(read_vec3(&g.device, &g.queue, w.positions(), 1)),
+            World::Lattice(w) => drop(read_buffer(&g.device, &g.queue, w.pos_buffer(), 0, 16)),
+        }
         ms += t.elapsed().as_secs_f64() * 1e3;
         step += batch;
-        if sampled(scene, step - 1, steps) {
-            let x = read_vec3(&g.device, &g.queue, world.positions(), n);
+        if scene.sampled(step - 1, steps) {
+            let x = match &world {
+                World::Clusters(w) => read_vec3(&g.device, &g.queue, w.positions(), n as u32),
+                World::Lattice(w) => {
+                    w.download(&g.device, &g.queue, &mut state);
+                    state.x.clone()
+                }
+            };
             if !x.iter().all(|p| p.is_finite() && p.length() < 100.0) {
                 return None;
             }
@@ -366,93 +522,35 @@ fn run_gpu(g: &Headless, scene: Scene, c: &Config, model: &Model, seconds: f32) 
     })
 }
 
-fn squeeze(scene: Scene) -> f32 {
-    match scene {
-        Scene::Poisson => 0.05,
-        Scene::Volume => 0.2,
-        _ => 0.0,
-    }
+/// The relative error of the tip's drop against the FEM's at the same points.
+fn cantilever_error(model: &Model, x: &[Vec3], fem: &Solution) -> f64 {
+    let tip = bar_tip(model, &displacements(model, x));
+    let reference = bar_fem_tip_at(fem, model);
+    (tip / reference - 1.0).abs()
 }
 
-/// Whether the positions after `step` (0-based) are kept.
-fn sampled(scene: Scene, step: usize, steps: usize) -> bool {
-    match scene {
-        Scene::Reference => (step + 1).is_multiple_of(6),
-        _ => step + 1 == steps,
-    }
+/// `|ν_measured − ν_ref| / ν_ref`, `ν_ref` the homogeneous answer at the measured axial
+/// strain.
+fn poisson_error(scene: Scene, model: &Model, x: &[Vec3]) -> f64 {
+    let axial = layer_strain(model, x, 1);
+    let b = uniaxial_lateral_stretch(CUBE_E as f64, scene.nu() as f64, 1.0 + axial);
+    let reference = -(b - 1.0) / axial;
+    (measured_poisson(model, x) / reference - 1.0).abs()
 }
 
-/// Euler–Bernoulli tip deflection of a clamped beam under its own weight (m), and the
-/// measured one: the mean drop of the tip particles. `L` runs from the clamp (halfway
-/// between the last pinned and the first free particle) to the bar's end.
-fn cantilever_error(model: &Model, x: &[Vec3]) -> f64 {
-    let pinned: std::collections::HashSet<u32> = model.pinned.iter().copied().collect();
-    let spacing = model.bodies[0].spacing;
-    let last_pinned = (0..model.particle_count())
-        .filter(|i| pinned.contains(&(*i as u32)))
-        .map(|i| model.rest[i].x)
-        .fold(f32::MIN, f32::max);
-    let clamp = last_pinned + 0.5 * spacing;
-    let end = BAR.x;
-    let l = (end - clamp) as f64;
-    let h = 2.0 * BAR.y as f64;
-    // The body's own mass per length (the lattice's volume is close to, not exactly, the box's).
-    let mass: f64 = model.mass.iter().map(|&m| m as f64).sum();
-    let q = mass / (2.0 * BAR.x as f64) * G_CANTILEVER as f64;
-    let Material::Hyperelastic { youngs_modulus, .. } = model.bodies[0].material else {
-        return f64::NAN;
-    };
-    let i = h.powi(4) / 12.0;
-    let theory = q * l.powi(4) / (8.0 * youngs_modulus as f64 * i);
-    let tip: Vec<usize> = (0..model.particle_count())
-        .filter(|&i| model.rest[i].x > end - spacing)
-        .collect();
-    let drop = tip
-        .iter()
-        .map(|&i| (model.rest[i].y - x[i].y) as f64)
-        .sum::<f64>()
-        / tip.len() as f64;
-    (drop - theory).abs() / theory
-}
-
-/// Mean distance of the particles from the centroid along `axis`.
-fn spread(x: &[Vec3], axis: usize) -> f64 {
-    let c = x.iter().copied().sum::<Vec3>() / x.len() as f32;
-    x.iter()
-        .map(|p| (p[axis] - c[axis]).abs() as f64)
-        .sum::<f64>()
-        / x.len() as f64
-}
-
-/// `|ν_measured − ν| / ν` under uniaxial compression: the lateral strain from the mean
-/// distance of the particles from the centroid across the load, the axial strain the
-/// plates' imposed one.
-fn poisson_error(model: &Model, x: &[Vec3]) -> f64 {
-    let Material::Hyperelastic { poisson_ratio, .. } = model.bodies[0].material else {
-        return f64::NAN;
-    };
-    // The imposed strain between the plates (the body touches both once squeezed).
-    let axial = -squeeze(Scene::Poisson) as f64;
-    let lateral =
-        0.5 * (spread(x, 0) / spread(&model.rest, 0) + spread(x, 2) / spread(&model.rest, 2)) - 1.0;
-    let nu = -lateral / axial;
-    (nu - poisson_ratio as f64).abs() / poisson_ratio as f64
-}
-
-/// `|V / V₀ − 1|` of the material volume `Σ_c V_c det F_c`.
-fn volume_error(model: &Model, x: &[Vec3]) -> f64 {
-    let vol = |x: &[Vec3]| -> f64 {
-        Solver::deformation_gradients(model, x)
-            .iter()
-            .zip(&model.cluster_volume)
-            .map(|(f, &v)| (v * f.determinant()) as f64)
-            .sum()
-    };
-    (vol(x) / vol(&model.rest) - 1.0).abs()
+/// `|V / V₀ − V_ref / V₀|`, `V_ref` the homogeneous answer at the measured axial strain.
+fn volume_error(scene: Scene, model: &Model, x: &[Vec3]) -> f64 {
+    let axial = layer_strain(model, x, 1);
+    let b = uniaxial_lateral_stretch(CUBE_E as f64, scene.nu() as f64, 1.0 + axial);
+    let v = material_volume(model, x) / material_volume(model, &model.rest);
+    (v - (1.0 + axial) * b * b).abs()
 }
 
 /// RMS distance between two runs' samples, relative to the bar's length.
 fn rms_error(a: &[Vec<Vec3>], b: &[Vec<Vec3>]) -> f64 {
+    if a.is_empty() || a.len() != b.len() || a.iter().zip(b).any(|(p, q)| p.len() != q.len()) {
+        return f64::NAN;
+    }
     let mut sum = 0.0;
     let mut n = 0usize;
     for (xa, xb) in a.iter().zip(b) {
@@ -461,32 +559,7 @@ fn rms_error(a: &[Vec<Vec3>], b: &[Vec<Vec3>]) -> f64 {
             n += 1;
         }
     }
-    if n == 0 || a.len() != b.len() || a.iter().zip(b).any(|(p, q)| p.len() != q.len()) {
-        return f64::NAN;
-    }
-    (sum / n as f64).sqrt() / (2.0 * BAR.x as f64)
-}
-
-/// The reference configuration for `c`'s model (see the module docs).
-fn reference_config(c: &Config) -> Config {
-    match c.model {
-        ModelKind::Hyperelastic => Config {
-            backend: Backend::GaussSeidel,
-            iterations: 50,
-            substeps: 16,
-            hierarchy: false,
-            ..*c
-        },
-        ModelKind::ShapeMatching => Config {
-            backend: match c.backend {
-                Backend::GaussSeidel => Backend::GaussSeidel,
-                _ => Backend::Jacobi,
-            },
-            iterations: 100,
-            hierarchy: false,
-            ..*c
-        },
-    }
+    (sum / n as f64).sqrt() / accuracy::BAR_LENGTH
 }
 
 /// One row of the result table.
@@ -499,53 +572,64 @@ struct Row {
     error: Option<f64>,
 }
 
-/// The settings grid.
+/// The settings grid at ~1,000 particles.
 fn grid(quick: bool, cpu: bool, gpu: bool) -> Vec<Config> {
-    let mut backends = Vec::new();
-    if cpu {
-        backends.extend([Backend::GaussSeidel, Backend::Jacobi]);
-    }
-    if gpu {
-        backends.push(Backend::Gpu);
-    }
-    let (iters, subs, ks): (&[u32], &[u32], &[u32]) = if quick {
-        (&[5, 20], &[1], &[16])
-    } else {
-        (&[5, 10, 20, 40], &[1, 2, 4], &[16, 48])
-    };
     let mut out = Vec::new();
-    for model in [ModelKind::Hyperelastic, ModelKind::ShapeMatching] {
-        for &backend in &backends {
-            let base = Config {
-                model,
-                backend,
-                iterations: 10,
-                substeps: 1,
-                hierarchy: false,
-                k: 32,
-            };
-            for &iterations in iters {
-                for &substeps in subs {
-                    out.push(Config {
-                        iterations,
-                        substeps,
-                        ..base
-                    });
-                }
-            }
-            for &k in ks {
-                out.push(Config { k, ..base });
-            }
-            let hier = if quick { 1 } else { 2 };
-            for &iterations in &iters[..iters.len().min(hier)] {
-                out.push(Config {
-                    iterations,
-                    hierarchy: true,
-                    ..base
-                });
+    let on = |s: Solve| if s.gpu() { gpu } else { cpu };
+    let its: &[u32] = if quick { &[5, 20] } else { &[5, 10, 20, 40] };
+    let subs: &[u32] = if quick { &[1] } else { &[1, 4] };
+    for solve in [Solve::ClGs, Solve::ClJacobi, Solve::ClGpu] {
+        for &s in subs {
+            for &i in its {
+                out.push(Config::new(solve, i, s));
             }
         }
+        out.push(Config {
+            hierarchy: true,
+            ..Config::new(solve, 10, 1)
+        });
     }
+    for solve in [Solve::SmGs, Solve::SmJacobi, Solve::SmGpu] {
+        for &i in its {
+            out.push(Config::new(solve, i, 1));
+        }
+    }
+    let xpbd: &[(u32, u32)] = if quick {
+        &[(10, 1)]
+    } else {
+        &[(10, 1), (40, 1), (10, 4), (40, 4)]
+    };
+    for solve in [Solve::LatXpbd, Solve::LatVbd] {
+        for &(i, s) in xpbd {
+            out.push(Config::new(solve, i, s));
+        }
+    }
+    let newton: &[(u32, u32)] = if quick {
+        &[(1, 1), (2, 1)]
+    } else {
+        &[(1, 1), (2, 1), (4, 1), (2, 2)]
+    };
+    for solve in [Solve::LatMg, Solve::LatMgGpu] {
+        for &(i, s) in newton {
+            out.push(Config::new(solve, i, s));
+        }
+    }
+    out.retain(|c| on(c.solve));
+    out
+}
+
+/// The settings run at the paper's sizes: each method's real-time and converged ones.
+fn paper_grid(cpu: bool, gpu: bool) -> Vec<Config> {
+    let mut out = vec![
+        Config::new(Solve::ClGpu, 10, 1),
+        Config::new(Solve::ClGpu, 40, 4),
+        Config::new(Solve::LatMgGpu, 1, 1),
+        Config::new(Solve::LatMgGpu, 2, 1),
+        Config::new(Solve::LatMgGpu, 4, 1),
+        Config::new(Solve::ClGs, 20, 4),
+        Config::new(Solve::LatMg, 2, 1),
+    ];
+    out.retain(|c| if c.solve.gpu() { gpu } else { cpu });
     out
 }
 
@@ -569,14 +653,118 @@ fn pareto(rows: &[&Row]) -> Vec<usize> {
     front
 }
 
+fn fail(what: &str, e: impl std::fmt::Display) -> ! {
+    eprintln!("speed_accuracy: {what}: {e}");
+    std::process::exit(1)
+}
+
+/// Runs `config` on `scene` and measures its error.
+struct Runner<'a> {
+    gpu: Option<&'a Gpu>,
+    sizes: Sizes,
+    fem: &'a Solution,
+    /// Converged runs of panel (a), by reference configuration.
+    references: HashMap<Config, Vec<Vec<Vec3>>>,
+}
+
+impl Runner<'_> {
+    fn measure(&mut self, scene: Scene, c: &Config) -> Row {
+        let model = build(scene, c, &self.sizes);
+        let seconds = self.sizes.seconds(scene);
+        let run = if c.solve.gpu() {
+            self.gpu.and_then(|g| run_gpu(g, scene, c, &model, seconds))
+        } else {
+            run_cpu(scene, c, &model, seconds)
+        };
+        let error = run.as_ref().and_then(|r| {
+            let last = r.samples.last()?;
+            let e = match scene {
+                Scene::Reference => {
+                    let rc = c.reference();
+                    let sizes = self.sizes;
+                    let reference = self.references.entry(rc).or_insert_with(|| {
+                        eprintln!("         reference: {}", rc.label());
+                        let rm = build(scene, &rc, &sizes);
+                        run_cpu(scene, &rc, &rm, seconds)
+                            .map(|r| r.samples)
+                            .unwrap_or_default()
+                    });
+                    rms_error(&r.samples, reference)
+                }
+                Scene::Cantilever | Scene::Paper(_) => cantilever_error(&model, last, self.fem),
+                Scene::Poisson => poisson_error(scene, &model, last),
+                Scene::Volume => volume_error(scene, &model, last),
+            };
+            e.is_finite().then_some(e)
+        });
+        Row {
+            config: *c,
+            scene,
+            particles: model.particle_count(),
+            ms_per_step: run.as_ref().map_or(f64::NAN, |r| r.ms_per_step),
+            error,
+        }
+    }
+}
+
+/// Series of one panel: one per method, and the Pareto front.
+fn panel(title: String, rows: &[&Row], md: &mut String) -> chart::Panel {
+    let front = pareto(rows);
+    let _ = writeln!(md, "\nPareto front, {title}:\n");
+    for &i in &front {
+        let r = rows[i];
+        let _ = writeln!(
+            md,
+            "- {:.3} ms/step, error {:.2}%: {}",
+            r.ms_per_step,
+            r.error.unwrap_or(f64::NAN) * 100.0,
+            r.config.label()
+        );
+    }
+    let mut series = Vec::new();
+    for (color, solve) in SOLVES.iter().enumerate() {
+        let points: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r.config.solve == *solve)
+            .filter_map(|r| Some((r.ms_per_step, r.error?)))
+            .collect();
+        if !points.is_empty() {
+            series.push(chart::Series {
+                label: solve.name(),
+                points,
+                color,
+                markers: true,
+                line: false,
+            });
+        }
+    }
+    series.push(chart::Series {
+        label: "Pareto front".into(),
+        points: front
+            .iter()
+            .filter_map(|&i| Some((rows[i].ms_per_step, rows[i].error?)))
+            .collect(),
+        color: SOLVES.len(),
+        markers: false,
+        line: true,
+    });
+    chart::Panel {
+        title,
+        x_label: "ms per step".into(),
+        y_label: "relative error".into(),
+        x_log: true,
+        y_log: true,
+        series,
+    }
+}
+
 fn main() {
     let args = bench::Args::new();
     let quick = args.flag("--quick");
     let out = args.path("--out", "speed_accuracy_out");
-    let bar = args.num("--particles", if quick { 200 } else { 1000 });
     let sizes = Sizes {
-        bar,
-        cube: args.num("--cube", if quick { 343 } else { 1000 }),
+        bar: if quick { 3 } else { 5 },
+        cube: if quick { 6 } else { 10 },
         seconds: if quick {
             [0.3, 0.5, 0.4, 0.4]
         } else {
@@ -586,7 +774,10 @@ fn main() {
     let gpu = if args.flag("--no-gpu") {
         None
     } else {
-        match headless() {
+        match headless().and_then(|g| {
+            let lattice = LatticeKernels::new(&g.device).map_err(|e| e.to_string())?;
+            Ok(Gpu { g, lattice })
+        }) {
             Ok(g) => Some(g),
             Err(e) => {
                 eprintln!("GPU rows skipped: no adapter ({e})");
@@ -594,16 +785,29 @@ fn main() {
             }
         }
     };
-    let configs = grid(quick, !args.flag("--no-cpu"), gpu.is_some());
-    if let Err(e) = std::fs::create_dir_all(&out) {
-        eprintln!("speed_accuracy: cannot create {}: {e}", out.display());
-        std::process::exit(1);
+    if let Some(g) = &gpu {
+        println!("GPU: {}\n", g.g.adapter);
     }
-
-    // Converged references, by (scene, model, K, substeps for shape matching).
-    let mut references: HashMap<(usize, Config), Vec<Vec<Vec3>>> = HashMap::new();
-    let mut rows = Vec::new();
+    let cpu = !args.flag("--no-cpu");
+    let configs = grid(quick, cpu, gpu.is_some());
+    if let Err(e) = std::fs::create_dir_all(&out) {
+        fail(&format!("cannot create {}", out.display()), e);
+    }
     let started = Instant::now();
+    let cells = if quick { 2 } else { 8 };
+    eprintln!(
+        "FEM reference of the cantilever ({}×{cells}×{cells} cells) ...",
+        8 * cells
+    );
+    let fem = bar_fem(cells).unwrap_or_else(|e| fail("the FEM reference", e));
+
+    let mut runner = Runner {
+        gpu: gpu.as_ref(),
+        sizes,
+        fem: &fem,
+        references: HashMap::new(),
+    };
+    let mut rows = Vec::new();
     for (i, c) in configs.iter().enumerate() {
         eprintln!(
             "[{:>3}/{}] {:6.0} s  {}",
@@ -612,78 +816,42 @@ fn main() {
             started.elapsed().as_secs_f64(),
             c.label()
         );
-        for (si, &scene) in SCENES.iter().enumerate() {
-            if !scene.applies(c.model) {
-                continue;
+        for scene in SCENES {
+            if scene.applies(c.solve) {
+                rows.push(runner.measure(scene, c));
             }
-            let model = build(scene, c, &sizes);
-            let seconds = sizes.seconds[si];
-            let run = match c.backend {
-                Backend::Gpu => gpu
-                    .as_ref()
-                    .and_then(|g| run_gpu(g, scene, c, &model, seconds)),
-                _ => run_cpu(scene, c, &model, seconds),
-            };
-            let error = run.as_ref().and_then(|r| {
-                let last = r.samples.last()?;
-                let e = match scene {
-                    Scene::Reference => {
-                        let rc = reference_config(c);
-                        let reference = references.entry((si, rc)).or_insert_with(|| {
-                            let rm = build(scene, &rc, &sizes);
-                            run_cpu(scene, &rc, &rm, seconds)
-                                .map(|r| r.samples)
-                                .unwrap_or_default()
-                        });
-                        rms_error(&r.samples, reference)
-                    }
-                    Scene::Cantilever => cantilever_error(&model, last),
-                    Scene::Poisson => poisson_error(&model, last),
-                    Scene::Volume => volume_error(&model, last),
-                };
-                e.is_finite().then_some(e)
-            });
-            rows.push(Row {
-                config: *c,
-                scene,
-                particles: model.particle_count(),
-                ms_per_step: run.as_ref().map_or(f64::NAN, |r| r.ms_per_step),
-                error,
-            });
         }
     }
-
-    // Self-check of the hyperelastic reference: twice the substeps and iterations.
-    if !quick && !args.flag("--no-cpu") {
-        let base = Config {
-            model: ModelKind::Hyperelastic,
-            backend: Backend::GaussSeidel,
-            iterations: 50,
-            substeps: 16,
-            hierarchy: false,
-            k: 32,
-        };
-        let finer = Config {
-            iterations: 100,
-            substeps: 32,
-            ..base
-        };
-        let model = build(Scene::Reference, &base, &sizes);
-        if let (Some(a), Some(b)) = (
-            references.get(&(0, base)),
-            run_cpu(Scene::Reference, &finer, &model, sizes.seconds[0]),
-        ) {
-            println!(
-                "Reference self-check: the hyperelastic reference (16 substeps, 50 iterations) \
-                 is {:.2e} of the length from one with 32 substeps and 100 iterations.\n",
-                rms_error(a, &b.samples)
+    let paper_sizes: &[u32] = if args.flag("--paper") {
+        &[8, 12, 17]
+    } else {
+        &[]
+    };
+    let paper = paper_grid(cpu, gpu.is_some());
+    for &across in paper_sizes {
+        for c in &paper {
+            let scene = Scene::Paper(across);
+            let model = build(scene, c, &sizes);
+            if c.solve == Solve::ClGs && model.particle_count() > 15_000 {
+                eprintln!(
+                    "skipped {} at {} particles (minutes on this CPU)",
+                    c.label(),
+                    model.particle_count()
+                );
+                continue;
+            }
+            eprintln!(
+                "[paper {across} across] {:6.0} s  {}",
+                started.elapsed().as_secs_f64(),
+                c.label()
             );
+            rows.push(runner.measure(scene, c));
         }
     }
 
     // CSV, the table behind the chart.
     let mut csv = String::from(
-        "scene,model,backend,iterations,substeps,k,hierarchy,particles,ms_per_step,error\n",
+        "scene,discretisation,model,backend,iterations,substeps,hierarchy,particles,ms_per_step,error\n",
     );
     for r in &rows {
         let c = &r.config;
@@ -691,11 +859,11 @@ fn main() {
             csv,
             "{},{},{},{},{},{},{},{},{:.4},{}",
             r.scene.name(),
-            c.model.name(),
-            c.backend.name(),
+            c.solve.discretisation(),
+            c.solve.model(),
+            c.solve.backend(),
             c.iterations,
             c.substeps,
-            c.k,
             c.hierarchy,
             r.particles,
             r.ms_per_step,
@@ -704,25 +872,24 @@ fn main() {
         );
     }
     if let Err(e) = std::fs::write(out.join("speed_accuracy.csv"), csv) {
-        eprintln!("speed_accuracy: cannot write the CSV: {e}");
-        std::process::exit(1);
+        fail("cannot write the CSV", e);
     }
 
-    // Markdown: every run, then each panel's Pareto front.
+    // Markdown: every run at ~1,000 particles, the paper's sizes, each panel's front.
     let mut md = String::new();
     let _ = writeln!(
         md,
-        "| model | backend | iterations | substeps | K | hierarchy | ms/step | reference | cantilever | Poisson | volume |\n|---|---|---|---|---|---|---|---|---|---|---|"
+        "| discretisation | model | backend | iterations | substeps | hierarchy | ms/step (a) | (a) reference | (b) cantilever vs FEM | (c) Poisson | (d) volume |\n|---|---|---|---|---|---|---|---|---|---|---|"
     );
+    let cell = |c: &Config, s: Scene| -> String {
+        match rows.iter().find(|r| r.config == *c && r.scene == s) {
+            None => "–".into(),
+            Some(r) => r
+                .error
+                .map_or("diverged".into(), |e| format!("{:.2}%", e * 100.0)),
+        }
+    };
     for c in &configs {
-        let cell = |s: Scene| -> String {
-            match rows.iter().find(|r| r.config == *c && r.scene == s) {
-                None => "–".into(),
-                Some(r) => r
-                    .error
-                    .map_or("diverged".into(), |e| format!("{:.2}%", e * 100.0)),
-            }
-        };
         let ms = rows
             .iter()
             .find(|r| r.config == *c && r.scene == Scene::Reference)
@@ -730,78 +897,53 @@ fn main() {
         let _ = writeln!(
             md,
             "| {} | {} | {} | {} | {} | {} | {:.3} | {} | {} | {} | {} |",
-            c.model.name(),
-            c.backend.name(),
+            c.solve.discretisation(),
+            c.solve.model(),
+            c.solve.backend(),
             c.iterations,
             c.substeps,
-            c.k,
             if c.hierarchy { "on" } else { "off" },
             ms,
-            cell(Scene::Reference),
-            cell(Scene::Cantilever),
-            cell(Scene::Poisson),
-            cell(Scene::Volume)
+            cell(c, Scene::Reference),
+            cell(c, Scene::Cantilever),
+            cell(c, Scene::Poisson),
+            cell(c, Scene::Volume)
         );
     }
-    let mut panels = Vec::new();
-    for scene in SCENES {
-        let these: Vec<&Row> = rows.iter().filter(|r| r.scene == scene).collect();
-        let front = pareto(&these);
-        let _ = writeln!(md, "\nPareto front, {}:\n", scene.title());
-        for &i in &front {
-            let r = these[i];
+    if !paper_sizes.is_empty() {
+        let _ = writeln!(
+            md,
+            "\nThe cantilever at the paper's sizes, tip against the FEM:\n\n| across | particles | method | iterations × substeps | ms/step | error |\n|---|---|---|---|---|---|"
+        );
+        for r in rows.iter().filter(|r| matches!(r.scene, Scene::Paper(_))) {
+            let Scene::Paper(n) = r.scene else { continue };
             let _ = writeln!(
                 md,
-                "- {:.3} ms/step, error {:.2}%: {}",
+                "| {n} | {} | {} | {} × {} | {:.3} | {} |",
+                r.particles,
+                r.config.solve.name(),
+                r.config.iterations,
+                r.config.substeps,
                 r.ms_per_step,
-                r.error.unwrap_or(f64::NAN) * 100.0,
-                r.config.label()
+                r.error
+                    .map_or("diverged".into(), |e| format!("{:.2}%", e * 100.0))
             );
         }
-        let mut series = Vec::new();
-        let mut color = 0;
-        for model in [ModelKind::Hyperelastic, ModelKind::ShapeMatching] {
-            for backend in [Backend::GaussSeidel, Backend::Jacobi, Backend::Gpu] {
-                let points: Vec<(f64, f64)> = these
-                    .iter()
-                    .filter(|r| r.config.model == model && r.config.backend == backend)
-                    .filter_map(|r| Some((r.ms_per_step, r.error?)))
-                    .collect();
-                if !points.is_empty() {
-                    series.push(chart::Series {
-                        label: format!("{} {}", model.name(), backend.name()),
-                        points,
-                        color,
-                        markers: true,
-                        line: false,
-                    });
-                }
-                color += 1;
-            }
+    }
+    let mut panels = Vec::new();
+    let mut scenes: Vec<Scene> = SCENES.to_vec();
+    scenes.extend(paper_sizes.iter().map(|&n| Scene::Paper(n)));
+    for scene in scenes {
+        let these: Vec<&Row> = rows.iter().filter(|r| r.scene == scene).collect();
+        if these.is_empty() {
+            continue;
         }
-        series.push(chart::Series {
-            label: "Pareto front".into(),
-            points: front
-                .iter()
-                .filter_map(|&i| Some((these[i].ms_per_step, these[i].error?)))
-                .collect(),
-            color: 7,
-            markers: false,
-            line: true,
-        });
-        panels.push(chart::Panel {
-            title: scene.title().into(),
-            x_label: "ms per step".into(),
-            y_label: "relative error".into(),
-            x_log: true,
-            y_log: true,
-            series,
-        });
+        let particles = these.iter().map(|r| r.particles).max().unwrap_or(0);
+        panels.push(panel(scene.title(particles), &these, &mut md));
     }
     print!("{md}");
     if let Err(e) = chart::draw(&out.join("speed_accuracy.png"), &panels, 2, (800, 560)) {
-        eprintln!("speed_accuracy: cannot draw the chart: {e}");
-        std::process::exit(1);
+        fail("cannot draw the chart", e);
     }
     eprintln!(
         "wrote {} and {} in {:.0} s",

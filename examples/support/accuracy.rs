@@ -8,6 +8,7 @@
 use bevy_tissue::core::TissueError;
 use bevy_tissue::core::colliders::{Collider, ColliderShape};
 use bevy_tissue::core::fem::{Fem, FemError, Solution, TetMesh};
+use bevy_tissue::core::hierarchy::HierarchyDesc;
 use bevy_tissue::core::mesh::TriMesh;
 use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
@@ -120,6 +121,18 @@ fn build(
     density: f32,
     pins: Vec<PinRegion>,
 ) -> Result<Model, TissueError> {
+    build_with(mesh, disc, spacing, material, density, pins, None)
+}
+
+fn build_with(
+    mesh: &TriMesh,
+    disc: Disc,
+    spacing: f64,
+    material: Material,
+    density: f32,
+    pins: Vec<PinRegion>,
+    hierarchy: Option<HierarchyDesc>,
+) -> Result<Model, TissueError> {
     let (discretisation, k) = disc.core();
     let desc = BodyDesc {
         resolution: Resolution::Spacing(spacing as f32),
@@ -128,6 +141,7 @@ fn build(
         material,
         pins,
         discretisation,
+        hierarchy,
         ..Default::default()
     };
     let mut model = Model::new();
@@ -143,6 +157,24 @@ pub fn bar_model(disc: Disc, across: u32) -> Result<Model, TissueError> {
 
 /// [`bar_model`] with Young's modulus `youngs_modulus` (Pa).
 pub fn bar_model_with(disc: Disc, across: u32, youngs_modulus: f32) -> Result<Model, TissueError> {
+    bar_body(
+        disc,
+        across,
+        Material::Hyperelastic {
+            youngs_modulus,
+            poisson_ratio: BAR_NU,
+        },
+        None,
+    )
+}
+
+/// [`bar_model`] of any material, with an optional hierarchy (clusters only).
+pub fn bar_body(
+    disc: Disc,
+    across: u32,
+    material: Material,
+    hierarchy: Option<HierarchyDesc>,
+) -> Result<Model, TissueError> {
     let t = BAR_THICKNESS;
     let mesh = box_mesh(
         DVec3::new(0.0, -0.5 * t, -0.5 * t),
@@ -153,19 +185,17 @@ pub fn bar_model_with(disc: Disc, across: u32, youngs_modulus: f32) -> Result<Mo
         Disc::Lattice => 0.25 * s,
         Disc::Clusters(_) => s,
     };
-    build(
+    build_with(
         &mesh,
         disc,
         s,
-        Material::Hyperelastic {
-            youngs_modulus,
-            poisson_ratio: BAR_NU,
-        },
+        material,
         DENSITY,
         vec![PinRegion::HalfSpace {
             point: Vec3::new(clamp as f32, 0.0, 0.0),
             normal: -Vec3::X,
         }],
+        hierarchy,
     )
 }
 
@@ -243,17 +273,33 @@ pub fn bar_static_tip_under(model: &Model, g: f64) -> Result<(f64, usize), Tissu
 /// The compression cube (edge [`CUBE`], from the origin) with `across` particles along
 /// each edge and Poisson ratio `nu`.
 pub fn cube_model(disc: Disc, across: u32, nu: f32) -> Result<Model, TissueError> {
-    let mesh = box_mesh(DVec3::ZERO, DVec3::splat(CUBE));
-    build(
-        &mesh,
+    cube_body(
         disc,
-        disc.spacing(CUBE, across),
+        across,
         Material::Hyperelastic {
             youngs_modulus: CUBE_E,
             poisson_ratio: nu,
         },
+        None,
+    )
+}
+
+/// [`cube_model`] of any material, with an optional hierarchy (clusters only).
+pub fn cube_body(
+    disc: Disc,
+    across: u32,
+    material: Material,
+    hierarchy: Option<HierarchyDesc>,
+) -> Result<Model, TissueError> {
+    let mesh = box_mesh(DVec3::ZERO, DVec3::splat(CUBE));
+    build_with(
+        &mesh,
+        disc,
+        disc.spacing(CUBE, across),
+        material,
         DENSITY,
         vec![],
+        hierarchy,
     )
 }
 
