@@ -141,18 +141,18 @@ fn translate(
 /// The crate's kernel modules (name, WGSL source).
 fn kernel_sources() -> Vec<(String, String)> {
     let mut v: Vec<(String, String)> = [
-        ("integrate", integrate::SOURCE),
-        ("grid", grid::SOURCE),
-        ("cluster", cluster::SOURCE),
-        ("gather", gather::SOURCE),
-        ("body", body::SOURCE),
-        ("hierarchy", hierarchy::SOURCE),
-        ("forces", forces::SOURCE),
-        ("broad", broad::SOURCE),
-        ("skin", skin::SOURCE),
+        ("integrate", integrate::source()),
+        ("grid", grid::source()),
+        ("cluster", cluster::source()),
+        ("gather", gather::source()),
+        ("body", body::source()),
+        ("hierarchy", hierarchy::source()),
+        ("forces", forces::source()),
+        ("broad", broad::source()),
+        ("skin", skin::source()),
     ]
     .into_iter()
-    .map(|(n, s)| (n.to_string(), s.to_string()))
+    .map(|(n, s)| (n.to_string(), s))
     .collect();
     for warm in [false, true] {
         for slots in knn::SLOT_COUNTS {

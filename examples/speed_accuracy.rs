@@ -64,9 +64,9 @@ mod bench;
 mod chart;
 
 use accuracy::{
-    BAR_E, BAR_GRAVITY, BAR_NU, CUBE_E, Disc, bar_body, bar_fem, bar_fem_tip_at,
-    bar_first_mode, bar_tip, cube_body, displacements, layer_strain, material_volume,
-    measured_poisson, plates, uniaxial_lateral_stretch,
+    BAR_E, BAR_GRAVITY, BAR_NU, CUBE_E, Disc, bar_body, bar_fem, bar_fem_tip_at, bar_first_mode,
+    bar_tip, cube_body, displacements, layer_strain, material_volume, measured_poisson, plates,
+    uniaxial_lateral_stretch,
 };
 use bevy_tissue::core::colliders::Collider;
 use bevy_tissue::core::fem::Solution;

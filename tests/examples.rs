@@ -243,7 +243,10 @@ fn speed_accuracy_quick_fills_every_cell() {
     // 0.1%, where the clusters' converged Gauss–Seidel is off by tens of percent and 1%.
     let nu = get("poisson", "lattice,hyperelastic", "CPU Newton-MG", 2).unwrap();
     let vol = get("volume", "lattice,hyperelastic", "CPU Newton-MG", 2).unwrap();
-    assert!(nu < 0.01 && vol < 1e-3, "lattice Poisson {nu}, volume {vol}");
+    assert!(
+        nu < 0.01 && vol < 1e-3,
+        "lattice Poisson {nu}, volume {vol}"
+    );
     let nu_c = get("poisson", "clusters,hyperelastic", "CPU Gauss-Seidel", 20).unwrap();
     assert!(nu_c > 10.0 * nu, "clusters Poisson {nu_c} vs lattice {nu}");
     // The GPU iterates the same Jacobi and the same Newton–multigrid as the CPU: the same

@@ -895,8 +895,13 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
     if !gpu_available() {
         return;
     }
+    // 8 KiB of workgroup memory: less than the render graph's kernels use (Bevy's own
+    // pipelines run with it).
     let mut app = app(WgpuSettings {
-        constrained_limits: Some(bevy::render::settings::WgpuLimits::default()),
+        constrained_limits: Some(bevy::render::settings::WgpuLimits {
+            max_compute_workgroup_storage_size: 8 * 1024,
+            ..default()
+        }),
         ..default()
     });
     let (body, pinned) = body_spec();
@@ -986,11 +991,12 @@ fn lattice_bodies_touch_each_other_on_the_gpu() {
     );
 }
 
-/// On a device held to WebGPU's default limits, which the render graph's kernels exceed,
-/// a scene of lattice bodies (the default) still steps on the GPU: their kernels fit,
-/// and the world stays on `TissueBackend::Auto`.
+/// On a device held to WebGPU's default limits (8 storage buffers per stage, 16 KiB of
+/// workgroup memory, 256 invocations), every body steps on the GPU: a lattice body (the
+/// default, `GpuLattice`) and a cluster body (the render graph's kernels, whose layouts
+/// hold only what each kernel uses), and the world stays on `TissueBackend::Auto`.
 #[test]
-fn lattice_bodies_step_on_the_gpu_under_webgpu_limits() {
+fn every_body_steps_on_the_gpu_under_webgpu_limits() {
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
     if !gpu_available() {
         return;
@@ -1001,7 +1007,23 @@ fn lattice_bodies_step_on_the_gpu_under_webgpu_limits() {
     });
     let (body, pinned) = common::lattice_body();
     spawn_on_main_world_path(&mut app, Vec3::new(0.0, 0.3, 0.0), body, Some(pinned));
-    step_frames(&mut app, 10);
+    let (clusters, pinned) = body_spec();
+    let c = spawn_body(&mut app, Vec3::new(0.5, 0.3, 0.0), clusters, Some(pinned));
+    app.world_mut()
+        .entity_mut(c)
+        .insert(ReadbackParticles { continuous: true });
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    assert!(
+        until(&mut app, 120, |app| app
+            .world()
+            .get::<ParticlePositions>(c)
+            .is_some_and(|p| p.step >= 10)),
+        "the cluster body did not step"
+    );
     assert_eq!(
         app.world().resource::<TissueSettings>().backend,
         TissueBackend::Auto,
@@ -1013,6 +1035,8 @@ fn lattice_bodies_step_on_the_gpu_under_webgpu_limits() {
         "the lattice body stepped on the CPU"
     );
     assert!(world.state().unwrap().step >= 10);
+    let p = app.world().get::<ParticlePositions>(c).unwrap();
+    assert!(p.positions.iter().all(|x| x.is_finite()));
 }
 
 /// A lattice body steps on the GPU (Newton–multigrid, `GpuLattice`) from the plugin and

@@ -141,6 +141,14 @@ pub enum TissueError {
         /// What the adapter allows.
         limit: u64,
     },
+    /// A kernel's shader could not be analysed for its bindings (a defect of this crate,
+    /// not of the model or the adapter).
+    GpuShader {
+        /// The shader module.
+        module: &'static str,
+        /// What went wrong.
+        message: String,
+    },
     /// The simulation produced NaN/inf or exploded; the state was restored to before the step.
     Diverged {
         /// Step counter at which it happened.
@@ -210,6 +218,10 @@ impl fmt::Display for TissueError {
             } => write!(
                 f,
                 "the adapter cannot run the simulation's kernels: {what} needs {needed}, the adapter allows {limit}"
+            ),
+            TissueError::GpuShader { module, message } => write!(
+                f,
+                "the {module} kernels' bindings could not be analysed (please report this): {message}"
             ),
             TissueError::Diverged {
                 step,

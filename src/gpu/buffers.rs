@@ -86,8 +86,20 @@ pub struct GpuParams {
     /// Jacobi relaxation of the particle contacts
     /// ([`crate::core::solver::SolverSettings::contact_relaxation`]).
     pub contact_omega: f32,
+    /// First predicted position in the positions buffer (after every level's positions).
+    pub p_base: u32,
+    /// First pin target in the rest buffer.
+    pub pin_base: u32,
+    /// First collider displacement in the `aux` buffer.
+    pub coldp_base: u32,
+    /// First grab in the `aux` buffer.
+    pub grab_base: u32,
+    /// First per-body box in the `aux` buffer.
+    pub bounds_base: u32,
+    /// First grid-sorted point in the `aux` buffer.
+    pub sorted_base: u32,
     /// Padding to the WGSL struct's 16-byte multiple.
-    pub pad: [u32; 1],
+    pub pad: [u32; 3],
 }
 
 /// Candidates beyond K that a warm neighbour search may set aside before it falls back to

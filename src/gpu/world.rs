@@ -22,7 +22,7 @@ use crate::core::model::Model;
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferDescriptor,
-    BufferUsages, CommandEncoder, ComputePass, ComputePassDescriptor, ComputePipeline, MapMode,
+    BufferUsages, CommandEncoder, ComputePass, ComputePassDescriptor, MapMode,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use glam::Vec3;
@@ -50,27 +50,44 @@ impl PassRecorder for NoTiming {}
 /// times passes (timestamp writes are per pass). One pass per step spares the per-pass
 /// cost of wgpu's resource tracking, which on an H100 was measured to exceed the kernels'
 /// own time at 38k particles.
-struct Recording<'e, 'r> {
+struct Recording<'e, 'r, 'b> {
     encoder: &'e mut CommandEncoder,
     pass: Option<ComputePass<'static>>,
     rec: &'r mut dyn PassRecorder,
+    /// The world's bind groups, by [`kernels::Kernel::id`].
+    binds: &'b [KernelBind],
 }
 
-impl<'e, 'r> Recording<'e, 'r> {
-    fn new(encoder: &'e mut CommandEncoder, rec: &'r mut dyn PassRecorder) -> Self {
+/// Group 3 (per dispatch) of a dispatch.
+#[derive(Clone, Copy)]
+enum Window<'a> {
+    /// The kernel binds nothing per dispatch.
+    None,
+    /// The world's range or scan-level record at this byte offset.
+    At(u32),
+    /// A vertex slab's group (one of a [`SlabGroup`]) with the skin span at this offset.
+    Slab(&'a BindGroup, u32),
+}
+
+impl<'e, 'r, 'b> Recording<'e, 'r, 'b> {
+    fn new(
+        encoder: &'e mut CommandEncoder,
+        rec: &'r mut dyn PassRecorder,
+        binds: &'b [KernelBind],
+    ) -> Self {
         Self {
             encoder,
             pass: None,
             rec,
+            binds,
         }
     }
 
     fn dispatch(
         &mut self,
-        world: &BindGroup,
         name: &'static str,
-        pipeline: &ComputePipeline,
-        group1: Option<(&BindGroup, u32)>,
+        kernel: &kernels::Kernel,
+        window: Window<'_>,
         workgroups: (u32, u32),
     ) {
         let ts = self.rec.timestamps(name);
@@ -101,92 +118,215 @@ impl<'e, 'r> Recording<'e, 'r> {
             })
         };
         self.rec.begin(pass, name);
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, world, &[]);
-        if let Some((g, off)) = group1 {
-            pass.set_bind_group(1, g, &[off]);
+        pass.set_pipeline(&kernel.pipeline);
+        if let Some(bind) = self.binds.get(kernel.id) {
+            for (g, group) in bind.fixed.iter().enumerate() {
+                pass.set_bind_group(g as u32, group, &[]);
+            }
+            match window {
+                Window::None => {}
+                Window::At(offset) => {
+                    if let Some(group) = &bind.window {
+                        pass.set_bind_group(3, group, &[offset]);
+                    }
+                }
+                Window::Slab(group, offset) => pass.set_bind_group(3, group, &[offset]),
+            }
         }
         pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
         self.rec.end(pass);
     }
 }
 
-/// Bindings, in world-group order (see `kernels/bindings.wgsl`).
+/// One kernel's bind groups in a world: groups 0–2 (up to the last it uses, empty where
+/// it uses nothing), and group 3 where it reads the world's range or scan-level records.
+pub struct KernelBind {
+    fixed: Vec<BindGroup>,
+    window: Option<BindGroup>,
+}
+
+impl KernelBind {
+    /// `kernel`'s bind groups over the world's buffers `b` and records.
+    fn new(
+        device: &RenderDevice,
+        kernel: &kernels::Kernel,
+        b: &Buffers,
+        scan_buf: &Buffer,
+        lrec_buf: &Buffer,
+    ) -> Self {
+        let window = |name: &str| -> Option<BindingResource<'_>> {
+            let (buffer, size) = match name {
+                "level" => (scan_buf, size_of::<u32>() as u64 * 4),
+                // The WGSL `Range`: 8 words.
+                "range" => (lrec_buf, size_of::<u32>() as u64 * 8),
+                _ => return b.named(name).map(|buf| buf.as_entire_binding()),
+            };
+            Some(BindingResource::Buffer(BufferBinding {
+                buffer,
+                offset: 0,
+                size: std::num::NonZeroU64::new(size),
+            }))
+        };
+        let mut fixed = Vec::new();
+        let mut own = None;
+        for (g, (layout, uses)) in kernel.groups.iter().enumerate() {
+            if g < 3 {
+                fixed.push(bind_group(device, kernel.name, layout, uses, &window));
+            } else if uses
+                .iter()
+                .all(|&i| window(kernels::bindings::TABLE[i].name).is_some())
+            {
+                // Group 3 from the world's own records; the draw kernels' comes with the
+                // slab ([`GpuWorld::slab_group`]).
+                own = Some(bind_group(device, kernel.name, layout, uses, &window));
+            }
+        }
+        Self { fixed, window: own }
+    }
+}
+
+/// A bind group of `layout` with each of the table entries `uses` bound to the resource
+/// `resource` names for it (entries it has none for are left out, and the group is
+/// then invalid: a defect the device reports).
+fn bind_group<'a>(
+    device: &RenderDevice,
+    label: &str,
+    layout: &bevy::render::render_resource::BindGroupLayout,
+    uses: &[usize],
+    resource: &dyn Fn(&str) -> Option<BindingResource<'a>>,
+) -> BindGroup {
+    let entries: Vec<BindGroupEntry> = uses
+        .iter()
+        .filter_map(|&i| {
+            let (_, binding) = kernels::bindings::location(i);
+            Some(BindGroupEntry {
+                binding,
+                resource: resource(kernels::bindings::TABLE[i].name)?,
+            })
+        })
+        .collect();
+    device.create_bind_group(label, layout, &entries)
+}
+
+/// The bind groups that let the draw kernels write into one vertex slab (one per kernel
+/// that writes it); made by [`GpuWorld::slab_group`].
+pub struct SlabGroup {
+    skin: BindGroup,
+    normals: BindGroup,
+}
+
+/// The world's buffers, by their names in the binding table
+/// ([`kernels::bindings::TABLE`]; the per-dispatch records are [`GpuWorld`]'s own).
 struct Buffers {
     params: Buffer,
     colliders: Buffer,
+    draw: Buffer,
     x: Buffer,
     v: Buffer,
-    p: Buffer,
-    p2: Buffer,
+    aux: Buffer,
+    cstate: Buffer,
+    corr: Buffer,
+    contacts: Buffer,
+    scan: Buffer,
+    cursor: Buffer,
+    cell_of: Buffer,
+    forces: Buffer,
+    fgrad: Buffer,
+    knn_out: Buffer,
+    status: Buffer,
+    spare: Buffer,
     rest: Buffer,
     pinfo: Buffer,
     lists: Buffer,
     crest: Buffer,
     bodies: Buffer,
-    cstate: Buffer,
-    corr: Buffer,
-    pins: Buffer,
-    coldp: Buffer,
-    contacts: Buffer,
-    scan: Buffer,
-    cursor: Buffer,
-    sorted: Buffer,
-    cell_of: Buffer,
-    forces: Buffer,
-    fgrad: Buffer,
+    hier: Buffer,
     vinf: Buffer,
     vwt: Buffer,
     vrest: Buffer,
     adj: Buffer,
-    draw: Buffer,
-    knn_out: Buffer,
-    status: Buffer,
-    bounds: Buffer,
-    hier: Buffer,
-    grab: Buffer,
-    spare: Buffer,
 }
 
 impl Buffers {
-    fn in_order(&self) -> [&Buffer; 33] {
-        [
-            &self.params,
-            &self.colliders,
-            &self.x,
-            &self.v,
-            &self.p,
-            &self.p2,
-            &self.rest,
-            &self.pinfo,
-            &self.lists,
-            &self.crest,
-            &self.bodies,
-            &self.cstate,
-            &self.corr,
-            &self.pins,
-            &self.coldp,
-            &self.contacts,
-            &self.scan,
-            &self.cursor,
-            &self.sorted,
-            &self.cell_of,
-            &self.forces,
-            &self.fgrad,
-            &self.vinf,
-            &self.vwt,
-            &self.vrest,
-            &self.adj,
-            &self.draw,
-            &self.knn_out,
-            &self.status,
-            &self.bounds,
-            &self.hier,
-            &self.grab,
-            &self.spare,
-        ]
+    /// The buffer bound as the table's `name` (groups 0–2).
+    fn named(&self, name: &str) -> Option<&Buffer> {
+        Some(match name {
+            "params" => &self.params,
+            "colliders" => &self.colliders,
+            "draw" => &self.draw,
+            "x" => &self.x,
+            "v" => &self.v,
+            "aux" => &self.aux,
+            "cstate" => &self.cstate,
+            "corr" => &self.corr,
+            "contacts" => &self.contacts,
+            "scan" => &self.scan,
+            "cursor" => &self.cursor,
+            "cell_of" => &self.cell_of,
+            "forces" => &self.forces,
+            "fgrad" => &self.fgrad,
+            "knn_out" => &self.knn_out,
+            "status" => &self.status,
+            "spare" => &self.spare,
+            "rest" => &self.rest,
+            "pinfo" => &self.pinfo,
+            "lists" => &self.lists,
+            "crest" => &self.crest,
+            "bodies" => &self.bodies,
+            "hier" => &self.hier,
+            "vinf" => &self.vinf,
+            "vwt" => &self.vwt,
+            "vrest" => &self.vrest,
+            "adj" => &self.adj,
+            _ => return None,
+        })
     }
 }
+
+/// Where the arrays that share a buffer start (in `vec4` entries; the kernels read the
+/// same bases from `Params`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct Regions {
+    /// Predicted positions in `x` (after every level's positions).
+    p_base: u32,
+    /// Pin targets in `rest`.
+    pin_base: u32,
+    /// Collider displacements in `aux` (after the contact pass's two halves).
+    coldp_base: u32,
+    /// Grabs in `aux`.
+    grab_base: u32,
+    /// Per-body boxes, flags and near lists in `aux`.
+    bounds_base: u32,
+    /// Grid-sorted points in `aux`.
+    sorted_base: u32,
+    /// Entries of `aux`.
+    aux_len: u32,
+}
+
+impl Regions {
+    /// The regions of a world of `n` level-0 particles, `total` particles of all levels,
+    /// `rest` rest records and `bodies` bodies.
+    fn new(n: u32, total: u32, rest: u32, bodies: u32) -> Self {
+        let halves = total.max(2 * n);
+        let coldp_base = halves;
+        let grab_base = coldp_base + total;
+        let bounds_base = grab_base + total;
+        let sorted_base = bounds_base + bodies * BOUNDS_PER_BODY;
+        Self {
+            p_base: total,
+            pin_base: rest,
+            coldp_base,
+            grab_base,
+            bounds_base,
+            sorted_base,
+            aux_len: sorted_base + n,
+        }
+    }
+}
+
+/// `vec4` entries per body in the bounds region: min and max, the broad phase's flag,
+/// then the near list (`NEAR_SLOTS` indices, four to an entry).
+const BOUNDS_PER_BODY: u32 = 3 + kernels::broad::NEAR_SLOTS / 4;
 
 /// Per body: particle range and render-vertex range.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -223,14 +363,17 @@ pub struct GpuWorld {
     surface: Buffer,
     levels: Vec<(u32, u32)>,
     scan_len: u32,
+    /// The skinning spans (one 256-byte record per skin dispatch).
     range_buf: Buffer,
-    world_group: BindGroup,
-    scan_group: BindGroup,
-    /// Group 1 of the cluster, gather and hierarchy kernels: record 0 is level 0's
-    /// particle range; then per coarse level its particle range, its prolongation
-    /// records and its multiplier-transfer records (256 bytes each).
-    level_group: BindGroup,
-    /// Record of level 0's first iteration record in `level_group` (16 variants per
+    /// Every kernel's bind groups, by [`kernels::Kernel::id`] (they keep the per-dispatch
+    /// records alive: the prefix sum's levels, `level`, one 256-byte record per level and
+    /// the two build configurations; the ranges, `range`: level 0's particles, then per
+    /// coarse level its particles, prolongation and transfer records, then level 0's
+    /// iteration records).
+    binds: Vec<KernelBind>,
+    /// Where the arrays that share a buffer start.
+    regions: Regions,
+    /// Record of level 0's first iteration record in `lrec_buf` (16 variants per
     /// body_iteration block length, `block_records` lengths).
     iteration_records: u32,
     /// Longest body_iteration block the records were built for (`max_block` at creation).
@@ -315,7 +458,7 @@ const CLUSTER_LANES: u32 = 8;
 
 /// The cluster kernel for a range of `n` clusters and its workgroup grid
 /// ([`CLUSTER_LANES`] threads per cluster below `lanes_below` clusters).
-fn cluster_kernel(k: &Kernels, n: u32, lanes_below: u32) -> (&ComputePipeline, (u32, u32)) {
+fn cluster_kernel(k: &Kernels, n: u32, lanes_below: u32) -> (&kernels::Kernel, (u32, u32)) {
     if n < lanes_below {
         (
             &k.clusters_lanes,
@@ -400,7 +543,15 @@ impl GpuWorld {
             .map(|m| (m.cluster_members.len() + m.inv_clusters.len()) as u64)
             .sum::<u64>();
         let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
-        let checks: [(&'static str, u64); 6] = [
+        let bodies = model.bodies.len() as u64;
+        let n0 = model.particle_count() as u64;
+        let aux = n.max(2 * n0) + 2 * n + bodies * BOUNDS_PER_BODY as u64 + n0;
+        let checks: [(&'static str, u64); 8] = [
+            ("positions and predicted positions", 2 * n * 16),
+            (
+                "particle scratch (contact pass, colliders, grabs, bounds, grid)",
+                aux * 16,
+            ),
             ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
             ("cluster corrections", n * CORR_BYTES),
             ("cluster lists", lists * 4),
@@ -536,6 +687,26 @@ impl GpuWorld {
             })
         };
         let n64 = n as u64;
+        let regions = Regions::new(
+            n,
+            total as u32,
+            packed.rest.len() as u32,
+            model.bodies.len() as u32,
+        );
+        // Positions, then the predicted positions (the same at the start).
+        let mut xp = x.clone();
+        xp.extend_from_slice(&x);
+        // Rest records, then the pin targets.
+        let mut rest = packed.rest.clone();
+        rest.extend_from_slice(&pins);
+        // The contact pass's two halves of level 0's particles (iterations alternate
+        // between them when particle contacts are on), at least every level's (the
+        // hierarchy's snapshot); collider displacements; grabs; per-body boxes, flags and
+        // near lists (broad.wgsl); grid-sorted points.
+        let mut aux = x.clone();
+        aux.resize(regions.grab_base as usize, [0.0; 4]);
+        aux.extend_from_slice(&grab);
+        aux.resize(regions.aux_len as usize, [0.0; 4]);
         let b = Buffers {
             params: zeroed(
                 "tissue params",
@@ -547,30 +718,19 @@ impl GpuWorld {
                 (MAX_COLLIDERS * size_of::<GpuCollider>()) as u64,
                 BufferUsages::UNIFORM | BufferUsages::COPY_DST,
             ),
-            x: init("tissue x", bytemuck::cast_slice(&x), st),
+            x: init("tissue x", bytemuck::cast_slice(&xp), st),
             v: init("tissue v", bytemuck::cast_slice(&v), st),
-            p: init("tissue p", bytemuck::cast_slice(&x), st),
-            // Two halves of level 0's particles (iterations alternate between them when
-            // particle contacts are on), and at least every level's (the hierarchy's
-            // snapshot).
-            p2: {
-                let mut p2 = x.clone();
-                p2.resize(p2.len().max(2 * n as usize), [0.0; 4]);
-                init("tissue p2", bytemuck::cast_slice(&p2), st)
-            },
-            rest: init("tissue rest", bytemuck::cast_slice(&packed.rest), st),
+            aux: init("tissue aux", bytemuck::cast_slice(&aux), st),
+            rest: init("tissue rest", bytemuck::cast_slice(&rest), st),
             pinfo: init("tissue pinfo", bytemuck::cast_slice(&packed.pinfo), st),
             lists: init("tissue lists", bytemuck::cast_slice(&packed.lists), st),
             crest: init("tissue crest", bytemuck::cast_slice(&packed.crest), st),
             bodies: init("tissue bodies", bytemuck::cast_slice(&gpu_bodies), st),
             cstate: init("tissue cstate", bytemuck::cast_slice(&cstate), st),
             corr: zeroed("tissue corr", total * CORR_BYTES, st),
-            pins: init("tissue pins", bytemuck::cast_slice(&pins), st),
-            coldp: zeroed("tissue coldp", total * 16, st),
             contacts: unknown_lists(device, "tissue contacts", n64 * contact_k.max(1) as u64, st),
             scan: zeroed("tissue scan", scan_len as u64 * 4, st),
             cursor: zeroed("tissue cursor", table as u64 * 4, st),
-            sorted: zeroed("tissue sorted", n64 * 16, st),
             cell_of: zeroed("tissue cell_of", n64 * 4, st),
             forces: zeroed(
                 "tissue forces",
@@ -589,27 +749,9 @@ impl GpuWorld {
             ),
             knn_out: unknown_lists(device, "tissue knn", n64 * knn_k.max(1) as u64, st),
             status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
-            // Per body min and max, then per body the contact broad phase's flag, then
-            // per body the bodies near it (broad.wgsl: NEAR_SLOTS indices).
-            bounds: zeroed(
-                "tissue bounds",
-                model.bodies.len() as u64 * (48 + kernels::broad::NEAR_SLOTS as u64 * 4),
-                st,
-            ),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
-            grab: init("tissue grab", bytemuck::cast_slice(&grab), st),
             spare: zeroed("tissue knn spare", n64 * spare_stride as u64 * 4, st),
         };
-        let entries: Vec<BindGroupEntry> = b
-            .in_order()
-            .iter()
-            .enumerate()
-            .map(|(i, buf)| BindGroupEntry {
-                binding: i as u32,
-                resource: buf.as_entire_binding(),
-            })
-            .collect();
-        let world_group = device.create_bind_group("tissue world", &kernels.world_layout, &entries);
         // Scan levels: one 256-byte uniform record per level (dynamic offsets).
         let mut recs: Vec<GpuScanLevel> = levels
             .iter()
@@ -633,22 +775,10 @@ impl GpuWorld {
                 pad: [0; 60],
             });
         }
-        let level_buf = init(
+        let scan_buf = init(
             "tissue scan levels",
             bytemuck::cast_slice(&recs),
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
-        );
-        let scan_group = device.create_bind_group(
-            "tissue scan level",
-            &kernels.scan_layout,
-            &[BindGroupEntry {
-                binding: 0,
-                resource: BindingResource::Buffer(BufferBinding {
-                    buffer: &level_buf,
-                    offset: 0,
-                    size: std::num::NonZeroU64::new(16),
-                }),
-            }],
         );
         // Level ranges: level 0, then per coarse level its particles and its records.
         let range = |first, count, base, flag| GpuRange {
@@ -688,19 +818,6 @@ impl GpuWorld {
             bytemuck::cast_slice(&lrecs),
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
         );
-        let level_group = device.create_bind_group(
-            "tissue level range",
-            &kernels.scan_layout,
-            &[BindGroupEntry {
-                binding: 0,
-                resource: BindingResource::Buffer(BufferBinding {
-                    buffer: &lrec_buf,
-                    offset: 0,
-                    // The WGSL `Range` (28 bytes, rounded to 32).
-                    size: std::num::NonZeroU64::new(32),
-                }),
-            }],
-        );
         let range_buf = zeroed(
             "tissue skin ranges",
             (MAX_SKIN_RUNS * size_of::<GpuSkinRange>()) as u64,
@@ -711,6 +828,11 @@ impl GpuWorld {
             nv as u64 * 32,
             BufferUsages::STORAGE | BufferUsages::VERTEX | BufferUsages::COPY_SRC,
         );
+        let binds = kernels
+            .all()
+            .iter()
+            .map(|k| KernelBind::new(device, k, &b, &scan_buf, &lrec_buf))
+            .collect();
         let ranges = model
             .bodies
             .iter()
@@ -748,7 +870,13 @@ impl GpuWorld {
             iterations: settings.iterations,
             contact_reach: crate::core::knn::contact_reach_bound(packed.max_radius),
             contact_omega: settings.contact_relaxation,
-            pad: [0; 1],
+            p_base: regions.p_base,
+            pin_base: regions.pin_base,
+            coldp_base: regions.coldp_base,
+            grab_base: regions.grab_base,
+            bounds_base: regions.bounds_base,
+            sorted_base: regions.sorted_base,
+            pad: [0; 3],
         };
         Ok(Self {
             settings,
@@ -762,9 +890,8 @@ impl GpuWorld {
             levels,
             scan_len,
             range_buf,
-            world_group,
-            scan_group,
-            level_group,
+            binds,
+            regions,
             iteration_records,
             block_records,
             coarse: packed.levels.clone(),
@@ -851,16 +978,18 @@ impl GpuWorld {
 
     /// Per particle (all levels): the grasper holding it, `[offset (m, grasper frame),
     /// grasper index + 1, or 0 when free]` (16 bytes each;
-    /// [`crate::core::colliders::Grab`]'s twin).
-    pub fn grabs(&self) -> &Buffer {
-        &self.b.grab
+    /// [`crate::core::colliders::Grab`]'s twin): the buffer and the byte offset of the
+    /// first particle's record.
+    pub fn grabs(&self) -> (&Buffer, u64) {
+        (&self.b.aux, self.regions.grab_base as u64 * 16)
     }
 
     /// Lets every held particle go (the plugin does this when the collider list changes
     /// order, since grabs name graspers by index).
     pub fn release_grabs(&self, queue: &RenderQueue) {
-        let zeros = vec![0u8; self.b.grab.size() as usize];
-        queue.write_buffer(&self.b.grab, 0, &zeros);
+        let records = (self.regions.bounds_base - self.regions.grab_base) as usize;
+        let zeros = vec![0u8; records * 16];
+        queue.write_buffer(&self.b.aux, self.regions.grab_base as u64 * 16, &zeros);
     }
 
     /// Cluster states ([`GpuClusterState`]: warm-start rotation and XPBD multipliers),
@@ -869,7 +998,8 @@ impl GpuWorld {
         &self.b.cstate
     }
 
-    /// Positions buffer (vec4 per particle, m).
+    /// Positions buffer (vec4 per particle, m, from offset 0; the predicted positions
+    /// follow every level's particles).
     pub fn positions(&self) -> &Buffer {
         &self.b.x
     }
@@ -921,9 +1051,10 @@ impl GpuWorld {
     /// contact refresh); after them, one vec4 per body whose x is the contact broad
     /// phase's flag (1: near another body at the last refresh) and y how many bodies are
     /// near it; after those, per body the indices of the bodies near it (`NEAR_SLOTS`
-    /// u32, when that many or fewer).
-    pub fn bounds(&self) -> &Buffer {
-        &self.b.bounds
+    /// u32, when that many or fewer). Returns the buffer and the byte offset of the first
+    /// body's box.
+    pub fn bounds(&self) -> (&Buffer, u64) {
+        (&self.b.aux, self.regions.bounds_base as u64 * 16)
     }
 
     /// The contact broad phase's flags of the last contact refresh, one per body in model
@@ -931,7 +1062,9 @@ impl GpuWorld {
     /// for tests and benchmarks).
     pub fn read_near_flags(&self, device: &RenderDevice, queue: &RenderQueue) -> Vec<bool> {
         let nb = self.ranges.len();
-        let words = read_u32(device, queue, &self.b.bounds, (3 * nb * 4) as u64);
+        let (buffer, at) = self.bounds();
+        let bytes = read_buffer(device, queue, buffer, at, (3 * nb * 16) as u64);
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes);
         (0..nb)
             .map(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
             .collect()
@@ -945,14 +1078,8 @@ impl GpuWorld {
         rec: &mut dyn PassRecorder,
     ) {
         let groups = per_body_groups(self.ranges.len() as u32);
-        let mut r = Recording::new(encoder, rec);
-        r.dispatch(
-            &self.world_group,
-            "tissue/bounds",
-            &k.body_bounds,
-            None,
-            groups,
-        );
+        let mut r = Recording::new(encoder, rec, &self.binds);
+        r.dispatch("tissue/bounds", &k.body_bounds, Window::None, groups);
     }
 
     /// Clears the divergence flags.
@@ -1003,7 +1130,8 @@ impl GpuWorld {
     pub fn set_pin_targets(&self, queue: &RenderQueue, targets: &[Vec3]) {
         let data: Vec<[f32; 4]> = targets.iter().map(|p| p.extend(0.0).to_array()).collect();
         if !data.is_empty() {
-            queue.write_buffer(&self.b.pins, 0, bytemuck::cast_slice(&data));
+            let at = self.regions.pin_base as u64 * 16;
+            queue.write_buffer(&self.b.rest, at, bytemuck::cast_slice(&data));
         }
     }
 
@@ -1015,25 +1143,24 @@ impl GpuWorld {
 
     /// Records the grid build over the current positions (clear, counts, prefix sum,
     /// scatter); `all` picks the all-particle search's cell size, else the contacts'.
-    fn record_grid(&self, r: &mut Recording<'_, '_>, k: &Kernels, all: bool) {
+    fn record_grid(&self, r: &mut Recording<'_, '_, '_>, k: &Kernels, all: bool) {
         let g = groups(self.n, WORKGROUP);
-        let sg = &self.scan_group;
-        let cfg = ((self.levels.len() + all as usize) * size_of::<GpuScanLevel>()) as u32;
+        let cfg =
+            Window::At(((self.levels.len() + all as usize) * size_of::<GpuScanLevel>()) as u32);
         let clear = groups(self.scan_len.max(self.params.grid_table), WORKGROUP).min(65_535);
-        let w = &self.world_group;
-        r.dispatch(w, "tissue/grid", &k.grid_clear, Some((sg, cfg)), (clear, 1));
-        r.dispatch(w, "tissue/grid", &k.grid_count, Some((sg, cfg)), (g, 1));
+        r.dispatch("tissue/grid", &k.grid_clear, cfg, (clear, 1));
+        r.dispatch("tissue/grid", &k.grid_count, cfg, (g, 1));
         for (l, &(_, c)) in self.levels.iter().enumerate() {
-            let off = (l * size_of::<GpuScanLevel>()) as u32;
+            let off = Window::At((l * size_of::<GpuScanLevel>()) as u32);
             let wg = groups(c, SCAN_BLOCK);
-            r.dispatch(w, "tissue/scan", &k.scan_block, Some((sg, off)), (wg, 1));
+            r.dispatch("tissue/scan", &k.scan_block, off, (wg, 1));
         }
         for l in (0..self.levels.len().saturating_sub(1)).rev() {
-            let off = (l * size_of::<GpuScanLevel>()) as u32;
+            let off = Window::At((l * size_of::<GpuScanLevel>()) as u32);
             let wg = groups(self.levels[l].1, SCAN_BLOCK);
-            r.dispatch(w, "tissue/scan", &k.scan_add, Some((sg, off)), (wg, 1));
+            r.dispatch("tissue/scan", &k.scan_add, off, (wg, 1));
         }
-        r.dispatch(w, "tissue/grid", &k.grid_scatter, Some((sg, cfg)), (g, 1));
+        r.dispatch("tissue/grid", &k.grid_scatter, cfg, (g, 1));
     }
 
     /// Records the exact K nearest neighbours of every particle (K = `knn_k` given at
@@ -1044,12 +1171,12 @@ impl GpuWorld {
         k: &Kernels,
         rec: &mut dyn PassRecorder,
     ) {
-        let mut r = Recording::new(encoder, rec);
-        self.record_grid(&mut r, k, true);
-        let g = groups(self.n, WORKGROUP);
         let knn = &k.knn_all[self.knn_warm as usize][Kernels::knn_slots(self.knn_k)];
         self.knn_warm = true;
-        r.dispatch(&self.world_group, "tissue/knn", knn, None, (g, 1));
+        let mut r = Recording::new(encoder, rec, &self.binds);
+        self.record_grid(&mut r, k, true);
+        let g = groups(self.n, WORKGROUP);
+        r.dispatch("tissue/knn", knn, Window::None, (g, 1));
     }
 
     /// Records `steps` time steps (one compute pass, unless the recorder times passes).
@@ -1078,33 +1205,32 @@ impl GpuWorld {
         // at the start of the next body_iteration (see the iteration loop below).
         let folded = body.is_some() && self.contacts_on;
         let nb = self.ranges.len() as u32;
-        let mut r = Recording::new(encoder, rec);
-        let w = &self.world_group;
+        let mut r = Recording::new(encoder, rec, &self.binds);
         let s = &self.settings;
         for step in 0..steps {
             if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
                 // Broad phase first: bodies near no other skip the search and the
                 // contact pass until the next refresh.
                 let bg = per_body_groups(nb);
-                r.dispatch(w, "tissue/broad", &k.body_bounds, None, bg);
-                r.dispatch(w, "tissue/broad", &k.near_bodies, None, bg);
+                r.dispatch("tissue/broad", &k.body_bounds, Window::None, bg);
+                r.dispatch("tissue/broad", &k.near_bodies, Window::None, bg);
                 self.record_grid(&mut r, k, false);
                 let knn = &k.knn_contacts[self.contacts_warm as usize]
                     [Kernels::knn_slots(self.contact_k)];
                 self.contacts_warm = true;
-                r.dispatch(w, "tissue/knn", knn, None, (g, 1));
+                r.dispatch("tissue/knn", knn, Window::None, (g, 1));
             }
             let nc = self.n_colliders;
             if nc > 0 {
-                r.dispatch(w, "tissue/forces", &k.force_clear, None, (1, 1));
+                r.dispatch("tissue/forces", &k.force_clear, Window::None, (1, 1));
             }
-            let lv0 = Some((&self.level_group, 0u32));
+            let lv0 = Window::At(0);
             for sub in 0..s.substeps {
                 // The first substep of the recording predicts; the others were predicted
                 // by the finish before them (inputs such as colliders, pins and sleep
                 // only change between recordings).
                 if step == 0 && sub == 0 {
-                    r.dispatch(w, "tissue/predict", &k.predict, None, (g, 1));
+                    r.dispatch("tissue/predict", &k.predict, Window::None, (g, 1));
                 }
                 if s.coarse_iterations > 0 && !self.coarse.is_empty() {
                     self.record_levels(&mut r, k);
@@ -1115,7 +1241,7 @@ impl GpuWorld {
                 // contacts the first of those dispatches solves the bodies near no other
                 // too, so body_substep runs only without them.
                 if let (Some((all, _)), false) = (body, self.contacts_on) {
-                    r.dispatch(w, "tissue/body_substep", all, lv0, grid_2d(nb));
+                    r.dispatch("tissue/body_substep", all, lv0, grid_2d(nb));
                 }
                 // Iterations in blocks that end with one solving particle contacts (every
                 // `contact_every`-th and the last; without contacts one block, which only
@@ -1141,11 +1267,11 @@ impl GpuWorld {
                         | (((folded && !last) as u32) << 2);
                     let rec = |v: u32, iters: u32| {
                         let i = self.iteration_records + v + 16 * (iters - 1);
-                        Some((&self.level_group, i * REC))
+                        Window::At(i * REC)
                     };
                     if let (Some((_, one)), true) = (body, self.contacts_on) {
                         let dispatch = rec(v, end - start);
-                        r.dispatch(w, "tissue/body_iteration", one, dispatch, grid_2d(nb));
+                        r.dispatch("tissue/body_iteration", one, dispatch, grid_2d(nb));
                     }
                     if !all_in_body {
                         for it in start..end {
@@ -1155,25 +1281,25 @@ impl GpuWorld {
                             } else {
                                 rec(v | 8, 1)
                             };
-                            r.dispatch(w, "tissue/clusters", cp, one, cg);
-                            r.dispatch(w, "tissue/gather", &k.gather, one, lg);
+                            r.dispatch("tissue/clusters", cp, one, cg);
+                            r.dispatch("tissue/gather", &k.gather, one, lg);
                         }
                     }
                     if self.contacts_on && (last || !(folded && all_in_body)) {
-                        r.dispatch(w, "tissue/contacts", &k.contact, rec(v, 1), (g, 1));
+                        r.dispatch("tissue/contacts", &k.contact, rec(v, 1), (g, 1));
                     }
                     start = end;
                     block += 1;
                 }
                 if nc > 0 {
                     let fg = (FORCE_GROUPS, nc);
-                    r.dispatch(w, "tissue/forces", &k.force_partial, None, fg);
-                    r.dispatch(w, "tissue/forces", &k.force_total, None, (1, 1));
+                    r.dispatch("tissue/forces", &k.force_partial, Window::None, fg);
+                    r.dispatch("tissue/forces", &k.force_total, Window::None, (1, 1));
                 }
                 if step + 1 == steps && sub + 1 == s.substeps {
-                    r.dispatch(w, "tissue/finish", &k.finish, None, (g, 1));
+                    r.dispatch("tissue/finish", &k.finish, Window::None, (g, 1));
                 } else {
-                    r.dispatch(w, "tissue/finish", &k.finish_predict, None, (g, 1));
+                    r.dispatch("tissue/finish", &k.finish_predict, Window::None, (g, 1));
                 }
             }
             self.step += 1;
@@ -1190,62 +1316,66 @@ impl GpuWorld {
     /// `core::solver::Solver::solve_levels`): snapshot, then per level: its particles
     /// in, `coarse_iterations` Jacobi iterations over its range, out, prolongation, and
     /// its multipliers handed to the finer level.
-    fn record_levels(&self, r: &mut Recording<'_, '_>, k: &Kernels) {
-        let w = &self.world_group;
+    fn record_levels(&self, r: &mut Recording<'_, '_, '_>, k: &Kernels) {
         r.dispatch(
-            w,
             "tissue/levels",
             &k.level_snapshot,
-            None,
+            Window::None,
             (groups(self.n, WORKGROUP), 1),
         );
         for (l, lv) in self.coarse.iter().enumerate().rev() {
-            let parts = Some((&self.level_group, (1 + 3 * l as u32) * REC));
-            let recs = Some((&self.level_group, (2 + 3 * l as u32) * REC));
-            let trs = Some((&self.level_group, (3 + 3 * l as u32) * REC));
+            let parts = Window::At((1 + 3 * l as u32) * REC);
+            let recs = Window::At((2 + 3 * l as u32) * REC);
+            let trs = Window::At((3 + 3 * l as u32) * REC);
             let g = (groups(lv.count, WORKGROUP), 1);
             let lg = lane_groups(lv.count);
             let (cp, cg) = cluster_kernel(k, lv.count, self.lane_clusters_below);
-            r.dispatch(w, "tissue/levels", &k.level_in, parts, g);
+            r.dispatch("tissue/levels", &k.level_in, parts, g);
             for _ in 0..self.settings.coarse_iterations {
-                r.dispatch(w, "tissue/levels", cp, parts, cg);
-                r.dispatch(w, "tissue/levels", &k.gather, parts, lg);
+                r.dispatch("tissue/levels", cp, parts, cg);
+                r.dispatch("tissue/levels", &k.gather, parts, lg);
             }
-            r.dispatch(w, "tissue/levels", &k.level_out, parts, g);
+            r.dispatch("tissue/levels", &k.level_out, parts, g);
             let gr = (groups(lv.rec_count, WORKGROUP), 1);
-            r.dispatch(w, "tissue/levels", &k.prolong, recs, gr);
+            r.dispatch("tissue/levels", &k.prolong, recs, gr);
             let gt = (groups(lv.tr_count, WORKGROUP), 1);
-            r.dispatch(w, "tissue/levels", &k.transfer, trs, gt);
+            r.dispatch("tissue/levels", &k.transfer, trs, gt);
         }
     }
 
-    /// The bind group that lets the draw kernels write into `slab` (the world's own
-    /// [`GpuWorld::surface`] or a mesh allocator slab). Callers keep it while the slab
+    /// The bind groups that let the draw kernels write into `slab` (the world's own
+    /// [`GpuWorld::surface`] or a mesh allocator slab). Callers keep them while the slab
     /// lives (the plugin caches one per slab buffer).
-    pub fn slab_group(&self, device: &RenderDevice, k: &Kernels, slab: &Buffer) -> BindGroup {
-        device.create_bind_group(
-            "tissue vertex slab",
-            &k.skin_layout,
-            &[
-                BindGroupEntry {
-                    binding: 0,
-                    resource: slab.as_entire_binding(),
-                },
-                BindGroupEntry {
-                    binding: 1,
-                    resource: BindingResource::Buffer(BufferBinding {
-                        buffer: &self.range_buf,
-                        offset: 0,
-                        size: std::num::NonZeroU64::new(16),
-                    }),
-                },
-            ],
-        )
+    pub fn slab_group(&self, device: &RenderDevice, k: &Kernels, slab: &Buffer) -> SlabGroup {
+        let resource = |name: &str| -> Option<BindingResource<'_>> {
+            match name {
+                "slab" => Some(slab.as_entire_binding()),
+                "span" => Some(BindingResource::Buffer(BufferBinding {
+                    buffer: &self.range_buf,
+                    offset: 0,
+                    size: std::num::NonZeroU64::new(size_of::<u32>() as u64 * 4),
+                })),
+                _ => None,
+            }
+        };
+        let group = |kernel: &kernels::Kernel| -> BindGroup {
+            match kernel.groups.get(3) {
+                Some((layout, uses)) => bind_group(device, kernel.name, layout, uses, &resource),
+                None => {
+                    let layout = device.create_bind_group_layout(kernel.name, &[]);
+                    device.create_bind_group(kernel.name, &layout, &[])
+                }
+            }
+        };
+        SlabGroup {
+            skin: group(&k.skin),
+            normals: group(&k.normals),
+        }
     }
 
-    /// Records the draw path: deformation gradients once, then for every slab (a group
-    /// from [`GpuWorld::slab_group`]) and every run `(first vertex, end)` of bodies whose
-    /// vertices live in it, skinning and normals. The draw records
+    /// Records the draw path: deformation gradients once, then for every slab (its
+    /// groups from [`GpuWorld::slab_group`]) and every run `(first vertex, end)` of bodies
+    /// whose vertices live in it, skinning and normals. The draw records
     /// ([`GpuWorld::set_draw`]) say where each body's vertices are. At most
     /// [`MAX_SKIN_RUNS`] runs in all.
     pub fn record_draw(
@@ -1253,12 +1383,12 @@ impl GpuWorld {
         queue: &RenderQueue,
         encoder: &mut CommandEncoder,
         k: &Kernels,
-        slabs: &[(&BindGroup, &[(u32, u32)])],
+        slabs: &[(&SlabGroup, &[(u32, u32)])],
         rec: &mut dyn PassRecorder,
     ) {
         // Every run gets its own range record (one write), so runs of different slabs
         // never share an offset.
-        let mut jobs: Vec<(&BindGroup, u32, u32, u32)> = Vec::new();
+        let mut jobs: Vec<(&SlabGroup, u32, u32, u32)> = Vec::new();
         for (group, runs) in slabs {
             for &(b, e) in runs.iter() {
                 if jobs.len() < MAX_SKIN_RUNS {
@@ -1267,7 +1397,9 @@ impl GpuWorld {
                 }
             }
         }
-        let Some(first) = jobs.first() else { return };
+        if jobs.is_empty() {
+            return;
+        }
         let recs: Vec<GpuSkinRange> = jobs
             .iter()
             .map(|&(_, _, b, e)| GpuSkinRange {
@@ -1278,16 +1410,21 @@ impl GpuWorld {
             .collect();
         queue.write_buffer(&self.range_buf, 0, bytemuck::cast_slice(&recs));
         let g = groups(self.n, WORKGROUP);
-        let mut r = Recording::new(encoder, rec);
-        let w = &self.world_group;
-        r.dispatch(w, "tissue/deform", &k.deform, Some((first.0, 0)), (g, 1));
+        let mut r = Recording::new(encoder, rec, &self.binds);
+        r.dispatch("tissue/deform", &k.deform, Window::None, (g, 1));
         for &(group, off, b, e) in &jobs {
             let wg = groups(e.saturating_sub(b), WORKGROUP);
-            r.dispatch(w, "tissue/skin", &k.skin, Some((group, off)), (wg, 1));
+            r.dispatch(
+                "tissue/skin",
+                &k.skin,
+                Window::Slab(&group.skin, off),
+                (wg, 1),
+            );
         }
         for &(group, off, b, e) in &jobs {
             let wg = groups(e.saturating_sub(b), WORKGROUP);
-            r.dispatch(w, "tissue/normals", &k.normals, Some((group, off)), (wg, 1));
+            let slab = Window::Slab(&group.normals, off);
+            r.dispatch("tissue/normals", &k.normals, slab, (wg, 1));
         }
     }
 
@@ -1306,7 +1443,17 @@ impl GpuWorld {
         encoder.copy_buffer_to_buffer(&other.b.x, f * 16, &self.b.x, t * 16, c * 16);
         encoder.copy_buffer_to_buffer(&other.b.v, f * 16, &self.b.v, t * 16, c * 16);
         encoder.copy_buffer_to_buffer(&other.b.cstate, f * 48, &self.b.cstate, t * 48, c * 48);
-        encoder.copy_buffer_to_buffer(&other.b.grab, f * 16, &self.b.grab, t * 16, c * 16);
+        let (from_grab, to_grab) = (
+            other.regions.grab_base as u64 * 16,
+            self.regions.grab_base as u64 * 16,
+        );
+        encoder.copy_buffer_to_buffer(
+            &other.b.aux,
+            from_grab + f * 16,
+            &self.b.aux,
+            to_grab + t * 16,
+            c * 16,
+        );
     }
 }
 

@@ -13,9 +13,7 @@ use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::diagnostic::{DiagnosticsRecorder, RecordDiagnostics};
 use bevy::render::mesh::allocator::MeshAllocator;
-use bevy::render::render_resource::{
-    BindGroup, Buffer, BufferDescriptor, BufferUsages, ComputePass, MapMode,
-};
+use bevy::render::render_resource::{Buffer, BufferDescriptor, BufferUsages, ComputePass, MapMode};
 use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue};
 use std::sync::{Arc, Mutex, mpsc};
 
@@ -118,7 +116,10 @@ pub struct TissueGpu {
     pending: Vec<Pending>,
     /// Vertex-slab bind groups of the current world, by slab buffer (slabs can move:
     /// a new buffer gets a new group, groups of slabs no longer used are dropped).
-    slab_groups: Vec<(bevy::render::render_resource::BufferId, BindGroup)>,
+    slab_groups: Vec<(
+        bevy::render::render_resource::BufferId,
+        crate::gpu::world::SlabGroup,
+    )>,
     /// Mapped-and-read staging buffers, reused by later readbacks.
     staging: Arc<Mutex<Vec<Buffer>>>,
     /// Readbacks mapped but not delivered yet.
@@ -526,7 +527,7 @@ pub fn run_tissue(
             gpu.slab_groups.push((slab.id(), group));
         }
     }
-    let draw_jobs: Vec<(&BindGroup, &[(u32, u32)])> = slabs
+    let draw_jobs: Vec<(&crate::gpu::world::SlabGroup, &[(u32, u32)])> = slabs
         .iter()
         .filter_map(|(slab, runs)| {
             let (_, g) = gpu.slab_groups.iter().find(|(id, _)| *id == slab.id())?;
@@ -605,12 +606,12 @@ pub fn run_tissue(
     let mut at = 0;
     let mut placed = Vec::new();
     for (e, off, len, kind) in items {
-        let src = match kind {
-            Item::Force => world.forces(),
-            Item::Positions => world.positions(),
+        let (src, base) = match kind {
+            Item::Force => (world.forces(), 0),
+            Item::Positions => (world.positions(), 0),
             Item::Bounds => world.bounds(),
         };
-        encoder.copy_buffer_to_buffer(src, off, &staging, at, len);
+        encoder.copy_buffer_to_buffer(src, base + off, &staging, at, len);
         placed.push((e, at, len, kind));
         at += len;
     }

@@ -5,19 +5,18 @@
 //! (`body_iteration`, which starts with the previous iteration's contact pass for the
 //! body's particles).
 //!
-//! Source: `body.wgsl` (with `common.wgsl`, `bindings.wgsl`, `range.wgsl`, `moments.wgsl`
+//! Source: `body.wgsl` (with `common.wgsl`, `bindings.wgsl`, `moments.wgsl`
 //! and `gather.wgsl` prepended: the moments, the rotation, the correction and the
 //! boundary are theirs).
 
-/// WGSL source of this kernel's module.
-pub const SOURCE: &str = concat!(
-    include_str!("common.wgsl"),
-    include_str!("bindings.wgsl"),
-    include_str!("range.wgsl"),
-    include_str!("moments.wgsl"),
-    include_str!("gather.wgsl"),
-    include_str!("body.wgsl")
-);
+/// WGSL source of this kernel's module (see [`super::bindings::compose`]).
+pub fn source() -> String {
+    super::bindings::compose(&[
+        include_str!("moments.wgsl"),
+        include_str!("gather.wgsl"),
+        include_str!("body.wgsl"),
+    ])
+}
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["body_substep", "body_iteration"];

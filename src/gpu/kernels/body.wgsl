@@ -171,7 +171,7 @@ fn gather_local(k: LocalConst, first: u32, t: u32, head: ListHead) -> vec4<f32> 
 fn load_body(body: Body, lid: u32) {
     let count = min(body.count, BODY_MAX);
     for (var t = lid; t < count; t = t + BODY_WG) {
-        sp[t] = p[body.first + t];
+        sp[t] = x[params.p_base + body.first + t];
         sr[t] = rest[body.first + t];
     }
 }
@@ -334,7 +334,7 @@ fn run_substep(body: Body, lid: u32) {
         workgroupBarrier();
     }
     if (mine) {
-        p[c] = sp[t];
+        x[params.p_base + c] = sp[t];
         cstate[c].rot = rot;
     }
 }

@@ -4,12 +4,10 @@
 //! Source: `broad.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
 //! CPU twin: [`crate::core::knn::near_bodies`].
 
-/// WGSL source of this kernel's module.
-pub const SOURCE: &str = concat!(
-    include_str!("common.wgsl"),
-    include_str!("bindings.wgsl"),
-    include_str!("broad.wgsl")
-);
+/// WGSL source of this kernel's module (see [`super::bindings::compose`]).
+pub fn source() -> String {
+    super::bindings::compose(&[include_str!("broad.wgsl")])
+}
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["near_bodies"];
@@ -27,7 +25,7 @@ mod tests {
             crate::core::knn::BROAD_MAX_BODIES
         );
         assert!(
-            super::SOURCE.contains(&line),
+            super::source().contains(&line),
             "broad.wgsl must declare `{line}`"
         );
     }
@@ -36,7 +34,7 @@ mod tests {
     fn the_near_list_length_matches_the_buffer_layout() {
         let line = format!("const NEAR_SLOTS: u32 = {}u;", super::NEAR_SLOTS);
         assert!(
-            super::SOURCE.contains(&line),
+            super::source().contains(&line),
             "bindings.wgsl must declare `{line}`"
         );
     }

@@ -33,13 +33,13 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
     }
     workgroupBarrier();
     let reach = params.contact_reach;
-    let lo = bounds[2u * b].xyz - vec3<f32>(reach);
-    let hi = bounds[2u * b + 1u].xyz + vec3<f32>(reach);
+    let lo = aux[params.bounds_base + 2u * b].xyz - vec3<f32>(reach);
+    let hi = aux[params.bounds_base + 2u * b + 1u].xyz + vec3<f32>(reach);
     let tested = select(params.n_bodies, 0u, params.n_bodies > BROAD_MAX_BODIES);
     for (var c = lid; c < tested; c = c + BROAD_WG) {
         if (c != b) {
-            let l = bounds[2u * c].xyz;
-            let h = bounds[2u * c + 1u].xyz;
+            let l = aux[params.bounds_base + 2u * c].xyz;
+            let h = aux[params.bounds_base + 2u * c + 1u].xyz;
             if (all(lo <= h) && all(l <= hi)) {
                 atomicOr(&near_hit, 1u);
                 let slot = atomicAdd(&near_count, 1u);
@@ -53,7 +53,7 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
     let count = atomicLoad(&near_count);
     if (lid == 0u) {
         let hit = f32(atomicLoad(&near_hit));
-        bounds[2u * params.n_bodies + b] = vec4<f32>(hit, f32(count), 0.0, 0.0);
+        aux[params.bounds_base + 2u * params.n_bodies + b] = vec4<f32>(hit, f32(count), 0.0, 0.0);
     }
     // The list (in no particular order: the per-particle test does not depend on it).
     let base = 3u * params.n_bodies + b * (NEAR_SLOTS / 4u);
@@ -65,6 +65,6 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
                 v[k] = near_list[slot];
             }
         }
-        bounds[base + lid] = bitcast<vec4<f32>>(v);
+        aux[params.bounds_base + base + lid] = bitcast<vec4<f32>>(v);
     }
 }

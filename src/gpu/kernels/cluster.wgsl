@@ -87,7 +87,7 @@ fn solve_clusters_lanes(
         let start = pinfo[c].w;
         let end = pinfo[c + 1u].w;
         com = crest[c].com_mass.xyz;
-        origin = p[lists[start]].xyz;
+        origin = x[params.p_base + lists[start]].xyz;
         // Four of the lane's members at a time (their loads in flight together), added
         // in the lane's order. On an H100 the bar's coarse pass went from about 0.81 to
         // 0.76 ms: on a small level the solve after the sums is most of a dispatch.
@@ -102,7 +102,7 @@ fn solve_clusters_lanes(
         }
         for (; s < end; s = s + LANES) {
             let j = lists[s];
-            t = add_member(t, p[j].xyz, rest[j], origin, com);
+            t = add_member(t, x[params.p_base + j].xyz, rest[j], origin, com);
         }
     }
     part[lid] = array<vec4<f32>, 4>(vec4<f32>(t.mp, t.a0.x), vec4<f32>(t.mq, t.a0.y), vec4<f32>(t.a1, t.a0.z), vec4<f32>(t.a2, 0.0));

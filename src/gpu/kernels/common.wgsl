@@ -29,6 +29,15 @@ struct Params {
     iterations: u32,         // Jacobi iterations per substep (body.wgsl's body_substep)
     contact_reach: f32,      // broad phase: core::knn::contact_reach_bound(max_radius), m
     contact_omega: f32,      // Jacobi relaxation of the particle contacts
+    p_base: u32,             // first predicted position in `x` (all levels' particles)
+    pin_base: u32,           // first pin target in `rest`
+    coldp_base: u32,         // first collider displacement in `aux`
+    grab_base: u32,          // first grab in `aux`
+    bounds_base: u32,        // first per-body box in `aux`
+    sorted_base: u32,        // first grid-sorted point in `aux`
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 };
 
 // Per body, per frame: world → entity-local affine map for drawing, and where the
@@ -241,3 +250,39 @@ fn collider_push(c: Collider, pp: vec3<f32>, xx: vec3<f32>, radius: f32, h: f32)
     }
     return dp;
 }
+
+// The per-dispatch range of the cluster, gather and hierarchy kernels (one
+// 256-byte uniform record per range, bound with a dynamic offset; `GpuRange` in
+// src/gpu/buffers.rs): level 0's particles or a coarse level's, or a run of records.
+
+struct Range {
+    first: u32,     // first particle, cluster or record
+    count: u32,
+    base: u32,      // prolong, transfer: start of the records in `hier`;
+                    // level_in: 1 zeroes the level's multipliers (the coarsest level)
+    flag: u32,      // gather: 1 leaves contacts and the boundary to the contact pass
+    half: u32,      // level 0 with contacts: the half of p2 (0, 1) this iteration's pass B
+                    // writes and its contact pass reads
+    prev: u32,      // body_iteration: 1 runs the previous iteration's contact pass for
+                    // its particles first (from the other half of p2)
+    skip: u32,      // contact: 1 leaves the particles of body.wgsl's bodies to the next
+                    // body_iteration
+    iters: u32,     // body_iteration: Jacobi iterations in this dispatch (contacts only
+                    // before the first, from the dispatch before; SolverSettings::contact_every)
+};
+
+// One level of the grid's prefix sum (`GpuScanLevel`), per dispatch.
+struct ScanLevel {
+    offset: u32,             // first element of this level in `scan`
+    count: u32,              // elements at this level
+    sums: u32,               // where this level's block sums go (next level's offset)
+    cell: f32,               // grid cell edge of this build (grid_count, grid_scatter), m
+};
+
+// The render-vertex span of one skinning dispatch (`GpuSkinRange`).
+struct SkinRange {
+    begin: u32,
+    end: u32,
+    _pad0: u32,
+    _pad1: u32,
+};

@@ -15,7 +15,7 @@ fn force_partial(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocatio
     var acc = vec3<f32>(0.0);
     let stride = FORCE_GROUPS * FWG;
     for (var i = g * FWG + lid.x; i < params.n; i = i + stride) {
-        let d = coldp[i];
+        let d = aux[params.coldp_base + i];
         if (d.w == f32(k)) {
             acc = acc - d.xyz * (rest[i].w / params.h2);
         }
@@ -69,9 +69,9 @@ fn body_bounds(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
     if (lid.x == 0u) {
         // w of the minimum carries the body's divergence flag (so one small readback
         // serves culling and the warning).
-        bounds[2u * b] = vec4<f32>(lo_red[0], f32(atomicLoad(&status[b])));
+        aux[params.bounds_base + 2u * b] = vec4<f32>(lo_red[0], f32(atomicLoad(&status[b])));
         // w of the maximum: the fastest particle's speed, m/s (for sleeping).
-        bounds[2u * b + 1u] = vec4<f32>(red[0], speed_red[0]);
+        aux[params.bounds_base + 2u * b + 1u] = vec4<f32>(red[0], speed_red[0]);
     }
 }
 

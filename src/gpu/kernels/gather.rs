@@ -1,14 +1,11 @@
 //! Jacobi passes B and C: gather of the cluster corrections per particle, then particle contacts, colliders and pins.
 //!
-//! Source: `gather.wgsl` (with `common.wgsl`, `bindings.wgsl`, `range.wgsl` prepended).
+//! Source: `gather.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
 
-/// WGSL source of this kernel's module.
-pub const SOURCE: &str = concat!(
-    include_str!("common.wgsl"),
-    include_str!("bindings.wgsl"),
-    include_str!("range.wgsl"),
-    include_str!("gather.wgsl")
-);
+/// WGSL source of this kernel's module (see [`super::bindings::compose`]).
+pub fn source() -> String {
+    super::bindings::compose(&[include_str!("gather.wgsl")])
+}
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["gather", "contact"];

@@ -17,7 +17,7 @@ fn project_collider(k: u32, pp: vec3<f32>, xx: vec3<f32>, radius: f32) -> vec3<f
 fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     let info = pinfo[j];
     if (info.y != NONE) {
-        return pins[info.y].xyz;
+        return rest[params.pin_base + info.y].xyz;
     }
     // No colliders: no grasper holds anything (predict's update_grab let go), and the
     // grab and x reads below are skipped (a gather is memory-bound).
@@ -26,8 +26,8 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
     }
     let held = grab_target(j);
     if (held.w >= 0.0) {
-        let old = coldp[j];
-        coldp[j] = vec4<f32>(old.xyz + held.xyz - q0, held.w);
+        let old = aux[params.coldp_base + j];
+        aux[params.coldp_base + j] = vec4<f32>(old.xyz + held.xyz - q0, held.w);
         return held.xyz;
     }
     var q = q0;
@@ -44,8 +44,8 @@ fn boundary(j: u32, q0: vec3<f32>) -> vec3<f32> {
         }
     }
     if (id != NONE) {
-        let old = coldp[j];
-        coldp[j] = vec4<f32>(old.xyz + total, f32(id));
+        let old = aux[params.coldp_base + j];
+        aux[params.coldp_base + j] = vec4<f32>(old.xyz + total, f32(id));
     }
     return q;
 }
@@ -147,7 +147,7 @@ fn gather(
     for (var l = 1u; l < LANES; l = l + 1u) {
         acc = acc + part[lid + l];
     }
-    store_gathered(j, p[j].xyz, acc, pinfo[j].x);
+    store_gathered(j, x[params.p_base + j].xyz, acc, pinfo[j].x);
 }
 
 // A particle at pj moved by its gathered corrections `acc` (Σ a (R X + t), Σ a): the
@@ -161,11 +161,11 @@ fn gathered(pj: vec3<f32>, acc: vec4<f32>) -> vec3<f32> {
 fn store_gathered(j: u32, pj: vec3<f32>, acc: vec4<f32>, body: u32) {
     let out = gathered(pj, acc);
     if (range.flag == 0u || !near_body(body)) {
-        p[j] = vec4<f32>(boundary(j, out), 0.0);
+        x[params.p_base + j] = vec4<f32>(boundary(j, out), 0.0);
     } else {
         // w: the particle's contact radius, so that the contact pass reads it with the
         // position instead of through the body record.
-        p2[range.half * params.n + j] = vec4<f32>(out, bodies[body].radius);
+        aux[range.half * params.n + j] = vec4<f32>(out, bodies[body].radius);
     }
 }
 
@@ -203,7 +203,7 @@ fn candidate(first: u32, s: u32, kk: u32) -> u32 {
 // twin does) up to the first empty slot.
 fn contact_position(j: u32, half: u32) -> vec3<f32> {
     let h = half * params.n;
-    let own = p2[h + j];
+    let own = aux[h + j];
     let pj = own.xyz;
     let rj = own.w;
     var q = pj;
@@ -223,10 +223,10 @@ fn contact_position(j: u32, half: u32) -> vec3<f32> {
         }
         // An empty slot loads particle j itself (in bounds; never used).
         let a = select(ids, vec4<u32>(j), ids == vec4<u32>(NONE));
-        let q0 = p2[h + a.x];
-        let q1 = p2[h + a.y];
-        let q2 = p2[h + a.z];
-        let q3 = p2[h + a.w];
+        let q0 = aux[h + a.x];
+        let q1 = aux[h + a.y];
+        let q2 = aux[h + a.z];
+        let q3 = aux[h + a.w];
         let w0 = inv_mass(a.x);
         let w1 = inv_mass(a.y);
         let w2 = inv_mass(a.z);
@@ -271,5 +271,5 @@ fn contact(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (!near_body(bj) || (range.skip != 0u && bodies[bj].in_wg != 0u)) {
         return;
     }
-    p[j] = vec4<f32>(contact_position(j, range.half), 0.0);
+    x[params.p_base + j] = vec4<f32>(contact_position(j, range.half), 0.0);
 }

@@ -4,14 +4,6 @@
 // `grid_table` buckets), so it needs no bounding box; the KNN kernel rejects points of
 // other cells that share a bucket. CPU twin: core::knn::Grid::build_with_cell.
 
-struct ScanLevel {
-    offset: u32,             // first element of this level in `scan`
-    count: u32,              // elements at this level
-    sums: u32,               // where this level's block sums go (next level's offset)
-    cell: f32,               // grid cell edge of this build (grid_count, grid_scatter), m
-};
-
-@group(1) @binding(0) var<uniform> level: ScanLevel;
 
 const SCAN_WG: u32 = 256u;
 const SCAN_BLOCK: u32 = 1024u;
@@ -104,5 +96,5 @@ fn grid_scatter(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let h = cell_of[i];
     let slot = atomicLoad(&scan[h]) + atomicAdd(&cursor[h], 1u);
-    sorted[slot] = vec4<f32>(x[i].xyz, bitcast<f32>(i));
+    aux[params.sorted_base + slot] = vec4<f32>(x[i].xyz, bitcast<f32>(i));
 }

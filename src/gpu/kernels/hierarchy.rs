@@ -3,15 +3,12 @@
 //! (the levels' constraints run through the cluster and gather kernels over each level's
 //! particle range).
 //!
-//! Source: `hierarchy.wgsl` (with `common.wgsl` and `bindings.wgsl`, `range.wgsl` prepended).
+//! Source: `hierarchy.wgsl` (with `common.wgsl` and `bindings.wgsl` prepended).
 
-/// WGSL source of this kernel's module.
-pub const SOURCE: &str = concat!(
-    include_str!("common.wgsl"),
-    include_str!("bindings.wgsl"),
-    include_str!("range.wgsl"),
-    include_str!("hierarchy.wgsl")
-);
+/// WGSL source of this kernel's module (see [`super::bindings::compose`]).
+pub fn source() -> String {
+    super::bindings::compose(&[include_str!("hierarchy.wgsl")])
+}
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &[

@@ -11,7 +11,7 @@ fn level_snapshot(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (i >= params.n) {
         return;
     }
-    p2[i] = p[i];
+    aux[i] = x[params.p_base + i];
 }
 
 // A level's particles take their level-0 particles' positions. The coarsest level's XPBD
@@ -24,7 +24,7 @@ fn level_in(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let g = range.first + gid.x;
     let src = hier[g - params.n];
-    p[g] = p[src];
+    x[params.p_base + g] = x[params.p_base + src];
     x[g] = x[src];
     if (range.base == 1u) {
         let st = cstate[g];
@@ -39,7 +39,7 @@ fn level_out(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let g = range.first + gid.x;
-    p[hier[g - params.n]] = p[g];
+    x[params.p_base + hier[g - params.n]] = x[params.p_base + g];
 }
 
 // The finer level's other particles follow their parents: Δx_i = Σ_j w_ij Δx_j, the
@@ -59,10 +59,10 @@ fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
         let w = bitcast<f32>(hier[r + 5u + k]);
         if (w != 0.0) {
             let j = hier[r + 1u + k];
-            d = d + w * (p[j].xyz - p2[j].xyz);
+            d = d + w * (x[params.p_base + j].xyz - aux[j].xyz);
         }
     }
-    p[i] = vec4<f32>(p2[i].xyz + d, 0.0);
+    x[params.p_base + i] = vec4<f32>(aux[i].xyz + d, 0.0);
 }
 
 // The finer level's multipliers from this level's: λ_i = Σ_j (w_ij V_i / V_j) λ_j.

@@ -2,12 +2,10 @@
 //!
 //! Source: `integrate.wgsl` (with `common.wgsl`, `bindings.wgsl` prepended).
 
-/// WGSL source of this kernel's module.
-pub const SOURCE: &str = concat!(
-    include_str!("common.wgsl"),
-    include_str!("bindings.wgsl"),
-    include_str!("integrate.wgsl")
-);
+/// WGSL source of this kernel's module (see [`super::bindings::compose`]).
+pub fn source() -> String {
+    super::bindings::compose(&[include_str!("integrate.wgsl")])
+}
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["predict", "finish", "finish_predict"];

@@ -6,7 +6,7 @@
 // Graspers let go of and take particle i (at x, start of the substep).
 // CPU twin: core::colliders::update_grab.
 fn update_grab(i: u32) {
-    var g = grab[i];
+    var g = aux[params.grab_base + i];
     if (g.w >= 0.5) {
         let k = u32(g.w) - 1u;
         let keep = k < params.n_colliders && u32(colliders[k].kind_fr.x) == GRASPER
@@ -26,7 +26,7 @@ fn update_grab(i: u32) {
             }
         }
     }
-    grab[i] = g;
+    aux[params.grab_base + i] = g;
 }
 
 @compute @workgroup_size(128)
@@ -55,7 +55,7 @@ fn finish_predict(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 fn predict_one(i: u32) {
     if (asleep(i)) {
-        p[i] = x[i];
+        x[params.p_base + i] = x[i];
         return;
     }
     let vv = v[i].xyz + params.gravity.xyz * params.h;
@@ -63,7 +63,7 @@ fn predict_one(i: u32) {
     var pp = x[i].xyz + vv * params.h;
     let slot = pinfo[i].y;
     if (slot != NONE) {
-        pp = pins[slot].xyz;
+        pp = rest[params.pin_base + slot].xyz;
     } else if (params.n_colliders > 0u) {
         update_grab(i);
         let t = grab_target(i);
@@ -71,10 +71,10 @@ fn predict_one(i: u32) {
             pp = t.xyz;
         }
     }
-    p[i] = vec4<f32>(pp, 0.0);
+    x[params.p_base + i] = vec4<f32>(pp, 0.0);
     let st = cstate[i];
     cstate[i] = ClusterState(st.rot, vec4<f32>(0.0), vec4<f32>(0.0));
-    coldp[i] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+    aux[params.coldp_base + i] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
 }
 
 fn finish_one(i: u32) {
@@ -82,7 +82,7 @@ fn finish_one(i: u32) {
         v[i] = vec4<f32>(0.0);
         return;
     }
-    let pp = p[i].xyz;
+    let pp = x[params.p_base + i].xyz;
     let xx = x[i].xyz;
     let vel = (pp - xx) / params.h * params.keep;
     let speed = length(vel);

@@ -5,12 +5,8 @@
 
 use std::fmt::Write as _;
 
-/// WGSL template of this kernel's module (before [`source`] fills in the list).
-pub const TEMPLATE: &str = concat!(
-    include_str!("common.wgsl"),
-    include_str!("bindings.wgsl"),
-    include_str!("knn.wgsl")
-);
+/// WGSL template of this kernel's own file (before [`source`] fills in the list).
+pub const TEMPLATE: &str = include_str!("knn.wgsl");
 
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["knn_all", "knn_contacts"];
@@ -56,7 +52,7 @@ pub fn source(slots: u32, warm: bool) -> String {
         "                        if (c0) {{ ld0 = d2; lj0 = j; }}"
     );
     let last = n - 1;
-    TEMPLATE
+    let own = TEMPLATE
         .replace("WARM_VALUE", if warm { "true" } else { "false" })
         .replace("LIST_SLOTS_VALUE", &slots.to_string())
         .replace(
@@ -67,7 +63,8 @@ pub fn source(slots: u32, warm: bool) -> String {
         .replace("//LIST_INSERT\n", &insert)
         .replace("//LIST_OUT\n", &out)
         .replace("LAST_D", &format!("ld{last}"))
-        .replace("LAST_J", &format!("lj{last}"))
+        .replace("LAST_J", &format!("lj{last}"));
+    super::bindings::compose(&[&own])
 }
 
 #[cfg(test)]

@@ -111,7 +111,7 @@ fn knn_query(i: u32, mode: u32) {
                         let s0 = atomicLoad(&scan[h]);
                         let s1 = atomicLoad(&scan[h + 1u]);
                         for (var s = s0; s < s1; s = s + 1u) {
-                            let e = sorted[s];
+                            let e = aux[params.sorted_base + s];
                             let j = bitcast<u32>(e.w);
                             if (j == i) { continue; }
                             if (any(cell_coords(e.xyz, cell) != cc)) { continue; }

@@ -17,18 +17,7 @@ use bevy::render::render_resource::{
 use bevy::render::renderer::RenderDevice;
 use std::borrow::Cow;
 
-/// How a kernel sees a slot.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Access {
-    /// A uniform buffer bound whole.
-    Uniform,
-    /// A uniform buffer window chosen per dispatch (dynamic offset).
-    Dynamic,
-    /// A storage buffer the kernels only read.
-    Read,
-    /// A storage buffer the kernels write.
-    ReadWrite,
-}
+pub use super::bindings::Access;
 
 /// One binding of the lattice kernels: its name in WGSL, its WGSL type and access. Its
 /// binding number is its index in [`SLOTS`]; every slot is in group 0.

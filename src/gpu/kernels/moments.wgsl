@@ -40,7 +40,7 @@ fn moments_of(t: MomentSums, origin: vec3<f32>, com_mass: vec4<f32>) -> Moments 
 
 fn member_pos(j: u32, use_p: bool) -> vec3<f32> {
     if (use_p) {
-        return p[j].xyz;
+        return x[params.p_base + j].xyz;
     }
     return x[j].xyz;
 }

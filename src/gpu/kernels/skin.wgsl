@@ -5,15 +5,6 @@
 // CPU twins: core::solver::Solver::deformation_gradients, core::skin::{skin_positions,
 // skin_normals}.
 
-struct SkinRange {
-    begin: u32,
-    end: u32,
-    _pad0: u32,
-    _pad1: u32,
-};
-
-@group(1) @binding(0) var<storage, read_write> slab: array<f32>;
-@group(1) @binding(1) var<uniform> range: SkinRange;
 
 @compute @workgroup_size(128)
 fn deform(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -35,8 +26,8 @@ fn vertex_dst(vtx: u32) -> u32 {
 
 @compute @workgroup_size(128)
 fn skin(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let vtx = range.begin + gid.x;
-    if (vtx >= range.end) {
+    let vtx = span.begin + gid.x;
+    if (vtx >= span.end) {
         return;
     }
     let inf = vinf[vtx];
@@ -70,8 +61,8 @@ fn slab_pos(vtx: u32) -> vec3<f32> {
 // vertex ids per adjacent triangle of the vertex's welded vertex, in triangle order).
 @compute @workgroup_size(128)
 fn normals(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let vtx = range.begin + gid.x;
-    if (vtx >= range.end) {
+    let vtx = span.begin + gid.x;
+    if (vtx >= span.end) {
         return;
     }
     let nv = params.n_vertices + 1u;
