@@ -23,7 +23,8 @@
 //! `--no-gpu`, `--k 32,64` (the neighbour counts to run), `--out DIR` (default
 //! `table1_out`).
 //!
-//! `--lattice` times the plugin's and the core's default body on the same liver instead:
+//! `--lattice` times the plugin's and the core's default body on the same liver instead
+//! (`--sizes a,b,..` for other particle counts, as in the scaling rows):
 //! hexahedral lattice elements of liver tissue (E = 5.5 kPa, ν = 0.45), stepped by
 //! Newton–multigrid with `SolverSettings::default()` (2 Newton iterations per 1/60 s
 //! step), on the CPU (all cores) and the GPU (`GpuLattice`). No KNN: a lattice body has
@@ -398,7 +399,9 @@ fn main() {
     std::fs::create_dir_all(&out).expect("output folder");
     let sizes: &[u32] = if quick { &SIZES[..2] } else { &SIZES };
     if a.flag("--lattice") {
-        lattice_table(&a, sizes, steps, repeats, &out);
+        // `--sizes` takes the liver to other particle counts (the scaling rows).
+        let sizes = a.list("--sizes", sizes);
+        lattice_table(&a, &sizes, steps, repeats, &out);
         return;
     }
     let mut backends = Vec::new();
