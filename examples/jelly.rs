@@ -17,6 +17,12 @@
 //! Controls: left mouse drags a body; R drops everything again; Space pauses. With
 //! `--script` a mouse drag happens by itself (tests, screenshots); `--headless`,
 //! `--size`, `--frames`, `--shot FRAME:PATH` as in `support/scene.rs`.
+//!
+//! `--events gravity@400,spawn@500,despawn@600` measures what changing the world costs
+//! a frame: at each given frame it changes gravity (`TissueSettings::gravity`, halved and
+//! restored in turn), spawns one more body or despawns one, and prints the slowest frame
+//! of the 60 after it and the time those frames took beyond the median frame of the 60
+//! before it.
 
 #[path = "support/bench.rs"]
 mod bench;
@@ -50,6 +56,7 @@ fn main() {
         particles: args.num("--particles", 500u32),
         clusters: args.flag("--clusters"),
     };
+    let events = WorldEvents::parse(args.text("--events").map(String::as_str).unwrap_or(""));
     // The contact schedule can be set from the command line to compare it by eye.
     let d = TissueSettings::default();
     let settings = TissueSettings {
@@ -63,6 +70,10 @@ fn main() {
         .insert_resource(ClearColor(Color::srgb(0.55, 0.75, 0.95)))
         .add_systems(Startup, setup)
         .add_systems(Update, report);
+    if !events.list.is_empty() {
+        app.insert_resource(events)
+            .add_systems(Update, world_events.before(TissueSet::Build));
+    }
     if scene.script {
         app.add_systems(Update, (script.before(TissueSet::Build), drag_report));
     } else {
@@ -239,5 +250,118 @@ fn report(mut ready: MessageReader<SoftBodyReady>, mut errors: MessageReader<Sof
     }
     for e in errors.read() {
         error!("soft body {}: {}", e.entity, e.error);
+    }
+}
+
+/// `--events`: world changes at given frames and the frame time around each.
+#[derive(Resource, Default)]
+struct WorldEvents {
+    /// (kind, frame), kind one of `gravity`, `spawn`, `despawn`.
+    list: Vec<(String, u32)>,
+    /// Wall time of every frame so far, ms (frame 1 first).
+    times: Vec<f64>,
+    last: Option<std::time::Instant>,
+}
+
+/// Frames before an event whose median is the baseline, and frames after it measured.
+const EVENT_WINDOW: usize = 60;
+
+impl WorldEvents {
+    fn parse(text: &str) -> Self {
+        let mut list = Vec::new();
+        for item in text.split(',').filter(|t| !t.is_empty()) {
+            let parsed = item.split_once('@').and_then(|(kind, frame)| {
+                let ok = matches!(kind, "gravity" | "spawn" | "despawn");
+                Some((kind.to_string(), frame.parse::<u32>().ok()?)).filter(|_| ok)
+            });
+            match parsed {
+                Some(e) => list.push(e),
+                None => {
+                    eprintln!("--events: {item}: expected gravity@F, spawn@F or despawn@F");
+                    std::process::exit(2);
+                }
+            }
+        }
+        Self {
+            list,
+            ..Default::default()
+        }
+    }
+}
+
+/// A jelly body's parts that a spawned copy takes.
+type JellyParts<'a> = (
+    Entity,
+    &'a Mesh3d,
+    &'a MeshMaterial3d<StandardMaterial>,
+    &'a SoftBody,
+    &'a Transform,
+);
+
+fn world_events(
+    mut commands: Commands,
+    frames: Res<scene::Frames>,
+    mut events: ResMut<WorldEvents>,
+    mut settings: ResMut<TissueSettings>,
+    bodies: Query<JellyParts, With<JellyBody>>,
+) {
+    let now = std::time::Instant::now();
+    if let Some(last) = events.last {
+        let ms = now.duration_since(last).as_secs_f64() * 1e3;
+        events.times.push(ms);
+    }
+    events.last = Some(now);
+    let f = frames.count;
+    let due: Vec<String> = events
+        .list
+        .iter()
+        .filter(|e| e.1 == f)
+        .map(|e| e.0.clone())
+        .collect();
+    for kind in due {
+        match kind.as_str() {
+            "gravity" => {
+                let g = settings.gravity;
+                settings.gravity = if g.y < -9.0 { g * 0.5 } else { g * 2.0 };
+            }
+            "spawn" => {
+                if let Some((_, mesh, mat, body, at)) = bodies.iter().next() {
+                    commands.spawn((
+                        Name::new("jelly (spawned)"),
+                        mesh.clone(),
+                        mat.clone(),
+                        Transform::from_translation(at.translation + Vec3::Y * 0.6),
+                        JellyBody,
+                        body.clone(),
+                    ));
+                }
+            }
+            _ => {
+                if let Some((e, ..)) = bodies.iter().last() {
+                    commands.entity(e).despawn();
+                }
+            }
+        }
+    }
+    // Report each event once the frames after it have run.
+    for (kind, at) in &events.list {
+        let at = *at as usize;
+        if f as usize != at + EVENT_WINDOW + 1 || at < EVENT_WINDOW + 1 {
+            continue;
+        }
+        // times[k - 1] is frame k's (from its Update to the next).
+        let before: Vec<f64> = events.times[at - 1 - EVENT_WINDOW..at - 1].to_vec();
+        let after = &events.times[at - 1..at - 1 + EVENT_WINDOW];
+        let median = bench::median(before);
+        let (slowest, which) = after
+            .iter()
+            .enumerate()
+            .fold((0.0f64, 0), |m, (i, &t)| if t > m.0 { (t, i) } else { m });
+        let added: f64 = after.iter().map(|t| (t - median).max(0.0)).sum();
+        println!(
+            "event {kind} at frame {at}: slowest frame of the next {EVENT_WINDOW} {slowest:.2} ms \
+             ({} frames later), added over them {added:.2} ms; median frame before {median:.3} ms",
+            which
+        );
     }
 }

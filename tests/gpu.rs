@@ -1750,3 +1750,52 @@ fn the_block_inverse_equals_the_cpu() {
         );
     }
 }
+
+/// Per-step settings changed in place (`GpuWorld::set_settings`: gravity, dt, substeps,
+/// iterations with shape matching's per-iteration stiffness, damping, relaxation) step
+/// exactly as a world made with them; a change of the world's structure (particle
+/// contacts switched) is refused and changes nothing.
+#[test]
+fn settings_changed_in_place_equal_a_world_made_with_them() {
+    let Some(g) = gpu() else { return };
+    let (model, colliders) = hanging(Material::ShapeMatching { stiffness: 0.6 });
+    let a = settings();
+    let b = SolverSettings {
+        gravity: Vec3::new(1.0, -5.0, 0.5),
+        dt: 1.0 / 90.0,
+        substeps: 3,
+        iterations: 7,
+        damping: 2.0,
+        relaxation: 1.2,
+        ..a.clone()
+    };
+    assert!(a.differs_only_in_forces(&SolverSettings {
+        gravity: b.gravity,
+        damping: b.damping,
+        ..a.clone()
+    }));
+    assert!(!a.differs_only_in_forces(&b));
+    let mut changed = fresh_world_with(g, &model, a);
+    assert!(changed.set_settings(&g.queue, b.clone()).unwrap());
+    let mut made = fresh_world_with(g, &model, b.clone());
+    let x1 = run_gpu(g, &mut changed, &colliders, 30);
+    let x2 = run_gpu(g, &mut made, &colliders, 30);
+    let d = max_dist(&x1, &x2);
+    assert!(
+        d == 0.0,
+        "changed in place vs made with the settings: {d} m"
+    );
+    let structural = SolverSettings {
+        particle_contacts: !b.particle_contacts,
+        ..b.clone()
+    };
+    assert!(!changed.set_settings(&g.queue, structural).unwrap());
+    assert_eq!(changed.settings, b);
+    // Invalid settings are an error, not a change.
+    let bad = SolverSettings {
+        substeps: 0,
+        ..b.clone()
+    };
+    assert!(changed.set_settings(&g.queue, bad).is_err());
+    assert_eq!(changed.settings, b);
+}

@@ -1069,3 +1069,94 @@ fn a_lattice_body_steps_on_the_gpu_like_the_core() {
         "plugin (GPU) and core (CPU) differ by {worst} m of {sag} m"
     );
 }
+
+/// Changing gravity rebuilds neither world: the render graph's (a cluster body) and the
+/// main world's (a lattice body on the GPU) take it as a parameter. The bodies feel it:
+/// with gravity turned upwards, both rise above where they hung, which they cannot do
+/// under the old gravity.
+#[test]
+fn gravity_changes_without_a_rebuild() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    let (body, pinned) = common::lattice_body();
+    let l = spawn_on_main_world_path(&mut app, Vec3::new(0.0, 0.3, 0.0), body, Some(pinned));
+    // Shape matching: the hyperelastic clusters under Jacobi diverge when gravity turns
+    // over (with a rebuild as without one).
+    let (clusters, pinned) = body_of(TissueMaterial::ShapeMatching { stiffness: 0.5 });
+    let c = spawn_body(&mut app, Vec3::new(0.5, 0.3, 0.0), clusters, Some(pinned));
+    app.world_mut()
+        .entity_mut(c)
+        .insert(ReadbackParticles { continuous: true });
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    let mean_y = |app: &App, e: Entity| -> Option<(f32, u64)> {
+        let p = app.world().get::<ParticlePositions>(e)?;
+        let n = p.positions.len().max(1) as f32;
+        Some((p.positions.iter().map(|x| x.y).sum::<f32>() / n, p.step))
+    };
+    assert!(
+        until(&mut app, 200, |app| mean_y(app, c)
+            .is_some_and(|m| m.1 >= 1)
+            && mean_y(app, l).is_some()),
+        "the bodies did not step"
+    );
+    // Both boxes are centred where they were spawned: their particles' mean height at
+    // rest is 0.3 m. Averaged over 30 frames (the bodies swing), under gravity they hang
+    // below it.
+    let rest = 0.3;
+    let average = |app: &mut App| -> [f32; 2] {
+        let mut sum = [0.0; 2];
+        for _ in 0..30 {
+            app.update();
+            sum[0] += mean_y(app, l).unwrap().0 / 30.0;
+            sum[1] += mean_y(app, c).unwrap().0 / 30.0;
+        }
+        sum
+    };
+    for _ in 0..30 {
+        app.update();
+    }
+    let hung = average(&mut app);
+    for (i, y) in hung.iter().enumerate() {
+        assert!(*y < rest - 1e-4, "body {i} did not hang: {hung:?}");
+    }
+    let gpu_rebuilds = app
+        .sub_app(RenderApp)
+        .world()
+        .resource::<TissueGpu>()
+        .rebuilds();
+    let cpu_rebuilds = app
+        .world()
+        .resource::<bevy_tissue::plugin::cpu::CpuWorld>()
+        .rebuilds();
+    app.world_mut().resource_mut::<TissueSettings>().gravity = Vec3::new(0.0, 9.81, 0.0);
+    for _ in 0..30 {
+        app.update();
+    }
+    let risen = average(&mut app);
+    for (i, y) in risen.iter().enumerate() {
+        assert!(
+            *y > rest + 1e-4,
+            "body {i} did not rise: hung {hung:?}, now {risen:?}"
+        );
+    }
+    let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
+    assert!(world.stepped_on_gpu(), "the lattice body left the GPU");
+    assert_eq!(
+        world.rebuilds(),
+        cpu_rebuilds,
+        "the lattice world was rebuilt"
+    );
+    let gpu = app.sub_app(RenderApp).world().resource::<TissueGpu>();
+    assert_eq!(
+        gpu.rebuilds(),
+        gpu_rebuilds,
+        "the render graph's world was rebuilt"
+    );
+}

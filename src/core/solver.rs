@@ -225,6 +225,20 @@ impl Default for SolverSettings {
 }
 
 impl SolverSettings {
+    /// Whether `other` differs from these settings only in what a step reads as it goes:
+    /// gravity, velocity damping and the divergence speed. A [`Solver`] made with one
+    /// then steps with the other once its [`Solver::settings`] are replaced; nothing it
+    /// precomputed depends on them.
+    pub fn differs_only_in_forces(&self, other: &SolverSettings) -> bool {
+        let same_rest = SolverSettings {
+            gravity: other.gravity,
+            damping: other.damping,
+            max_speed: other.max_speed,
+            ..self.clone()
+        };
+        same_rest == *other
+    }
+
     /// Checks every field.
     pub fn validate(&self) -> Result<(), TissueError> {
         positive("dt", self.dt)?;

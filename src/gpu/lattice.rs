@@ -549,6 +549,8 @@ pub struct GpuLattice {
     n: u32,
     ne: u32,
     substeps: u32,
+    /// The substep, s.
+    h: f32,
     dispatches: Vec<Dispatch>,
     pass_index: Vec<u32>,
     groups: Vec<BindGroup>,
@@ -802,6 +804,7 @@ impl GpuLattice {
             n: n as u32,
             ne: model.elements.len() as u32,
             substeps: settings.substeps,
+            h: packed.params.h,
             dispatches,
             pass_index,
             groups: bind_groups,
@@ -817,6 +820,18 @@ impl GpuLattice {
             pair_capacity,
             _keep: vec![ef, vecs, nblk, elems, kmat, topo, nodes, mats, passes],
         })
+    }
+
+    /// Sets gravity (m/s²) and velocity damping (1/s) for the steps recorded from now on,
+    /// without rebuilding anything (a parameter write).
+    pub fn set_forces(&self, queue: &RenderQueue, gravity: Vec3, damping: f32) {
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&vec4(gravity)));
+        let keep = (1.0 - damping * self.h).max(0.0);
+        queue.write_buffer(
+            &self.params,
+            std::mem::offset_of!(Params, keep) as u64,
+            bytemuck::bytes_of(&keep),
+        );
     }
 
     /// Dispatches of one time step.

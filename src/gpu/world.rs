@@ -393,6 +393,25 @@ pub struct GpuWorld {
     params: GpuParams,
     /// Which bodies sleep (the `asleep` word of their `Body` record).
     asleep: Vec<bool>,
+    /// Per body, shape matching's stiffness k (its per-iteration stiffness depends on the
+    /// iteration count), or `None` for a hyperelastic body.
+    stiffness: Vec<Option<f32>>,
+}
+
+/// The per-step values of `params` that come from `s` alone: gravity, substep, damping,
+/// relaxations, rotation and Jacobi iterations, the divergence speed.
+fn step_params(params: &mut GpuParams, s: &SolverSettings) {
+    let h = s.dt / s.substeps as f32;
+    params.gravity = s.gravity.extend(0.0).to_array();
+    params.rot_iters = s.rotation_iterations;
+    params.h = h;
+    params.h2 = h * h;
+    params.keep = (1.0 - s.damping * h).max(0.0);
+    params.omega = s.relaxation;
+    params.inv_substeps = 1.0 / s.substeps as f32;
+    params.max_speed = s.max_speed;
+    params.iterations = s.iterations;
+    params.contact_omega = s.contact_relaxation;
 }
 
 /// Largest number of skin dispatches (runs of bodies sharing a vertex slab) per frame.
@@ -844,40 +863,29 @@ impl GpuWorld {
                 vcount: body.skin.rest_vertices.len() as u32,
             })
             .collect();
-        let h = settings.dt / settings.substeps as f32;
-        let params = GpuParams {
-            gravity: settings.gravity.extend(0.0).to_array(),
+        let mut params = GpuParams {
             n,
-            n_colliders: 0,
-            rot_iters: settings.rotation_iterations,
             contacts: contacts_on as u32,
-            h,
-            h2: h * h,
-            keep: (1.0 - settings.damping * h).max(0.0),
-            omega: settings.relaxation,
             inv_offset: packed.inv_offset,
             contact_k,
             n_vertices: nv,
-            inv_substeps: 1.0 / settings.substeps as f32,
             grid_cell: cell,
             grid_table: table,
-            max_speed: settings.max_speed,
             max_radius: packed.max_radius,
             knn_k,
             n_bodies: model.bodies.len() as u32,
             knn_cell,
             spare_stride,
-            iterations: settings.iterations,
             contact_reach: crate::core::knn::contact_reach_bound(packed.max_radius),
-            contact_omega: settings.contact_relaxation,
             p_base: regions.p_base,
             pin_base: regions.pin_base,
             coldp_base: regions.coldp_base,
             grab_base: regions.grab_base,
             bounds_base: regions.bounds_base,
             sorted_base: regions.sorted_base,
-            pad: [0; 3],
+            ..Default::default()
         };
+        step_params(&mut params, &settings);
         Ok(Self {
             settings,
             step: state.step,
@@ -905,6 +913,14 @@ impl GpuWorld {
             contacts_warm: false,
             params,
             asleep: vec![false; packed.bodies.len()],
+            stiffness: model
+                .bodies
+                .iter()
+                .map(|b| match b.material {
+                    crate::core::model::Material::ShapeMatching { stiffness } => Some(stiffness),
+                    _ => None,
+                })
+                .collect(),
         })
     }
 
@@ -1133,6 +1149,41 @@ impl GpuWorld {
             let at = self.regions.pin_base as u64 * 16;
             queue.write_buffer(&self.b.rest, at, bytemuck::cast_slice(&data));
         }
+    }
+
+    /// Takes `settings` for the steps recorded from now on without rebuilding the world,
+    /// where what they change is per-step: gravity, dt and substeps, damping, the
+    /// relaxations, iterations (shape matching's per-iteration stiffness is rewritten),
+    /// rotation iterations, the divergence speed, the contact search interval and the
+    /// hierarchy's coarse iterations. Returns `Ok(false)` and changes nothing where a new
+    /// world is needed: particle contacts switched, another contact-neighbour count, or
+    /// contacts every more iterations than the world's records were made for. Write the
+    /// parameters ([`GpuWorld::write_params`]) before the next steps.
+    pub fn set_settings(
+        &mut self,
+        queue: &RenderQueue,
+        settings: SolverSettings,
+    ) -> Result<bool, TissueError> {
+        settings.validate()?;
+        let old = &self.settings;
+        if settings.particle_contacts != old.particle_contacts
+            || settings.contact_neighbours != old.contact_neighbours
+            || Self::max_block(&settings) > self.block_records
+        {
+            return Ok(false);
+        }
+        if settings.iterations != old.iterations {
+            for (b, k) in self.stiffness.iter().enumerate() {
+                let Some(k) = k else { continue };
+                let k_iter = crate::core::constraints::iteration_stiffness(*k, settings.iterations);
+                let offset =
+                    (b * size_of::<GpuBody>() + std::mem::offset_of!(GpuBody, k_iter)) as u64;
+                queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&k_iter));
+            }
+        }
+        step_params(&mut self.params, &settings);
+        self.settings = settings;
+        Ok(true)
     }
 
     /// Writes the per-step constants (call before submitting recorded steps).

@@ -72,6 +72,9 @@ pub struct CpuWorld {
     gpu_failed: bool,
     /// The last step ran on the GPU.
     last_on_gpu: bool,
+    /// Times the batched model was rebuilt (bodies came, went or changed, or settings
+    /// changed what the solver precomputes).
+    rebuilds: u64,
 }
 
 /// The CPU world's lattice bodies on the GPU.
@@ -82,6 +85,8 @@ struct LatticeOnGpu {
     synced: bool,
     /// The GPU's particle-contact candidates were searched from its current bodies.
     lists: bool,
+    /// Gravity or damping changed since the GPU world was made or last told.
+    forces_dirty: bool,
 }
 
 /// Whether the GPU can step every body of `model` (hyperelastic lattice bodies).
@@ -97,6 +102,30 @@ impl CpuWorld {
     /// Whether the last step ran on the GPU ([`GpuLattice`]) rather than the CPU's solver.
     pub fn stepped_on_gpu(&self) -> bool {
         self.last_on_gpu
+    }
+
+    /// How many times the batched model was rebuilt: bodies came, went or changed, or a
+    /// settings change reached what the solver precomputes. Gravity, damping and the
+    /// divergence speed change in place.
+    pub fn rebuilds(&self) -> u64 {
+        self.rebuilds
+    }
+
+    /// Takes `settings` in place where they differ from the current ones only in
+    /// gravity, damping and the divergence speed; false (nothing changed) otherwise.
+    fn apply_forces(&mut self, settings: &SolverSettings) -> bool {
+        let (Some(old), Some(solver)) = (self.settings.as_mut(), self.solver.as_mut()) else {
+            return false;
+        };
+        if !old.differs_only_in_forces(settings) {
+            return false;
+        }
+        *old = settings.clone();
+        solver.settings = settings.clone();
+        if let Some(g) = self.gpu.as_mut() {
+            g.forces_dirty = true;
+        }
+        true
     }
 
     /// The batched model of the CPU bodies.
@@ -156,6 +185,7 @@ impl CpuWorld {
         self.state = Some(state);
         self.ranges = ranges;
         self.gpu_failed = false;
+        self.rebuilds += 1;
         if let Some(g) = self.gpu.as_mut() {
             g.world = None;
         }
@@ -186,6 +216,7 @@ impl CpuWorld {
                         world: None,
                         synced: false,
                         lists: false,
+                        forces_dirty: false,
                     })
                 }
                 Err(e) => {
@@ -202,6 +233,7 @@ impl CpuWorld {
                     g.world = Some(w);
                     g.synced = true;
                     g.lists = false;
+                    g.forces_dirty = false;
                 }
                 Err(e) => {
                     warn!("bevy_tissue: lattice bodies step on the CPU: {e}");
@@ -211,6 +243,10 @@ impl CpuWorld {
             }
         }
         let world = g.world.as_mut()?;
+        if g.forces_dirty {
+            world.set_forces(queue, settings.gravity, settings.damping);
+            g.forces_dirty = false;
+        }
         if !g.synced {
             world.upload(queue, &self.model, state);
             g.synced = true;
@@ -341,7 +377,9 @@ pub fn step_cpu_bodies(
     let keys: Vec<(Entity, u64)> = cpu.iter().map(|(e, b)| (*e, b.generation)).collect();
     // Whether the particles may differ from what the meshes show (a rebuild or a step).
     let mut dirty = clock.steps_this_frame > 0;
-    if keys != world.keys || world.settings.as_ref() != Some(&core) {
+    let in_place =
+        keys == world.keys && world.settings.as_ref() != Some(&core) && world.apply_forces(&core);
+    if !in_place && (keys != world.keys || world.settings.as_ref() != Some(&core)) {
         dirty = true;
         if let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();

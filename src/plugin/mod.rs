@@ -163,7 +163,8 @@ impl Plugin for TissuePlugin {
 /// last pose) and the user's source mesh handle.
 fn remove_soft_body(remove: On<Remove, SoftBody>, mut commands: Commands) {
     if let Ok(mut e) = commands.get_entity(remove.entity) {
-        e.remove::<(build::BuiltBody, build::BuildTask, build::BuiltFrom)>();
+        // `try_remove`: on a despawn the entity is gone by the time the command runs.
+        e.try_remove::<(build::BuiltBody, build::BuildTask, build::BuiltFrom)>();
     }
 }
 

@@ -125,6 +125,8 @@ pub struct TissueGpu {
     /// Readbacks mapped but not delivered yet.
     in_flight: Arc<std::sync::atomic::AtomicUsize>,
     warned_in_flight: bool,
+    /// Times the world was rebuilt.
+    rebuilds: u64,
 }
 
 /// Frames of readbacks outstanding at which the render world waits for the GPU (frame
@@ -144,6 +146,13 @@ impl TissueGpu {
     /// The batched GPU world, once bodies exist.
     pub fn world(&self) -> Option<&GpuWorld> {
         self.world.as_ref()
+    }
+
+    /// How many times the world was rebuilt: bodies came, went or were rebuilt, or a
+    /// settings change reached its structure (particle contacts, contact neighbours).
+    /// Per-step settings (gravity, damping, dt, iterations, ...) change in place.
+    pub fn rebuilds(&self) -> u64 {
+        self.rebuilds
     }
 }
 
@@ -311,7 +320,17 @@ pub fn prepare_tissue(
     let Some(Ok(_)) = &gpu.kernels else { return };
     let keys: Vec<(Entity, u64)> = ex.bodies.iter().map(|b| (b.entity, b.generation)).collect();
     let settings_changed = gpu.settings.as_ref() != Some(&ex.settings);
-    if keys != gpu.keys || settings_changed {
+    // Per-step settings (gravity, damping, dt, iterations, ...) go to the parameters; a
+    // change of the world's structure, or of its bodies, rebuilds it.
+    let in_place = keys == gpu.keys
+        && settings_changed
+        && gpu.world.as_mut().is_some_and(|w| {
+            w.set_settings(&queue, ex.settings.to_core())
+                .unwrap_or(false)
+        });
+    if in_place {
+        gpu.settings = Some(ex.settings.clone());
+    } else if keys != gpu.keys || settings_changed {
         rebuild(&mut gpu, &ex, &device, &queue, &sender, keys);
     }
     // The bodies in the world's order (bodies left out by a rebuild are not drawn).
@@ -365,6 +384,7 @@ fn rebuild(
 ) {
     let old_keys = std::mem::take(&mut gpu.world_keys);
     let old_world = gpu.world.take();
+    gpu.rebuilds += 1;
     gpu.settings = Some(ex.settings.clone());
     gpu.keys = keys;
     if ex.bodies.is_empty() {

@@ -21,11 +21,13 @@ pub fn source() -> String {
 /// Entry points of the module.
 pub const ENTRY_POINTS: &[&str] = &["body_substep", "body_iteration"];
 
-/// Largest body (particles) the kernel takes (`BODY_MAX` in `body.wgsl`).
-pub const BODY_MAX: u32 = 512;
+/// Largest body (particles) the kernel takes (`BODY_MAX` in `body.wgsl`): one less than
+/// its threads, so that its four arrays and its one flag fit 32 KiB of workgroup memory.
+pub const BODY_MAX: u32 = 511;
 
-/// Workgroup memory the kernel needs (four `vec4` arrays of [`BODY_MAX`]), bytes.
-pub const WORKGROUP_BYTES: u32 = 4 * BODY_MAX * 16;
+/// Workgroup memory the kernel needs (four `vec4` arrays of [`BODY_MAX`] and a `u32`
+/// flag), bytes.
+pub const WORKGROUP_BYTES: u32 = 4 * BODY_MAX * 16 + 4;
 
 /// Threads per workgroup (`BODY_WG` in `body.wgsl`).
 pub const THREADS: u32 = 512;

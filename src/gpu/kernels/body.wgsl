@@ -18,7 +18,7 @@
 // at most BODY_MAX particles (`Body.in_wg`; world.rs, `set_body_kernel`); the cluster and
 // gather kernels skip them.
 
-const BODY_MAX: u32 = 512u;
+const BODY_MAX: u32 = 511u;
 const BODY_WG: u32 = 512u;
 
 var<workgroup> sp: array<vec4<f32>, BODY_MAX>;   // the body's predicted positions p
@@ -306,7 +306,7 @@ fn solves_substep(body: Body, b: u32) -> bool {
 // thread calls it, in uniform control flow).
 fn run_substep(body: Body, lid: u32) {
     load_body(body, lid);
-    // BODY_WG = BODY_MAX: thread t owns cluster and particle t.
+    // BODY_WG > BODY_MAX: thread t owns cluster and particle t (the last thread none).
     let t = lid;
     let mine = t < min(body.count, BODY_MAX);
     let c = body.first + t;

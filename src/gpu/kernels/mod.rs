@@ -506,8 +506,9 @@ mod tests {
         let a = Analysis::new(&body::source()).unwrap();
         assert_eq!(
             a.workgroup_bytes("body_substep").unwrap(),
-            body::WORKGROUP_BYTES + 4
+            body::WORKGROUP_BYTES
         );
+        const { assert!(body::WORKGROUP_BYTES <= 32 * 1024) };
         assert_eq!(a.invocations("body_iteration").unwrap(), body::THREADS);
     }
 }
