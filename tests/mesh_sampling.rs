@@ -32,6 +32,37 @@ fn procedural_shapes_are_valid_closed_surfaces() {
     assert!((b.volume - 8.0).abs() < 1e-9);
 }
 
+/// A mesh placed far from the origin whose seam has twin vertices a rounding step apart
+/// (as a primitive's seam becomes once its vertices are moved to world space, where an
+/// f32 step at 9 m is about 1 µm) is still one closed surface.
+#[test]
+fn a_seam_a_rounding_step_apart_far_from_the_origin_is_welded() {
+    let mut mesh = procedural::icosphere(0.13, 3);
+    for p in &mut mesh.positions {
+        *p += Vec3::new(5.6, 1.4, 9.0);
+    }
+    // Vertex 0's twin, one f32 step further along z, taken by the triangles after the
+    // first that use vertex 0.
+    let p = mesh.positions[0];
+    let twin = Vec3::new(p.x, p.y, f32::from_bits(p.z.to_bits() + 1));
+    assert!(twin.z > p.z);
+    mesh.positions.push(twin);
+    let t = (mesh.positions.len() - 1) as u32;
+    let mut seen = false;
+    for tri in mesh.indices.chunks_exact_mut(3) {
+        if tri.contains(&0) {
+            if seen {
+                for i in tri.iter_mut().filter(|i| **i == 0) {
+                    *i = t;
+                }
+            }
+            seen = true;
+        }
+    }
+    let s = Surface::new(&mesh).unwrap_or_else(|e| panic!("the seam was not welded: {e}"));
+    assert!(s.volume > 0.0);
+}
+
 #[test]
 fn inverted_surface_is_flipped() {
     let mut m = procedural::icosphere(0.3, 2);

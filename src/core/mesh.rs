@@ -326,13 +326,19 @@ pub fn signed_volume(positions: &[DVec3], triangles: &[[u32; 3]]) -> f64 {
         / 6.0
 }
 
-/// Merges vertices closer than 1e-6 of the bounding-box diagonal. Returns the welded
-/// positions and, for each input vertex, its welded index.
+/// Merges vertices closer than 1e-6 of the bounding-box diagonal, or than four f32
+/// rounding steps of the largest coordinate where that is more: a seam's twin vertices,
+/// equal in the mesh's own frame, can land a rounding step apart once placed far from
+/// the origin. Returns the welded positions and, for each input vertex, its welded
+/// index.
 pub fn weld(points: &[Vec3]) -> (Vec<DVec3>, Vec<u32>) {
     let Some((lo, hi)) = bounds_of(points) else {
         return (Vec::new(), Vec::new());
     };
-    let eps = ((hi - lo).as_dvec3().length() * 1e-6).max(1e-30);
+    let far = lo.abs().max(hi.abs()).max_element() as f64;
+    let eps = ((hi - lo).as_dvec3().length() * 1e-6)
+        .max(far * 4.0 * f32::EPSILON as f64)
+        .max(1e-30);
     let key = |p: DVec3| -> [i64; 3] { (p / eps).floor().to_array().map(|x| x as i64) };
     let mut cells: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
     let mut out: Vec<DVec3> = Vec::new();
