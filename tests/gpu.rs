@@ -1799,3 +1799,57 @@ fn settings_changed_in_place_equal_a_world_made_with_them() {
     assert!(changed.set_settings(&g.queue, bad).is_err());
     assert_eq!(changed.settings, b);
 }
+
+/// A retired body (`GpuWorld::retire`, what the plugin does on a despawn) leaves every
+/// other body's motion exactly as it was, sleeps for good, and its particles are parked
+/// far away; a world with hierarchy levels refuses (the caller rebuilds).
+#[test]
+fn a_retired_body_leaves_the_others_as_they_were() {
+    let Some(g) = gpu() else { return };
+    let mut model = Model::new();
+    let sm = Material::ShapeMatching { stiffness: 0.6 };
+    let mesh = procedural::cuboid(Vec3::splat(0.03), 2);
+    for x in [-0.2, 0.2] {
+        model
+            .add_body(&mesh, &body(sm, Vec3::new(x, 0.1, 0.0), 300, vec![]))
+            .unwrap();
+    }
+    let s = SolverSettings {
+        particle_contacts: true,
+        ..settings()
+    };
+    let ground = [Collider::ground(0.0)];
+    let mut kept = fresh_world_with(g, &model, s.clone());
+    let mut retired = fresh_world_with(g, &model, s);
+    run_gpu(g, &mut kept, &ground, 10);
+    run_gpu(g, &mut retired, &ground, 10);
+    let r = retired.ranges[1];
+    assert_eq!(retired.retire(&g.queue, 1), Some(r.count));
+    assert!(retired.is_retired(1) && !retired.is_retired(0));
+    // The plugin's per-frame sleep flags cannot wake it.
+    retired.set_asleep(&g.queue, [false, false]);
+    let a = run_gpu(g, &mut kept, &ground, 30);
+    let b = run_gpu(g, &mut retired, &ground, 30);
+    let first = retired.ranges[0];
+    let body0 = first.first as usize..(first.first + first.count) as usize;
+    let d = max_dist(&a[body0.clone()], &b[body0]);
+    assert!(d == 0.0, "the other body moved differently by {d} m");
+    let parked = &b[r.first as usize..(r.first + r.count) as usize];
+    assert!(parked.iter().all(|p| p.y > 1000.0), "parked far away");
+    // Hierarchy levels: refused.
+    let (hmodel, _) = hanging(sm);
+    let mut h = Model::new();
+    let desc = BodyDesc {
+        hierarchy: Some(bevy_tissue::core::hierarchy::HierarchyDesc {
+            min_particles: 32,
+            ..Default::default()
+        }),
+        ..body(sm, Vec3::ZERO, 600, vec![])
+    };
+    h.add_body(&procedural::cuboid(Vec3::new(0.06, 0.03, 0.03), 4), &desc)
+        .unwrap();
+    h.append(&hmodel);
+    assert!(!h.levels.is_empty(), "the world has hierarchy levels");
+    let mut w = fresh_world_with(g, &h, settings());
+    assert_eq!(w.retire(&g.queue, 1), None);
+}

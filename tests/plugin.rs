@@ -1160,3 +1160,58 @@ fn gravity_changes_without_a_rebuild() {
         "the render graph's world was rebuilt"
     );
 }
+
+/// Despawning a body retires it in the render graph's world instead of rebuilding it:
+/// the other bodies step on with their state, and the world is not rebuilt.
+#[test]
+fn despawning_a_body_does_not_rebuild_the_world() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    let mut bodies = Vec::new();
+    for x in [-0.5, 0.0, 0.5, 1.0] {
+        let (b, pinned) = body_of(TissueMaterial::ShapeMatching { stiffness: 0.5 });
+        let e = spawn_body(&mut app, Vec3::new(x, 0.3, 0.0), b, Some(pinned));
+        app.world_mut()
+            .entity_mut(e)
+            .insert(ReadbackParticles { continuous: true });
+        bodies.push(e);
+    }
+    {
+        let mut clock = app.world_mut().resource_mut::<TissueClock>();
+        clock.paused = false;
+        clock.fixed_steps_per_frame = Some(1);
+    }
+    let step = |app: &App, e: Entity| app.world().get::<ParticlePositions>(e).map(|p| p.step);
+    assert!(
+        until(&mut app, 200, |app| bodies
+            .iter()
+            .all(|&e| step(app, e).is_some_and(|s| s >= 5))),
+        "the bodies did not step"
+    );
+    let rebuilds = app
+        .sub_app(RenderApp)
+        .world()
+        .resource::<TissueGpu>()
+        .rebuilds();
+    let before = step(&app, bodies[0]).unwrap();
+    app.world_mut().entity_mut(bodies[1]).despawn();
+    for _ in 0..20 {
+        app.update();
+    }
+    let gpu = app.sub_app(RenderApp).world().resource::<TissueGpu>();
+    assert_eq!(
+        gpu.rebuilds(),
+        rebuilds,
+        "the world was rebuilt for a despawn"
+    );
+    let world = gpu.world().expect("world");
+    assert!(world.is_retired(1), "the despawned body is retired");
+    for &e in [bodies[0], bodies[2], bodies[3]].iter() {
+        let p = app.world().get::<ParticlePositions>(e).unwrap();
+        assert!(p.step >= before + 10, "body {e} stopped: step {}", p.step);
+        assert!(p.positions.iter().all(|x| x.is_finite() && x.y < 1.0));
+    }
+}

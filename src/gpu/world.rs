@@ -396,7 +396,13 @@ pub struct GpuWorld {
     /// Per body, shape matching's stiffness k (its per-iteration stiffness depends on the
     /// iteration count), or `None` for a hyperelastic body.
     stiffness: Vec<Option<f32>>,
+    /// Per body, whether it was retired ([`GpuWorld::retire`]).
+    retired: Vec<bool>,
 }
+
+/// Where a retired body's particles are parked, m: far from any scene, a tenth of a metre
+/// apart (so that they fill grid cells of their own and meet nothing).
+const PARKED: Vec3 = Vec3::splat(1.0e4);
 
 /// The per-step values of `params` that come from `s` alone: gravity, substep, damping,
 /// relaxations, rotation and Jacobi iterations, the divergence speed.
@@ -913,6 +919,7 @@ impl GpuWorld {
             contacts_warm: false,
             params,
             asleep: vec![false; packed.bodies.len()],
+            retired: vec![false; model.bodies.len()],
             stiffness: model
                 .bodies
                 .iter()
@@ -930,12 +937,58 @@ impl GpuWorld {
     pub fn set_asleep(&mut self, queue: &RenderQueue, asleep: impl IntoIterator<Item = bool>) {
         let n = self.ranges.len();
         for (b, (mine, want)) in self.asleep[..n].iter_mut().zip(asleep).enumerate() {
+            // A retired body sleeps for good.
+            let want = want || self.retired[b];
             if *mine != want {
                 *mine = want;
                 let offset = (b * size_of::<GpuBody>() + 12) as u64;
                 queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&(want as u32)));
             }
         }
+    }
+
+    /// Retires body `body` (model order) without rebuilding the world: it sleeps from now
+    /// on (the kernels skip it), its particles are parked far from everything at rest
+    /// (no other body or collider meets them, and they are not drawn by callers that skip
+    /// retired bodies), and its grabs are let go. Every other body keeps its state. The
+    /// world's arrays keep the body's place until it is rebuilt. Returns the particles
+    /// retired so far (a caller compacts by rebuilding when they are many); `None` for a
+    /// body out of range or in a world with hierarchy levels (whose coarse particles
+    /// would still meet the body's).
+    pub fn retire(&mut self, queue: &RenderQueue, body: usize) -> Option<u32> {
+        let r = *self.ranges.get(body)?;
+        if !self.coarse.is_empty() {
+            return None;
+        }
+        if !self.retired[body] {
+            self.retired[body] = true;
+            self.asleep[body] = true;
+            let offset = (body * size_of::<GpuBody>() + 12) as u64;
+            queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&1u32));
+            let parked: Vec<[f32; 4]> = (0..r.count)
+                .map(|i| (PARKED + Vec3::X * (0.1 * i as f32)).extend(0.0).to_array())
+                .collect();
+            let bytes: &[u8] = bytemuck::cast_slice(&parked);
+            let at = r.first as u64 * 16;
+            queue.write_buffer(&self.b.x, at, bytes);
+            queue.write_buffer(&self.b.x, self.regions.p_base as u64 * 16 + at, bytes);
+            let zeros = vec![0u8; r.count as usize * 16];
+            queue.write_buffer(&self.b.v, at, &zeros);
+            queue.write_buffer(&self.b.aux, self.regions.grab_base as u64 * 16 + at, &zeros);
+        }
+        Some(
+            self.ranges
+                .iter()
+                .zip(&self.retired)
+                .filter(|(_, r)| **r)
+                .map(|(range, _)| range.count)
+                .sum(),
+        )
+    }
+
+    /// Whether body `body` (model order) was retired ([`GpuWorld::retire`]).
+    pub fn is_retired(&self, body: usize) -> bool {
+        self.retired.get(body).copied().unwrap_or(false)
     }
 
     /// Whether level 0 of the small shape-matching bodies (at most

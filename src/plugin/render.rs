@@ -107,7 +107,9 @@ pub struct TissueGpu {
     /// The bodies in the world, in its order (some extracted ones may not fit).
     world_keys: Vec<(Entity, u64)>,
     warned_colliders: bool,
-    bodies: Vec<ExtractedBody>,
+    /// The world's bodies in its order; `None` for a retired one (despawned since the
+    /// world was built, still holding its place in the arrays).
+    bodies: Vec<Option<ExtractedBody>>,
     settings: Option<TissueSettings>,
     steps: u32,
     colliders: Vec<(Entity, Collider, bool)>,
@@ -331,13 +333,17 @@ pub fn prepare_tissue(
     if in_place {
         gpu.settings = Some(ex.settings.clone());
     } else if keys != gpu.keys || settings_changed {
-        rebuild(&mut gpu, &ex, &device, &queue, &sender, keys);
+        // Bodies that only went away are retired in place; anything else rebuilds.
+        if settings_changed || !retire_removed(&mut gpu, &keys, &queue) {
+            rebuild(&mut gpu, &ex, &device, &queue, &sender, keys);
+        }
     }
-    // The bodies in the world's order (bodies left out by a rebuild are not drawn).
+    // The bodies in the world's order (a body left out by a rebuild, or retired, is
+    // neither stepped nor drawn).
     gpu.bodies = gpu
         .world_keys
         .iter()
-        .filter_map(|k| ex.bodies.iter().find(|b| b.entity == k.0).cloned())
+        .map(|k| ex.bodies.iter().find(|b| b.entity == k.0).cloned())
         .collect();
     gpu.steps = ex.steps;
     // At most MAX_COLLIDERS colliders act (the first spawned); the rest are ignored,
@@ -372,6 +378,33 @@ pub fn prepare_tissue(
             + cols.len() * size_of::<crate::gpu::buffers::GpuCollider>())
             as u64;
     }
+}
+
+/// Where `keys` are the world's bodies less some (none new, none rebuilt), retires those
+/// in the world ([`GpuWorld::retire`]) instead of rebuilding it, unless retired bodies
+/// would then hold more than a quarter of its particles (then the caller rebuilds, which
+/// compacts). Returns whether it did.
+fn retire_removed(gpu: &mut TissueGpu, keys: &[(Entity, u64)], queue: &RenderQueue) -> bool {
+    let Some(world) = gpu.world.as_mut() else {
+        return false;
+    };
+    if keys.iter().any(|k| !gpu.keys.contains(k)) {
+        return false;
+    }
+    let mut retired = 0;
+    for (i, k) in gpu.world_keys.iter().enumerate() {
+        if !keys.contains(k) {
+            match world.retire(queue, i) {
+                Some(n) => retired = n,
+                None => return false,
+            }
+        }
+    }
+    if retired as u64 * 4 > world.particle_count() as u64 {
+        return false;
+    }
+    gpu.keys = keys.to_vec();
+    true
 }
 
 fn rebuild(
@@ -503,7 +536,12 @@ pub fn run_tissue(
     let recorder = ctx.diagnostic_recorder();
     let recorder = recorder.as_deref();
     // Sleeping bodies are skipped by the kernels; when all sleep, no step is recorded.
-    world.set_asleep(&queue, gpu.bodies.iter().map(|b| b.asleep));
+    world.set_asleep(
+        &queue,
+        gpu.bodies
+            .iter()
+            .map(|b| b.as_ref().is_none_or(|b| b.asleep)),
+    );
     let steps = if world.all_asleep() { 0 } else { gpu.steps };
     gpu.traffic.steps = steps;
     // Draw records: where each body's vertices are in the allocator's slabs (slabs can
@@ -511,6 +549,10 @@ pub fn run_tissue(
     let mut draws = Vec::with_capacity(gpu.bodies.len());
     let mut slabs: Vec<(Buffer, Vec<(u32, u32)>)> = Vec::new();
     for (b, r) in gpu.bodies.iter().zip(&world.ranges) {
+        let Some(b) = b else {
+            draws.push(GpuDrawBody::default());
+            continue;
+        };
         let slice = allocator.mesh_vertex_slice(&b.mesh);
         let Some(slice) = slice.filter(|s| s.range.len() as u32 == r.vcount) else {
             draws.push(GpuDrawBody::default());
@@ -573,9 +615,12 @@ pub fn run_tissue(
     // Readback copies.
     let mut items = Vec::new();
     for (i, b) in gpu.bodies.iter().enumerate() {
-        items.push((b.entity, i as u64 * 32, 32, Item::Bounds));
+        if let Some(b) = b {
+            items.push((b.entity, i as u64 * 32, 32, Item::Bounds));
+        }
     }
     for (b, r) in gpu.bodies.iter().zip(&world.ranges) {
+        let Some(b) = b else { continue };
         if b.readback {
             let item = (
                 b.entity,
