@@ -32,6 +32,9 @@
 //! K = 32 search out of the steps (the paper's every-10th-step search, which the plugin's
 //! step never runs: it searches only for contact candidates, and those searches stay);
 //! the KNN columns still time it on its own.
+//!
+//! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
+//! guarantees; the tests run the example so).
 #[path = "support/bench.rs"]
 mod bench;
 
@@ -42,7 +45,7 @@ use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Method, SolverSettings, State};
 use bevy_tissue::gpu::profile::GpuProfiler;
 use bevy_tissue::gpu::world::read_vec3;
-use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, PassRecorder, headless};
+use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, PassRecorder};
 use bevy_tissue::plugin::components::TissueSettings;
 use glam::Vec3;
 use std::time::Instant;
@@ -320,7 +323,7 @@ fn main() {
         return;
     }
     let quick = args.flag("--quick");
-    let g = match headless() {
+    let g = match bench::open_gpu() {
         Ok(g) => g,
         Err(e) => {
             eprintln!("gpu_bench: {e}");

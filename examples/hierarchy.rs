@@ -36,6 +36,9 @@
 //! `--no-gpu`, `--out DIR` (default `hierarchy_out`), `--reference-dir DIR` (where the
 //! converged step is saved and, if there from an earlier run, read; default the output
 //! folder).
+//!
+//! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
+//! guarantees; the tests run the example so).
 
 #[path = "support/bench.rs"]
 mod bench;
@@ -51,7 +54,7 @@ use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use bevy_tissue::gpu::buffers::GpuClusterState;
 use bevy_tissue::gpu::profile::GpuProfiler;
 use bevy_tissue::gpu::world::{read_buffer, read_vec3};
-use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
+use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming};
 use glam::{Quat, Vec3};
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -540,7 +543,7 @@ fn main() {
     let a = args();
     std::fs::create_dir_all(&a.out).expect("output folder");
     let gpu = if a.gpu {
-        match headless() {
+        match bench::open_gpu() {
             Ok(g) => Some(g),
             Err(e) => {
                 eprintln!("no GPU adapter ({e}): GPU curves skipped");

@@ -31,6 +31,9 @@
 //! `--smoother hybrid|chebyshev|gs`, `--fold N,...` (speed only: `LatticeOptions::fold_nodes`
 //! values to compare, default the library's), `--profile` (GPU time per kernel: every
 //! dispatch in its own timed pass).
+//!
+//! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
+//! guarantees; the tests run the example so).
 #[path = "support/accuracy.rs"]
 mod accuracy;
 #[path = "support/bench.rs"]
@@ -441,8 +444,8 @@ fn main() {
             format!("{other}: expected hybrid, chebyshev or gs"),
         ),
     };
-    let (device, queue, adapter) = device_with(bevy::render::settings::WgpuSettings::default())
-        .unwrap_or_else(|e| fail("GPU", e));
+    let (device, queue, adapter) =
+        device_with(bench::gpu_settings()).unwrap_or_else(|e| fail("GPU", e));
     let kernels = LatticeKernels::new(&device).unwrap_or_else(|e| fail("kernels", e));
     println!("# Newton–multigrid on the GPU\n\nAdapter: {adapter}");
     let g = Gpu {

@@ -55,6 +55,9 @@
 //! ```
 //! Options: `--quick`, `--paper`, `--no-cpu`, `--no-gpu`, `--out DIR` (default
 //! `speed_accuracy_out`).
+//!
+//! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
+//! guarantees; the tests run the example so).
 
 #[path = "support/accuracy.rs"]
 mod accuracy;
@@ -76,7 +79,7 @@ use bevy_tissue::core::solver::{Control, ElementSolver, Method, Solver, SolverSe
 use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
 use bevy_tissue::gpu::lattice::GpuLattice;
 use bevy_tissue::gpu::world::{read_buffer, read_vec3};
-use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
+use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming};
 use glam::Vec3;
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -774,7 +777,7 @@ fn main() {
     let gpu = if args.flag("--no-gpu") {
         None
     } else {
-        match headless().and_then(|g| {
+        match bench::open_gpu().and_then(|g| {
             let lattice = LatticeKernels::new(&g.device).map_err(|e| e.to_string())?;
             Ok(Gpu { g, lattice })
         }) {

@@ -58,6 +58,9 @@
 //! `--youngs E` (Pa, default 1e5), `--gravity`, `--no-cpu`, `--no-gpu`, `--out DIR`
 //! (default `stability_out`). CPU cells run in parallel, one per core, each solver on one
 //! thread; GPU cells meanwhile, one at a time.
+//!
+//! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
+//! guarantees; the tests run the example so).
 
 #[path = "support/accuracy.rs"]
 mod accuracy;
@@ -80,7 +83,7 @@ use bevy_tissue::core::solver::{Control, ElementSolver, Method, Solver, SolverSe
 use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
 use bevy_tissue::gpu::lattice::GpuLattice;
 use bevy_tissue::gpu::world::{read_u32, read_vec3};
-use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
+use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming};
 use glam::Vec3;
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -907,7 +910,7 @@ fn main() {
     let cfg = config();
     std::fs::create_dir_all(&cfg.out).expect("output folder");
     let gpu = if cfg.gpu {
-        match headless() {
+        match bench::open_gpu() {
             Ok(g) => {
                 eprintln!("GPU: {}", g.adapter);
                 Some(g)

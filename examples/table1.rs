@@ -29,6 +29,9 @@
 //! Newton–multigrid with `SolverSettings::default()` (2 Newton iterations per 1/60 s
 //! step), on the CPU (all cores) and the GPU (`GpuLattice`). No KNN: a lattice body has
 //! no clusters. Markdown on stdout, `table1_lattice.json` in the output folder.
+//!
+//! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
+//! guarantees; the tests run the example so).
 
 #[path = "support/bench.rs"]
 mod bench;
@@ -43,7 +46,7 @@ use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
 use bevy_tissue::gpu::lattice::GpuLattice;
 use bevy_tissue::gpu::world::{read_buffer, read_vec3};
-use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
+use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming};
 use std::fmt::Write as _;
 use std::time::Instant;
 
@@ -334,7 +337,7 @@ fn lattice_table(
     let gpu = if a.flag("--no-gpu") {
         None
     } else {
-        headless().ok()
+        bench::open_gpu().ok()
     };
     let kernels = gpu
         .as_ref()
@@ -411,7 +414,7 @@ fn main() {
     let gpu = if a.flag("--no-gpu") {
         None
     } else {
-        match headless() {
+        match bench::open_gpu() {
             Ok(g) => {
                 backends.push(Backend::Gpu);
                 Some(g)

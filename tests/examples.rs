@@ -23,8 +23,16 @@ fn run_quick_with(name: &str, extra: &[&str]) -> (PathBuf, String, String) {
         extra.join(""),
         std::process::id()
     ));
+    // GPU rows on a device held to WebGPU's default limits, as every browser guarantees
+    // (`accuracy` runs on the CPU only and takes no such option).
+    let limits: &[&str] = if name == "accuracy" {
+        &[]
+    } else {
+        &["--webgpu-limits"]
+    };
     let run = Command::new(&bin)
         .args(extra)
+        .args(limits)
         .args(["--quick", "--out"])
         .arg(&out)
         .output()

@@ -40,7 +40,13 @@ fn app(wgpu: WgpuSettings) -> App {
     app_with(wgpu, |_| {})
 }
 
-fn app_with(wgpu: WgpuSettings, extra: impl FnOnce(&mut App)) -> App {
+/// A headless app with the tissue plugin on a device held to `wgpu`'s limits, or to
+/// WebGPU's default limits where it names none (every plugin test runs as a browser or
+/// a Mac would).
+fn app_with(mut wgpu: WgpuSettings, extra: impl FnOnce(&mut App)) -> App {
+    if wgpu.constrained_limits.is_none() {
+        wgpu.constrained_limits = Some(bevy::render::settings::WgpuLimits::default());
+    }
     let mut app = App::new();
     app.add_plugins(
         DefaultPlugins

@@ -107,7 +107,8 @@ fn liver_pixels(path: &Path) -> (f64, Vec<bool>) {
     (n as f64 / mask.len() as f64, mask)
 }
 
-/// Small enough for lavapipe on 2 cores (about 0.15–0.3 s a frame).
+/// Small enough for lavapipe on 2 cores (about 0.15–0.3 s a frame), on a device held
+/// to WebGPU's default limits.
 const LIVER_ARGS: &[&str] = &[
     "--script",
     "--lite",
@@ -117,6 +118,7 @@ const LIVER_ARGS: &[&str] = &[
     "320x180",
     "--frames",
     "360",
+    "--webgpu-limits",
 ];
 
 /// Checks a scripted liver run: every tool felt the tissue, the neighbour-count change
@@ -209,6 +211,7 @@ fn jelly_runs_in_a_window_with_a_scripted_drag() {
         "320x180",
         "--frames",
         "250",
+        "--webgpu-limits",
     ];
     let Some(text) = run("jelly", false, &args) else {
         return;
@@ -228,7 +231,7 @@ fn drop_runs_in_a_window_and_exits() {
     if !have_xvfb() {
         return;
     }
-    let Some(text) = run("drop", false, &["--frames", "60"]) else {
+    let Some(text) = run("drop", false, &["--frames", "60", "--webgpu-limits"]) else {
         return;
     };
     assert!(text.contains("ready"), "the bodies were built:\n{text}");

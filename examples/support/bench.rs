@@ -83,6 +83,22 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// The device settings of a benchmark: the adapter's own limits, or with
+/// `--webgpu-limits` WebGPU's default limits (what every browser guarantees; the tests
+/// run the examples so).
+pub fn gpu_settings() -> bevy::render::settings::WgpuSettings {
+    let mut s = bevy::render::settings::WgpuSettings::default();
+    if Args::new().flag("--webgpu-limits") {
+        s.constrained_limits = Some(bevy::render::settings::WgpuLimits::default());
+    }
+    s
+}
+
+/// [`bevy_tissue::gpu::headless`] with [`gpu_settings`].
+pub fn open_gpu() -> Result<Headless, String> {
+    bevy_tissue::gpu::headless_with(gpu_settings())
+}
+
 /// Waits for all submitted GPU work (a one-particle read cannot finish before it).
 pub fn sync(g: &Headless, world: &GpuWorld) {
     let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);

@@ -20,6 +20,8 @@
 //! --pause             start with the simulation paused (what drawing alone costs)
 //! --profile           where a frame's time goes: the main world's update, the render
 //!                     world's stages, and CPU and GPU ms per render pass
+//! --webgpu-limits     hold the device to WebGPU's default limits (what every browser
+//!                     guarantees; the tests run the scenes so)
 //! ```
 #![allow(dead_code)]
 
@@ -62,6 +64,8 @@ pub struct SceneArgs {
     pub pause: bool,
     /// Report where a frame's time goes.
     pub profile: bool,
+    /// Hold the device to WebGPU's default limits.
+    pub webgpu_limits: bool,
 }
 
 impl SceneArgs {
@@ -110,6 +114,7 @@ impl SceneArgs {
             }),
             pause: args.flag("--pause"),
             profile: args.flag("--profile"),
+            webgpu_limits: args.flag("--webgpu-limits"),
         }
     }
 }
@@ -140,6 +145,17 @@ pub fn app(args: &SceneArgs, title: &str, mut settings: TissueSettings) -> App {
         resolution: WindowResolution::new(args.size.x, args.size.y),
         ..default()
     };
+    let render = bevy::render::RenderPlugin {
+        render_creation: bevy::render::settings::RenderCreation::Automatic(Box::new(
+            bevy::render::settings::WgpuSettings {
+                constrained_limits: args
+                    .webgpu_limits
+                    .then(bevy::render::settings::WgpuLimits::default),
+                ..default()
+            },
+        )),
+        ..default()
+    };
     if args.headless {
         app.add_plugins(
             DefaultPlugins
@@ -148,14 +164,19 @@ pub fn app(args: &SceneArgs, title: &str, mut settings: TissueSettings) -> App {
                     exit_condition: ExitCondition::DontExit,
                     ..default()
                 })
+                .set(render)
                 .disable::<bevy::winit::WinitPlugin>(),
         )
         .add_plugins(bevy::app::ScheduleRunnerPlugin::run_loop(Duration::ZERO));
     } else {
-        app.add_plugins(DefaultPlugins.set(WindowPlugin {
-            primary_window: Some(window),
-            ..default()
-        }));
+        app.add_plugins(
+            DefaultPlugins
+                .set(WindowPlugin {
+                    primary_window: Some(window),
+                    ..default()
+                })
+                .set(render),
+        );
     }
     if args.script {
         // One step per frame: the script's timeline is in frames, whatever the frame rate.
