@@ -962,19 +962,7 @@ fn kernels_fit_webgpu_default_limits() {
     // as on the full adapter (with its workgroup-per-body kernel switched off, which
     // sums in another order).
     let Some(full) = gpu_full() else { return };
-    let mut model = Model::new();
-    let sm = Material::ShapeMatching { stiffness: 0.5 };
-    let mesh = procedural::cuboid(Vec3::splat(0.03), 2);
-    for x in [-0.031, 0.031] {
-        model
-            .add_body(&mesh, &body(sm, Vec3::new(x, 0.1, 0.0), 300, vec![]))
-            .unwrap();
-    }
-    let s = SolverSettings {
-        particle_contacts: true,
-        ..settings()
-    };
-    let ground = [Collider::ground(0.0)];
+    let (model, s, ground) = boxes_on_the_ground(0.5, [-0.031, 0.031]);
     let mut held = fresh_world_with(g, &model, s.clone());
     let mut wide = fresh_world_with(full, &model, s);
     wide.set_body_kernel(&full.queue, false);
@@ -1815,16 +1803,13 @@ fn settings_changed_in_place_equal_a_world_made_with_them() {
     assert_eq!(changed.settings, b);
 }
 
-/// A retired body (`GpuWorld::retire`, what the plugin does on a despawn) leaves every
-/// other body's motion exactly as it was, sleeps for good, and its particles are parked
-/// far away; a world with hierarchy levels refuses (the caller rebuilds).
-#[test]
-fn a_retired_body_leaves_the_others_as_they_were() {
-    let Some(g) = gpu() else { return };
+/// Two 6 cm shape-matching boxes of stiffness `k` side by side at `xs` (m), 10 cm above
+/// the ground, with particle contacts on: the model, the settings and the ground.
+fn boxes_on_the_ground(k: f32, xs: [f32; 2]) -> (Model, SolverSettings, [Collider; 1]) {
     let mut model = Model::new();
-    let sm = Material::ShapeMatching { stiffness: 0.6 };
+    let sm = Material::ShapeMatching { stiffness: k };
     let mesh = procedural::cuboid(Vec3::splat(0.03), 2);
-    for x in [-0.2, 0.2] {
+    for x in xs {
         model
             .add_body(&mesh, &body(sm, Vec3::new(x, 0.1, 0.0), 300, vec![]))
             .unwrap();
@@ -1833,7 +1818,17 @@ fn a_retired_body_leaves_the_others_as_they_were() {
         particle_contacts: true,
         ..settings()
     };
-    let ground = [Collider::ground(0.0)];
+    (model, s, [Collider::ground(0.0)])
+}
+
+/// A retired body (`GpuWorld::retire`, what the plugin does on a despawn) leaves every
+/// other body's motion exactly as it was, sleeps for good, and its particles are parked
+/// far away; a world with hierarchy levels refuses (the caller rebuilds).
+#[test]
+fn a_retired_body_leaves_the_others_as_they_were() {
+    let Some(g) = gpu() else { return };
+    let sm = Material::ShapeMatching { stiffness: 0.6 };
+    let (model, s, ground) = boxes_on_the_ground(0.6, [-0.2, 0.2]);
     let mut kept = fresh_world_with(g, &model, s.clone());
     let mut retired = fresh_world_with(g, &model, s);
     run_gpu(g, &mut kept, &ground, 10);

@@ -881,13 +881,16 @@ fn spawn_on_main_world_path(
     e
 }
 
+/// Unpauses the clock at one step a frame.
+fn run_one_step_a_frame(app: &mut App) {
+    let mut clock = app.world_mut().resource_mut::<TissueClock>();
+    clock.paused = false;
+    clock.fixed_steps_per_frame = Some(1);
+}
+
 /// Takes one step a frame for `frames` frames, then pauses.
 fn step_frames(app: &mut App, frames: u32) {
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(1);
-    }
+    run_one_step_a_frame(app);
     for _ in 0..frames {
         app.update();
     }
@@ -1018,11 +1021,7 @@ fn every_body_steps_on_the_gpu_under_webgpu_limits() {
     app.world_mut()
         .entity_mut(c)
         .insert(ReadbackParticles { continuous: true });
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(1);
-    }
+    run_one_step_a_frame(&mut app);
     assert!(
         until(&mut app, 120, |app| app
             .world()
@@ -1096,11 +1095,7 @@ fn gravity_changes_without_a_rebuild() {
     app.world_mut()
         .entity_mut(c)
         .insert(ReadbackParticles { continuous: true });
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(1);
-    }
+    run_one_step_a_frame(&mut app);
     let mean_y = |app: &App, e: Entity| -> Option<(f32, u64)> {
         let p = app.world().get::<ParticlePositions>(e)?;
         let n = p.positions.len().max(1) as f32;
@@ -1185,11 +1180,7 @@ fn despawning_a_body_does_not_rebuild_the_world() {
             .insert(ReadbackParticles { continuous: true });
         bodies.push(e);
     }
-    {
-        let mut clock = app.world_mut().resource_mut::<TissueClock>();
-        clock.paused = false;
-        clock.fixed_steps_per_frame = Some(1);
-    }
+    run_one_step_a_frame(&mut app);
     let step = |app: &App, e: Entity| app.world().get::<ParticlePositions>(e).map(|p| p.step);
     assert!(
         until(&mut app, 200, |app| bodies

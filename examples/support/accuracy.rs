@@ -120,17 +120,6 @@ fn build(
     material: Material,
     density: f32,
     pins: Vec<PinRegion>,
-) -> Result<Model, TissueError> {
-    build_with(mesh, disc, spacing, material, density, pins, None)
-}
-
-fn build_with(
-    mesh: &TriMesh,
-    disc: Disc,
-    spacing: f64,
-    material: Material,
-    density: f32,
-    pins: Vec<PinRegion>,
     hierarchy: Option<HierarchyDesc>,
 ) -> Result<Model, TissueError> {
     let (discretisation, k) = disc.core();
@@ -185,7 +174,7 @@ pub fn bar_body(
         Disc::Lattice => 0.25 * s,
         Disc::Clusters(_) => s,
     };
-    build_with(
+    build(
         &mesh,
         disc,
         s,
@@ -292,7 +281,7 @@ pub fn cube_body(
     hierarchy: Option<HierarchyDesc>,
 ) -> Result<Model, TissueError> {
     let mesh = box_mesh(DVec3::ZERO, DVec3::splat(CUBE));
-    build_with(
+    build(
         &mesh,
         disc,
         disc.spacing(CUBE, across),
@@ -599,6 +588,7 @@ pub fn liver_model(tets: &TetMesh, disc: Disc, spacing: f64) -> Result<Model, Ti
             point: Vec3::new(0.0, liver_pin_y(tets) as f32, 0.0),
             normal: Vec3::Y,
         }],
+        None,
     )
 }
 

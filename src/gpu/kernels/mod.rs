@@ -192,11 +192,10 @@ impl Kernels {
     /// memory or fewer invocations per workgroup than it uses (the workgroup-per-body
     /// kernels are left out instead, where they do not fit).
     pub fn new(device: &RenderDevice) -> Result<Self, TissueError> {
-        let limits = device.limits();
         let mut b = Builder {
             device,
             next: 0,
-            limits: limits.clone(),
+            limits: device.limits(),
         };
         let integrate_m = b.module("integrate", integrate::source())?;
         let grid_m = b.module("grid", grid::source())?;
@@ -259,29 +258,22 @@ impl Kernels {
         };
         // The workgroup-per-body kernels: only where the adapter takes their workgroups
         // and their storage buffers.
-        let body_fits = limits.max_compute_workgroup_storage_size >= body::WORKGROUP_BYTES
-            && limits.max_compute_invocations_per_workgroup >= body::THREADS
-            && limits.max_compute_workgroup_size_x >= body::THREADS;
-        let body = if body_fits {
-            let analysis =
-                Analysis::new(&body::source()).map_err(|m| shader_error_with("body", m))?;
-            let needed = ["body_substep", "body_iteration"]
-                .iter()
-                .map(|e| analysis.uses(e).map(|u| bindings::storage_count(&u)))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|m| shader_error_with("body", m))?;
-            if needed
-                .iter()
-                .all(|&n| n <= b.limits.max_storage_buffers_per_shader_stage)
-            {
-                let m = b.module_from("body", body::source(), analysis);
-                Some(BodyKernels {
-                    substep: b.kernel(&m, "body_substep")?,
-                    iteration: b.kernel(&m, "body_iteration")?,
-                })
-            } else {
-                None
+        let source = body::source();
+        let analysis = Analysis::new(&source).map_err(|m| shader_error_with("body", m))?;
+        let mut fits = true;
+        for entry in ["body_substep", "body_iteration"] {
+            match b.check(&analysis, "body", entry) {
+                Ok(_) => {}
+                Err(TissueError::GpuUnsupported { .. }) => fits = false,
+                Err(e) => return Err(e),
             }
+        }
+        let body = if fits {
+            let m = b.module_from("body", source, analysis);
+            Some(BodyKernels {
+                substep: b.kernel(&m, "body_substep")?,
+                iteration: b.kernel(&m, "body_iteration")?,
+            })
         } else {
             None
         };
@@ -332,47 +324,51 @@ impl Builder<'_> {
         }
     }
 
+    /// The bindings `entry` of `analysis` (module `name`) uses, once its storage
+    /// buffers, workgroup memory and invocations are checked against the adapter's
+    /// limits ([`TissueError::GpuUnsupported`] names the one it lacks).
+    fn check(
+        &self,
+        analysis: &Analysis,
+        name: &'static str,
+        entry: &str,
+    ) -> Result<Vec<usize>, TissueError> {
+        let err = |e| shader_error_with(name, e);
+        let uses = analysis.uses(entry).map_err(err)?;
+        let l = &self.limits;
+        let checks = [
+            (
+                "storage buffers per shader stage",
+                bindings::storage_count(&uses),
+                l.max_storage_buffers_per_shader_stage,
+            ),
+            (
+                "workgroup memory (bytes)",
+                analysis.workgroup_bytes(entry).map_err(err)?,
+                l.max_compute_workgroup_storage_size,
+            ),
+            (
+                "invocations per workgroup",
+                analysis.invocations(entry).map_err(err)?,
+                l.max_compute_invocations_per_workgroup
+                    .min(l.max_compute_workgroup_size_x),
+            ),
+        ];
+        for (what, needed, limit) in checks {
+            if needed > limit {
+                return Err(TissueError::GpuUnsupported {
+                    what,
+                    needed: needed as u64,
+                    limit: limit as u64,
+                });
+            }
+        }
+        Ok(uses)
+    }
+
     /// The kernel of `entry` in `m`, with a layout per group up to the last it uses.
     fn kernel(&mut self, m: &Module, entry: &'static str) -> Result<Kernel, TissueError> {
-        let uses = m
-            .analysis
-            .uses(entry)
-            .map_err(|e| shader_error_with(m.name, e))?;
-        let unsupported = |what, needed: u32, limit: u32| TissueError::GpuUnsupported {
-            what,
-            needed: needed as u64,
-            limit: limit as u64,
-        };
-        let l = &self.limits;
-        let needed = bindings::storage_count(&uses);
-        if needed > l.max_storage_buffers_per_shader_stage {
-            return Err(unsupported(
-                "storage buffers per shader stage",
-                needed,
-                l.max_storage_buffers_per_shader_stage,
-            ));
-        }
-        let bytes = m
-            .analysis
-            .workgroup_bytes(entry)
-            .map_err(|e| shader_error_with(m.name, e))?;
-        if bytes > l.max_compute_workgroup_storage_size {
-            return Err(unsupported(
-                "workgroup memory (bytes)",
-                bytes,
-                l.max_compute_workgroup_storage_size,
-            ));
-        }
-        let threads = m
-            .analysis
-            .invocations(entry)
-            .map_err(|e| shader_error_with(m.name, e))?;
-        let limit = l
-            .max_compute_invocations_per_workgroup
-            .min(l.max_compute_workgroup_size_x);
-        if threads > limit {
-            return Err(unsupported("invocations per workgroup", threads, limit));
-        }
+        let uses = self.check(&m.analysis, m.name, entry)?;
         let last = uses
             .iter()
             .map(|&i| bindings::location(i).0)
