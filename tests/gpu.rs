@@ -653,12 +653,9 @@ fn batched_bodies_equal_each_alone() {
     assert_eq!((da, db), (0.0, 0.0), "batched differs from alone");
 }
 
-#[test]
-fn drawn_surface_equals_cpu_skinning() {
-    let Some(g) = gpu() else { return };
-    let (model, colliders) = hanging(Material::default());
-    let mut world = fresh_world(g, &model);
-    let x = run_gpu(g, &mut world, &colliders, 60);
+/// Skins every body into the world's own surface and reads it back (position, normal,
+/// uv per render vertex).
+fn draw_surface(g: &Headless, world: &GpuWorld) -> Vec<[f32; 8]> {
     world.set_draw(&g.queue, &world.surface_draw());
     let runs: Vec<(u32, u32)> = world
         .ranges
@@ -677,7 +674,16 @@ fn drawn_surface_equals_cpu_skinning() {
     g.queue.submit([enc.finish()]);
     let nv = world.vertex_count() as u64;
     let bytes = read_buffer(&g.device, &g.queue, world.surface(), 0, nv * 32);
-    let vtx: &[[f32; 8]] = bytemuck::cast_slice(&bytes);
+    bytemuck::pod_collect_to_vec(&bytes)
+}
+
+#[test]
+fn drawn_surface_equals_cpu_skinning() {
+    let Some(g) = gpu() else { return };
+    let (model, colliders) = hanging(Material::default());
+    let mut world = fresh_world(g, &model);
+    let x = run_gpu(g, &mut world, &colliders, 60);
+    let vtx = draw_surface(g, &world);
     let sk = &model.bodies[0].skin;
     let f = Solver::deformation_gradients(&model, &x);
     let mut pos = vec![Vec3::ZERO; sk.rest_vertices.len()];
@@ -962,7 +968,7 @@ fn kernels_fit_webgpu_default_limits() {
     // as on the full adapter (with its workgroup-per-body kernel switched off, which
     // sums in another order).
     let Some(full) = gpu_full() else { return };
-    let (model, s, ground) = boxes_on_the_ground(0.5, [-0.031, 0.031]);
+    let (model, s, ground) = boxes_on_the_ground(0.5, &[-0.031, 0.031]);
     let mut held = fresh_world_with(g, &model, s.clone());
     let mut wide = fresh_world_with(full, &model, s);
     wide.set_body_kernel(&full.queue, false);
@@ -1805,11 +1811,11 @@ fn settings_changed_in_place_equal_a_world_made_with_them() {
 
 /// Two 6 cm shape-matching boxes of stiffness `k` side by side at `xs` (m), 10 cm above
 /// the ground, with particle contacts on: the model, the settings and the ground.
-fn boxes_on_the_ground(k: f32, xs: [f32; 2]) -> (Model, SolverSettings, [Collider; 1]) {
+fn boxes_on_the_ground(k: f32, xs: &[f32]) -> (Model, SolverSettings, [Collider; 1]) {
     let mut model = Model::new();
     let sm = Material::ShapeMatching { stiffness: k };
     let mesh = procedural::cuboid(Vec3::splat(0.03), 2);
-    for x in xs {
+    for &x in xs {
         model
             .add_body(&mesh, &body(sm, Vec3::new(x, 0.1, 0.0), 300, vec![]))
             .unwrap();
@@ -1821,6 +1827,74 @@ fn boxes_on_the_ground(k: f32, xs: [f32; 2]) -> (Model, SolverSettings, [Collide
     (model, s, [Collider::ground(0.0)])
 }
 
+/// Bodies appended to a world (`GpuWorld::append`, what the plugin does on a spawn) move
+/// and are drawn exactly as in a world made with them: a shape-matching box on the
+/// ground, a second one touching it (particle contacts switch on with it) and a pinned
+/// hyperelastic box, appended to a world of the first. Appending past the room refuses
+/// and changes nothing.
+#[test]
+fn appended_bodies_equal_a_world_made_with_them() {
+    let Some(g) = gpu() else { return };
+    let (first, s, ground) = boxes_on_the_ground(0.6, &[-0.1]);
+    let (touching, _, _) = boxes_on_the_ground(0.4, &[-0.068]);
+    let (pinned, _) = hanging(Material::default());
+    let mut more = touching.clone();
+    more.append(&pinned);
+    let mut all = first.clone();
+    all.append(&more);
+    let made = GpuWorld::with_room(
+        &g.device,
+        &g.kernels,
+        &all,
+        &State::new(&all),
+        s.clone(),
+        0,
+        1.5,
+    )
+    .unwrap();
+    let cap = made.capacity();
+    let mut made = made;
+    let mut grown = GpuWorld::with_capacity(
+        &g.device,
+        &g.kernels,
+        &first,
+        &State::new(&first),
+        s,
+        0,
+        cap,
+    )
+    .unwrap();
+    assert_eq!(grown.capacity(), cap);
+    assert!(grown.append(&g.queue, &more, &State::new(&more)).unwrap());
+    assert_eq!(grown.used(), made.used());
+    assert_eq!(grown.ranges, made.ranges);
+    assert!(
+        grown.contact_neighbours() > 0,
+        "contacts on with a second body"
+    );
+    let a = run_gpu(g, &mut made, &ground, 40);
+    let b = run_gpu(g, &mut grown, &ground, 40);
+    let d = max_dist(&a, &b);
+    assert!(d == 0.0, "appended bodies moved differently by {d} m");
+    assert!(max_dist(&a, &State::new(&all).x) > 0.005, "the scene moved");
+    let (sa, sb) = (draw_surface(g, &made), draw_surface(g, &grown));
+    assert_eq!(sa.len(), sb.len());
+    let dv = sa
+        .iter()
+        .zip(&sb)
+        .flat_map(|(p, q)| p.iter().zip(q).map(|(u, v)| (u - v).abs()))
+        .fold(0.0f32, f32::max);
+    assert!(
+        dv == 0.0,
+        "the appended bodies are drawn differently ({dv})"
+    );
+    // No room for another copy of everything: refused, nothing changed.
+    let before = grown.used();
+    assert!(!grown.append(&g.queue, &all, &State::new(&all)).unwrap());
+    assert_eq!(grown.used(), before);
+    assert_eq!(grown.ranges.len(), 3);
+}
+
 /// A retired body (`GpuWorld::retire`, what the plugin does on a despawn) leaves every
 /// other body's motion exactly as it was, sleeps for good, and its particles are parked
 /// far away; a world with hierarchy levels refuses (the caller rebuilds).
@@ -1828,7 +1902,7 @@ fn boxes_on_the_ground(k: f32, xs: [f32; 2]) -> (Model, SolverSettings, [Collide
 fn a_retired_body_leaves_the_others_as_they_were() {
     let Some(g) = gpu() else { return };
     let sm = Material::ShapeMatching { stiffness: 0.6 };
-    let (model, s, ground) = boxes_on_the_ground(0.6, [-0.2, 0.2]);
+    let (model, s, ground) = boxes_on_the_ground(0.6, &[-0.2, 0.2]);
     let mut kept = fresh_world_with(g, &model, s.clone());
     let mut retired = fresh_world_with(g, &model, s);
     run_gpu(g, &mut kept, &ground, 10);

@@ -98,8 +98,14 @@ pub struct GpuParams {
     pub bounds_base: u32,
     /// First grid-sorted point in the `aux` buffer.
     pub sorted_base: u32,
+    /// Bodies the per-body arrays have room for (the bounds region's layout in `aux`
+    /// depends on it; [`crate::gpu::world::Capacity::bodies`]).
+    pub body_cap: u32,
+    /// Render vertices the vertex arrays have room for (the normal adjacency's triangle
+    /// corners follow its `vertex_cap + 1` starts).
+    pub vertex_cap: u32,
     /// Padding to the WGSL struct's 16-byte multiple.
-    pub pad: [u32; 3],
+    pub pad: u32,
 }
 
 /// Candidates beyond K that a warm neighbour search may set aside before it falls back to

@@ -341,6 +341,110 @@ pub struct BodyRange {
     pub vcount: u32,
 }
 
+/// What a world's buffers have room for. A world made by [`GpuWorld::new`] has room for
+/// its model and no more; [`GpuWorld::with_room`] and [`GpuWorld::with_capacity`] leave
+/// room for bodies appended later ([`GpuWorld::append`]) without a new allocation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Capacity {
+    /// Particles (a world with hierarchy levels has room for its own only).
+    pub particles: u32,
+    /// Bodies.
+    pub bodies: u32,
+    /// Render vertices.
+    pub vertices: u32,
+    /// Cluster memberships (entries of the member lists; the inverse lists have as many).
+    pub members: u32,
+    /// Triangles of the normal adjacency (a render vertex's triangles, three corners each).
+    pub triangles: u32,
+}
+
+impl Capacity {
+    /// The larger of each count.
+    pub fn max(self, o: Capacity) -> Capacity {
+        Capacity {
+            particles: self.particles.max(o.particles),
+            bodies: self.bodies.max(o.bodies),
+            vertices: self.vertices.max(o.vertices),
+            members: self.members.max(o.members),
+            triangles: self.triangles.max(o.triangles),
+        }
+    }
+
+    /// Whether `self` plus `more` fits in `cap`.
+    fn fits(self, more: Capacity, cap: Capacity) -> bool {
+        let fit = |a: u32, b: u32, c: u32| a.checked_add(b).is_some_and(|s| s <= c);
+        fit(self.particles, more.particles, cap.particles)
+            && fit(self.bodies, more.bodies, cap.bodies)
+            && fit(self.vertices, more.vertices, cap.vertices)
+            && fit(self.members, more.members, cap.members)
+            && fit(self.triangles, more.triangles, cap.triangles)
+    }
+
+    fn add(self, o: Capacity) -> Capacity {
+        Capacity {
+            particles: self.particles + o.particles,
+            bodies: self.bodies + o.bodies,
+            vertices: self.vertices + o.vertices,
+            members: self.members + o.members,
+            triangles: self.triangles + o.triangles,
+        }
+    }
+
+    /// `growth` times each count (rounded up), and at least `extra` more.
+    fn grown(self, growth: f32, extra: Capacity) -> Capacity {
+        let g = |a: u32| {
+            ((a as f64) * growth.max(1.0) as f64)
+                .ceil()
+                .min(u32::MAX as f64) as u32
+        };
+        Capacity {
+            particles: g(self.particles),
+            bodies: g(self.bodies),
+            vertices: g(self.vertices),
+            members: g(self.members),
+            triangles: g(self.triangles),
+        }
+        .max(self.add(extra))
+    }
+}
+
+/// What the packed arrays of a model use, in all and for its largest body.
+fn packed_use(model: &Model, packed: &Packed) -> (Capacity, Capacity) {
+    let nv = packed.vertex_count();
+    let mut largest = Capacity::default();
+    for (i, b) in model.bodies.iter().enumerate() {
+        let (p0, p1) = (b.first as usize, (b.first + b.count) as usize);
+        let v0 = packed.vfirst[i] as usize;
+        let v1 = v0 + b.skin.rest_vertices.len();
+        largest = largest.max(Capacity {
+            particles: b.count,
+            bodies: 1,
+            vertices: (v1 - v0) as u32,
+            members: packed.pinfo[p1][3] - packed.pinfo[p0][3],
+            triangles: packed.adj[v1] - packed.adj[v0],
+        });
+    }
+    let used = Capacity {
+        particles: packed.n0,
+        bodies: model.bodies.len() as u32,
+        vertices: nv as u32,
+        members: packed.inv_offset,
+        triangles: packed.adj[nv],
+    };
+    (used, largest)
+}
+
+/// How a new world sizes its buffers.
+#[derive(Debug, Clone, Copy)]
+enum Sizing {
+    /// Room for the model only.
+    Exact,
+    /// `growth` times what the model needs, and at least one more of its largest body.
+    Grow(f32),
+    /// At least this much.
+    AtLeast(Capacity),
+}
+
 /// All bodies of a scene on the GPU (see the module docs).
 pub struct GpuWorld {
     /// Solver settings (the same fields as the CPU solver's; `method` is ignored: the GPU
@@ -398,6 +502,25 @@ pub struct GpuWorld {
     stiffness: Vec<Option<f32>>,
     /// Per body, whether it was retired ([`GpuWorld::retire`]).
     retired: Vec<bool>,
+    /// What the buffers have room for, and what the bodies use of it.
+    cap: Capacity,
+    used: Capacity,
+    /// Pin targets in use (slots of the pin region).
+    pins: u32,
+    /// Largest lattice spacing of any body, m (the contact grid's cell is made for it).
+    max_spacing: f32,
+    /// Where the hierarchy's prolongation records start in its table.
+    records_base: u32,
+    /// The adapter runs `body.wgsl`.
+    has_body_kernel: bool,
+    /// The per-dispatch range records (rewritten when bodies are appended).
+    lrec_buf: Buffer,
+    /// The prefix sum's and grid builds' records (rewritten when an appended body needs
+    /// larger grid cells).
+    scan_buf: Buffer,
+    /// The next step refreshes the contact lists whatever the step count (bodies were
+    /// appended: theirs are empty, and the others' do not list them).
+    refresh_contacts: bool,
 }
 
 /// Where a retired body's particles are parked, m: far from any scene, a tenth of a metre
@@ -435,6 +558,169 @@ fn unknown_lists(device: &RenderDevice, label: &str, entries: u64, usage: Buffer
     buffer.slice(..).get_mapped_range_mut().slice(..).fill(0xff);
     buffer.unmap();
     buffer
+}
+
+/// Checks that arrays of `total` particles (all levels), `n0` level-0 particles, `nv`
+/// render vertices, `lists` cluster-list entries and `bodies` bodies fit a device with
+/// `limits`: every buffer binding and the per-particle dispatch size.
+fn check_counts(
+    limits: &bevy::render::render_resource::WgpuLimits,
+    [n, n0, nv, lists, bodies]: [u64; 5],
+    settings: &SolverSettings,
+) -> Result<(), TissueError> {
+    let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
+    let aux = n.max(2 * n0) + 2 * n + bodies * BOUNDS_PER_BODY as u64 + n0;
+    let checks: [(&'static str, u64); 8] = [
+        ("positions and predicted positions", 2 * n * 16),
+        (
+            "particle scratch (contact pass, colliders, grabs, bounds, grid)",
+            aux * 16,
+        ),
+        ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
+        ("cluster corrections", n * CORR_BYTES),
+        ("cluster lists", lists * 4),
+        ("contact lists", n * contact_k.max(1) * 4),
+        (
+            "neighbour search candidate store",
+            n * (contact_k + SPARE_EXTRA as u64) * 4,
+        ),
+        ("render vertices", nv * 32),
+    ];
+    for (what, bytes) in checks {
+        check_binding(limits, what, bytes)?;
+    }
+    let max_groups = limits.max_compute_workgroups_per_dimension as u64;
+    let needed = n.div_ceil(WORKGROUP as u64);
+    if needed > max_groups {
+        return Err(TissueError::GpuLimit {
+            what: "workgroups per dispatch (particles / 128)",
+            needed,
+            limit: max_groups,
+        });
+    }
+    Ok(())
+}
+
+/// A grab as the kernels read it: offset in the grasper's frame (m) and the grasper + 1
+/// (0: free).
+fn grab_record(g: &crate::core::colliders::Grab) -> [f32; 4] {
+    let id = if g.collider == u32::MAX {
+        0.0
+    } else {
+        g.collider as f32 + 1.0
+    };
+    g.offset.extend(id).to_array()
+}
+
+/// `list` with `by` added to every entry.
+fn shift_by(list: &[u32], by: u32) -> Vec<u32> {
+    list.iter().map(|i| i + by).collect()
+}
+
+/// Contact candidates kept per particle in a world with room for `particles`.
+fn contact_k(settings: &SolverSettings, particles: u32) -> u32 {
+    settings
+        .contact_neighbours
+        .min(particles.saturating_sub(1))
+        .min(MAX_GPU_K)
+}
+
+/// Whether `body.wgsl` can solve level 0 of `b` (on an adapter that runs it, in a world
+/// without hierarchy levels): shape matching of at most [`kernels::body::BODY_MAX`]
+/// particles.
+fn body_fits(b: &GpuBody) -> bool {
+    b.kind == 0 && b.count <= kernels::body::BODY_MAX
+}
+
+/// The per-dispatch range records (`GpuRange`, one 256-byte uniform record each): level
+/// 0's particles; per coarse level its particles, its prolongation records and its
+/// multiplier-transfer records; then level 0's iteration records (from
+/// [`iteration_records`]): 16 variants (half | prev << 1 | skip << 2 | no contacts << 3)
+/// per body_iteration block of 1 to `block_records` iterations.
+fn range_records(
+    n: u32,
+    contacts_on: bool,
+    coarse: &[PackedLevel],
+    records_base: u32,
+    block_records: u32,
+) -> Vec<GpuRange> {
+    let range = |first, count, base, flag| GpuRange {
+        first,
+        count,
+        base,
+        flag,
+        ..bytemuck::Zeroable::zeroed()
+    };
+    let mut lrecs = vec![range(0, n, 0, contacts_on as u32)];
+    let coarsest = coarse.len().saturating_sub(1);
+    for (l, lv) in coarse.iter().enumerate() {
+        // Level in reads `base` as "zero the multipliers" (the coarsest level only);
+        // the gather reads `flag` = 0: no contact pass, boundary at once.
+        lrecs.push(range(lv.first, lv.count, (l == coarsest) as u32, 0));
+        lrecs.push(range(lv.rec_first, lv.rec_count, records_base, 0));
+        lrecs.push(range(lv.tr_first, lv.tr_count, records_base, 0));
+    }
+    for iters in 1..=block_records {
+        for v in 0..16u32 {
+            lrecs.push(GpuRange {
+                half: v & 1,
+                prev: (v >> 1) & 1,
+                skip: (v >> 2) & 1,
+                iters,
+                ..range(0, n, 0, (contacts_on && v < 8) as u32)
+            });
+        }
+    }
+    lrecs
+}
+
+/// The prefix sum's records (one 256-byte uniform record per level of `levels`, bound
+/// with dynamic offsets), then two grid-build configurations: contacts (cell edge
+/// `cell`, m), then the all-particle search (`knn_cell`).
+fn scan_records(
+    levels: &[(u32, u32)],
+    scan_len: u32,
+    cell: f32,
+    knn_cell: f32,
+) -> Vec<GpuScanLevel> {
+    let mut recs: Vec<GpuScanLevel> = levels
+        .iter()
+        .enumerate()
+        .map(|(l, &(o, c))| GpuScanLevel {
+            offset: o,
+            count: c,
+            sums: levels.get(l + 1).map_or(scan_len - 1, |nx| nx.0),
+            cell,
+            pad: [0; 60],
+        })
+        .collect();
+    for c in [cell, knn_cell] {
+        recs.push(GpuScanLevel {
+            offset: 0,
+            count: 0,
+            sums: 0,
+            cell: c,
+            pad: [0; 60],
+        });
+    }
+    recs
+}
+
+/// The first of level 0's iteration records in [`range_records`].
+fn iteration_records(coarse: &[PackedLevel]) -> u32 {
+    1 + 3 * coarse.len() as u32
+}
+
+/// An error for a model with lattice elements (they step on [`crate::gpu::GpuLattice`]).
+fn no_elements(model: &Model) -> Result<(), TissueError> {
+    if model.elements.is_empty() {
+        return Ok(());
+    }
+    Err(TissueError::InvalidParameter {
+        name: "discretisation",
+        value: format!("{} lattice elements", model.elements.len()),
+        expected: "cluster bodies only (lattice bodies run on the CPU solver)",
+    })
 }
 
 /// A [`TissueError::GpuLimit`] where a buffer of `bytes` cannot be bound on a device
@@ -526,23 +812,80 @@ impl GpuWorld {
         settings: SolverSettings,
         knn_k: u32,
     ) -> Result<Self, TissueError> {
-        if !model.elements.is_empty() {
-            return Err(TissueError::InvalidParameter {
-                name: "discretisation",
-                value: format!("{} lattice elements", model.elements.len()),
-                expected: "cluster bodies only (lattice bodies run on the CPU solver)",
-            });
-        }
+        Self::check_model(device, model, &settings, knn_k)?;
+        Self::new_unchecked(
+            device,
+            kernels,
+            model,
+            state,
+            settings,
+            knn_k,
+            Sizing::Exact,
+        )
+    }
+
+    /// [`GpuWorld::new`] with room for bodies appended later ([`GpuWorld::append`]):
+    /// `growth` times what `model` needs of each count (particles, bodies, render
+    /// vertices, cluster memberships, adjacency triangles), and at least one more of its
+    /// largest body. A world with hierarchy levels gets no room.
+    pub fn with_room(
+        device: &RenderDevice,
+        kernels: &Kernels,
+        model: &Model,
+        state: &State,
+        settings: SolverSettings,
+        knn_k: u32,
+        growth: f32,
+    ) -> Result<Self, TissueError> {
+        Self::check_model(device, model, &settings, knn_k)?;
+        let sizing = Sizing::Grow(growth);
+        Self::new_unchecked(device, kernels, model, state, settings, knn_k, sizing)
+    }
+
+    /// [`GpuWorld::new`] with room for at least `capacity` (and at least what `model`
+    /// needs). A world with hierarchy levels gets no room.
+    pub fn with_capacity(
+        device: &RenderDevice,
+        kernels: &Kernels,
+        model: &Model,
+        state: &State,
+        settings: SolverSettings,
+        knn_k: u32,
+        capacity: Capacity,
+    ) -> Result<Self, TissueError> {
+        Self::check_model(device, model, &settings, knn_k)?;
+        let sizing = Sizing::AtLeast(capacity);
+        Self::new_unchecked(device, kernels, model, state, settings, knn_k, sizing)
+    }
+
+    /// What the buffers have room for ([`GpuWorld::append`] fills it).
+    pub fn capacity(&self) -> Capacity {
+        self.cap
+    }
+
+    /// What the bodies use of [`GpuWorld::capacity`] (retired bodies included: they keep
+    /// their place until the world is made again).
+    pub fn used(&self) -> Capacity {
+        self.used
+    }
+
+    /// The checks of [`GpuWorld::new`] before anything is made.
+    fn check_model(
+        device: &RenderDevice,
+        model: &Model,
+        settings: &SolverSettings,
+        knn_k: u32,
+    ) -> Result<(), TissueError> {
+        no_elements(model)?;
         let limits = device.limits();
-        Self::check_limits(&limits, model, &settings)?;
+        Self::check_limits(&limits, model, settings)?;
         // The neighbour search's candidate store (`spare`) also depends on `knn_k`.
         let k = knn_k.max(settings.contact_neighbours).min(MAX_GPU_K);
         check_binding(
             &limits,
             "neighbour search candidate store",
             model.particle_count() as u64 * (k + SPARE_EXTRA) as u64 * 4,
-        )?;
-        Self::new_unchecked(device, kernels, model, state, settings, knn_k)
+        )
     }
 
     /// Checks that `model` fits a device with `limits`: every buffer binding and the
@@ -567,39 +910,9 @@ impl GpuWorld {
             .chain(model.levels.iter().map(|l| &l.model))
             .map(|m| (m.cluster_members.len() + m.inv_clusters.len()) as u64)
             .sum::<u64>();
-        let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
         let bodies = model.bodies.len() as u64;
         let n0 = model.particle_count() as u64;
-        let aux = n.max(2 * n0) + 2 * n + bodies * BOUNDS_PER_BODY as u64 + n0;
-        let checks: [(&'static str, u64); 8] = [
-            ("positions and predicted positions", 2 * n * 16),
-            (
-                "particle scratch (contact pass, colliders, grabs, bounds, grid)",
-                aux * 16,
-            ),
-            ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
-            ("cluster corrections", n * CORR_BYTES),
-            ("cluster lists", lists * 4),
-            ("contact lists", n * contact_k.max(1) * 4),
-            (
-                "neighbour search candidate store",
-                n * (contact_k + SPARE_EXTRA as u64) * 4,
-            ),
-            ("render vertices", nv * 32),
-        ];
-        for (what, bytes) in checks {
-            check_binding(limits, what, bytes)?;
-        }
-        let max_groups = limits.max_compute_workgroups_per_dimension as u64;
-        let needed = n.div_ceil(WORKGROUP as u64);
-        if needed > max_groups {
-            return Err(TissueError::GpuLimit {
-                what: "workgroups per dispatch (particles / 128)",
-                needed,
-                limit: max_groups,
-            });
-        }
-        Ok(())
+        check_counts(limits, [n, n0, nv, lists, bodies], settings)
     }
 
     fn new_unchecked(
@@ -609,6 +922,7 @@ impl GpuWorld {
         state: &State,
         settings: SolverSettings,
         knn_k: u32,
+        sizing: Sizing,
     ) -> Result<Self, TissueError> {
         settings.validate()?;
         let n = model.particle_count() as u32;
@@ -627,31 +941,46 @@ impl GpuWorld {
             });
         }
         let packed = Packed::new(model, &settings);
+        let (used, largest) = packed_use(model, &packed);
+        let cap = match sizing {
+            _ if !packed.levels.is_empty() => used,
+            Sizing::Exact => used,
+            Sizing::Grow(g) => used.grown(g, largest),
+            Sizing::AtLeast(c) => used.max(c),
+        };
+        // Particles of all levels (the coarse levels' follow level 0's), with room.
+        let total = (packed.total_particles() - n + cap.particles) as u64;
+        let (pcap, bcap, vcap) = (cap.particles, cap.bodies, cap.vertices);
+        check_counts(
+            &device.limits(),
+            [
+                total,
+                pcap as u64,
+                vcap as u64,
+                2 * cap.members as u64,
+                bcap as u64,
+            ],
+            &settings,
+        )?;
         // Bodies whose level 0 `body.wgsl` solves (a workgroup each).
         let body_fits: Vec<bool> = packed
             .bodies
             .iter()
-            .map(|b| {
-                kernels.body.is_some()
-                    && packed.levels.is_empty()
-                    && b.kind == 0
-                    && b.count <= kernels::body::BODY_MAX
-            })
+            .map(|b| kernels.body.is_some() && packed.levels.is_empty() && body_fits(b))
             .collect();
         let mut gpu_bodies = packed.bodies.clone();
         for (b, fits) in gpu_bodies.iter_mut().zip(&body_fits) {
             b.in_workgroup = *fits as u32;
         }
+        gpu_bodies.resize(
+            packed.bodies.len() + (bcap - used.bodies) as usize,
+            GpuBody::default(),
+        );
         let nv = packed.vertex_count() as u32;
-        // Particles of all levels (the coarse levels' follow level 0's).
-        let total = packed.total_particles() as u64;
-        let contact_k = settings
-            .contact_neighbours
-            .min(n.saturating_sub(1))
-            .min(MAX_GPU_K);
+        let contact_k = contact_k(&settings, pcap);
         let contacts_on = settings.particle_contacts && model.bodies.len() > 1 && contact_k > 0;
         let spare_stride = knn_k.max(contact_k) + SPARE_EXTRA;
-        let (cell, knn_cell, table) = grid_params(n as usize, packed.max_spacing);
+        let (cell, knn_cell, table) = grid_params(pcap as usize, packed.max_spacing);
         let level_counts = scan_levels(table + 1);
         let mut levels = Vec::new();
         let mut off = 0u32;
@@ -660,10 +989,13 @@ impl GpuWorld {
             off += c;
         }
         let scan_len = off + 1;
-        let (mut x, v, mut cstate) = pack_state(state);
+        let (mut x, mut v, mut cstate) = pack_state(state);
         for &src in &packed.hier[..packed.records_base as usize] {
             x.push(x[src as usize]);
         }
+        // Room for appended bodies (level 0 only: a world with levels has none).
+        x.resize(total as usize, [0.0; 4]);
+        v.resize(pcap as usize, [0.0; 4]);
         for lv in &model.levels {
             for &b in &lv.model.particle_body {
                 cstate.push(GpuClusterState {
@@ -672,25 +1004,16 @@ impl GpuWorld {
                 });
             }
         }
+        cstate.resize(total as usize, GpuClusterState::default());
         // Grabs: offset in the grasper's frame (m) and the grasper + 1 (0: free), all levels.
-        let mut grab: Vec<[f32; 4]> = state
-            .grab
-            .iter()
-            .map(|g| {
-                let id = if g.collider == u32::MAX {
-                    0.0
-                } else {
-                    g.collider as f32 + 1.0
-                };
-                g.offset.extend(id).to_array()
-            })
-            .collect();
+        let mut grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
         grab.resize(total as usize, [0.0; 4]);
-        let pins: Vec<[f32; 4]> = state
+        let mut pins: Vec<[f32; 4]> = state
             .pin_targets
             .iter()
             .map(|p| p.extend(0.0).to_array())
             .collect();
+        pins.resize(pcap as usize, [0.0; 4]);
         let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
         let init = |label: &str, bytes: &[u8], usage: BufferUsages| {
             let mut data = bytes.to_vec();
@@ -711,19 +1034,41 @@ impl GpuWorld {
                 mapped_at_creation: false,
             })
         };
-        let n64 = n as u64;
-        let regions = Regions::new(
-            n,
-            total as u32,
-            packed.rest.len() as u32,
-            model.bodies.len() as u32,
-        );
+        let p64 = pcap as u64;
+        let regions = Regions::new(pcap, total as u32, total as u32, bcap);
         // Positions, then the predicted positions (the same at the start).
         let mut xp = x.clone();
         xp.extend_from_slice(&x);
         // Rest records, then the pin targets.
         let mut rest = packed.rest.clone();
+        rest.resize(total as usize, [0.0; 4]);
         rest.extend_from_slice(&pins);
+        // Per particle (and its sentinel row, after the last): the rest of the rows are
+        // written by `append`.
+        let mut pinfo = packed.pinfo.clone();
+        pinfo.resize(total as usize + 1, [0; 4]);
+        // Cluster members from 0, inverse lists from `inv_offset` (room for both).
+        let inv_offset = cap.members;
+        let mut lists = packed.lists[..packed.inv_offset as usize].to_vec();
+        lists.resize(inv_offset as usize, 0);
+        lists.extend_from_slice(&packed.lists[packed.inv_offset as usize..]);
+        lists.resize(2 * inv_offset as usize, 0);
+        let mut crest = packed.crest.clone();
+        crest.resize(total as usize, GpuClusterRest::default());
+        // Skin per render vertex; the adjacency's starts (and sentinel), then from
+        // `vertex_cap + 1` its triangles' corners.
+        let (mut vinf, mut vwt, mut vrest) = (
+            packed.vinf.clone(),
+            packed.vwt.clone(),
+            packed.vrest.clone(),
+        );
+        vinf.resize(vcap as usize, [0; 4]);
+        vwt.resize(vcap as usize, [0.0; 4]);
+        vrest.resize(vcap as usize, [0.0; 4]);
+        let mut adj = packed.adj[..nv as usize + 1].to_vec();
+        adj.resize(vcap as usize + 1, 0);
+        adj.extend_from_slice(&packed.adj[nv as usize + 1..]);
+        adj.resize((vcap + 1 + 3 * cap.triangles) as usize, 0);
         // The contact pass's two halves of level 0's particles (iterations alternate
         // between them when particle contacts are on), at least every level's (the
         // hierarchy's snapshot); collider displacements; grabs; per-body boxes, flags and
@@ -747,97 +1092,51 @@ impl GpuWorld {
             v: init("tissue v", bytemuck::cast_slice(&v), st),
             aux: init("tissue aux", bytemuck::cast_slice(&aux), st),
             rest: init("tissue rest", bytemuck::cast_slice(&rest), st),
-            pinfo: init("tissue pinfo", bytemuck::cast_slice(&packed.pinfo), st),
-            lists: init("tissue lists", bytemuck::cast_slice(&packed.lists), st),
-            crest: init("tissue crest", bytemuck::cast_slice(&packed.crest), st),
+            pinfo: init("tissue pinfo", bytemuck::cast_slice(&pinfo), st),
+            lists: init("tissue lists", bytemuck::cast_slice(&lists), st),
+            crest: init("tissue crest", bytemuck::cast_slice(&crest), st),
             bodies: init("tissue bodies", bytemuck::cast_slice(&gpu_bodies), st),
             cstate: init("tissue cstate", bytemuck::cast_slice(&cstate), st),
             corr: zeroed("tissue corr", total * CORR_BYTES, st),
-            contacts: unknown_lists(device, "tissue contacts", n64 * contact_k.max(1) as u64, st),
+            contacts: unknown_lists(device, "tissue contacts", p64 * contact_k.max(1) as u64, st),
             scan: zeroed("tissue scan", scan_len as u64 * 4, st),
             cursor: zeroed("tissue cursor", table as u64 * 4, st),
-            cell_of: zeroed("tissue cell_of", n64 * 4, st),
+            cell_of: zeroed("tissue cell_of", p64 * 4, st),
             forces: zeroed(
                 "tissue forces",
                 (MAX_COLLIDERS as u64) * (FORCE_GROUPS as u64 + 1) * 16,
                 st,
             ),
-            fgrad: zeroed("tissue fgrad", n64 * 48, st),
-            vinf: init("tissue vinf", bytemuck::cast_slice(&packed.vinf), st),
-            vwt: init("tissue vwt", bytemuck::cast_slice(&packed.vwt), st),
-            vrest: init("tissue vrest", bytemuck::cast_slice(&packed.vrest), st),
-            adj: init("tissue adj", bytemuck::cast_slice(&packed.adj), st),
+            fgrad: zeroed("tissue fgrad", p64 * 48, st),
+            vinf: init("tissue vinf", bytemuck::cast_slice(&vinf), st),
+            vwt: init("tissue vwt", bytemuck::cast_slice(&vwt), st),
+            vrest: init("tissue vrest", bytemuck::cast_slice(&vrest), st),
+            adj: init("tissue adj", bytemuck::cast_slice(&adj), st),
             draw: zeroed(
                 "tissue draw",
-                (model.bodies.len() * size_of::<GpuDrawBody>()) as u64,
+                (bcap as usize * size_of::<GpuDrawBody>()) as u64,
                 st,
             ),
-            knn_out: unknown_lists(device, "tissue knn", n64 * knn_k.max(1) as u64, st),
-            status: zeroed("tissue status", model.bodies.len() as u64 * 4, st),
+            knn_out: unknown_lists(device, "tissue knn", p64 * knn_k.max(1) as u64, st),
+            status: zeroed("tissue status", bcap as u64 * 4, st),
             hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
-            spare: zeroed("tissue knn spare", n64 * spare_stride as u64 * 4, st),
+            spare: zeroed("tissue knn spare", p64 * spare_stride as u64 * 4, st),
         };
-        // Scan levels: one 256-byte uniform record per level (dynamic offsets).
-        let mut recs: Vec<GpuScanLevel> = levels
-            .iter()
-            .enumerate()
-            .map(|(l, &(o, c))| GpuScanLevel {
-                offset: o,
-                count: c,
-                sums: levels.get(l + 1).map_or(scan_len - 1, |nx| nx.0),
-                cell,
-                pad: [0; 60],
-            })
-            .collect();
-        // Two build configurations after the levels: contacts, then the all-particle
-        // search.
-        for c in [cell, knn_cell] {
-            recs.push(GpuScanLevel {
-                offset: 0,
-                count: 0,
-                sums: 0,
-                cell: c,
-                pad: [0; 60],
-            });
-        }
+        let recs = scan_records(&levels, scan_len, cell, knn_cell);
         let scan_buf = init(
             "tissue scan levels",
             bytemuck::cast_slice(&recs),
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
         );
-        // Level ranges: level 0, then per coarse level its particles and its records.
-        let range = |first, count, base, flag| GpuRange {
-            first,
-            count,
-            base,
-            flag,
-            ..bytemuck::Zeroable::zeroed()
-        };
-        let mut lrecs = vec![range(0, n, 0, contacts_on as u32)];
-        let coarsest = packed.levels.len().saturating_sub(1);
-        for (l, lv) in packed.levels.iter().enumerate() {
-            // Level in reads `base` as "zero the multipliers" (the coarsest level only);
-            // the gather reads `flag` = 0: no contact pass, boundary at once.
-            lrecs.push(range(lv.first, lv.count, (l == coarsest) as u32, 0));
-            lrecs.push(range(lv.rec_first, lv.rec_count, packed.records_base, 0));
-            lrecs.push(range(lv.tr_first, lv.tr_count, packed.records_base, 0));
-        }
-        // Level 0's iteration records (after the coarse levels'): half | prev << 1 |
-        // skip << 2 | no contacts << 3, then 16 × (iterations − 1) for a body_iteration
-        // of several iterations (`GpuRange`; `record_steps` picks one per dispatch).
-        let iteration_records = lrecs.len() as u32;
         let block_records = Self::max_block(&settings);
-        for iters in 1..=block_records {
-            for v in 0..16u32 {
-                lrecs.push(GpuRange {
-                    half: v & 1,
-                    prev: (v >> 1) & 1,
-                    skip: (v >> 2) & 1,
-                    iters,
-                    ..range(0, n, 0, (contacts_on && v < 8) as u32)
-                });
-            }
-        }
+        let lrecs = range_records(
+            n,
+            contacts_on,
+            &packed.levels,
+            packed.records_base,
+            block_records,
+        );
+        let iteration_records = iteration_records(&packed.levels);
         let lrec_buf = init(
             "tissue level ranges",
             bytemuck::cast_slice(&lrecs),
@@ -850,7 +1149,7 @@ impl GpuWorld {
         );
         let surface = zeroed(
             "tissue surface",
-            nv as u64 * 32,
+            vcap as u64 * 32,
             BufferUsages::STORAGE | BufferUsages::VERTEX | BufferUsages::COPY_SRC,
         );
         let binds = kernels
@@ -872,7 +1171,7 @@ impl GpuWorld {
         let mut params = GpuParams {
             n,
             contacts: contacts_on as u32,
-            inv_offset: packed.inv_offset,
+            inv_offset,
             contact_k,
             n_vertices: nv,
             grid_cell: cell,
@@ -889,6 +1188,8 @@ impl GpuWorld {
             grab_base: regions.grab_base,
             bounds_base: regions.bounds_base,
             sorted_base: regions.sorted_base,
+            body_cap: bcap,
+            vertex_cap: vcap,
             ..Default::default()
         };
         step_params(&mut params, &settings);
@@ -928,6 +1229,15 @@ impl GpuWorld {
                     _ => None,
                 })
                 .collect(),
+            cap,
+            used,
+            pins: model.pinned.len() as u32,
+            max_spacing: packed.max_spacing,
+            records_base: packed.records_base,
+            has_body_kernel: kernels.body.is_some(),
+            lrec_buf,
+            scan_buf,
+            refresh_contacts: false,
         })
     }
 
@@ -984,6 +1294,197 @@ impl GpuWorld {
                 .map(|(range, _)| range.count)
                 .sum(),
         )
+    }
+
+    /// Appends the bodies of `model` (cluster bodies, no hierarchy levels) with their
+    /// `state` to the world without rebuilding it: their arrays are written into the room
+    /// the buffers were made with ([`GpuWorld::with_room`]), after every other body,
+    /// which keeps its state and neighbour lists. The new bodies come after the world's
+    /// in its body order, with their particles, vertices, pins and grasps numbered on
+    /// from the world's. The next step searches contact candidates whatever the step
+    /// count (with grid cells for the largest spacing). Returns `Ok(false)` and changes
+    /// nothing where they do not fit in place: no room left, or a world or model with
+    /// hierarchy levels (the caller then makes the world again, with room). Write the
+    /// parameters ([`GpuWorld::write_params`]) before the next steps.
+    pub fn append(
+        &mut self,
+        queue: &RenderQueue,
+        model: &Model,
+        state: &State,
+    ) -> Result<bool, TissueError> {
+        no_elements(model)?;
+        let m = model.particle_count();
+        if state.x.len() != m || state.v.len() != m || state.pin_targets.len() != model.pinned.len()
+        {
+            return Err(TissueError::InvalidParameter {
+                name: "state",
+                value: format!("{} positions for {m} particles", state.x.len()),
+                expected: "the state of the appended model",
+            });
+        }
+        if m == 0 {
+            return Ok(true);
+        }
+        if !self.coarse.is_empty() || !model.levels.is_empty() {
+            return Ok(false);
+        }
+        let packed = Packed::new(model, &self.settings);
+        let (more, _) = packed_use(model, &packed);
+        if !self.used.fits(more, self.cap) {
+            return Ok(false);
+        }
+        if packed.max_spacing > self.max_spacing {
+            // Grid cells for the larger spacing (the next contact search builds them).
+            self.max_spacing = packed.max_spacing;
+            let (cell, knn_cell, _) = grid_params(self.cap.particles as usize, self.max_spacing);
+            self.params.grid_cell = cell;
+            self.params.knn_cell = knn_cell;
+            let recs = scan_records(&self.levels, self.scan_len, cell, knn_cell);
+            queue.write_buffer(&self.scan_buf, 0, bytemuck::cast_slice(&recs));
+        }
+        let at = self.used;
+        let (n0, b0, v0) = (at.particles, at.bodies, at.vertices);
+        let write = |buffer: &Buffer, index: u32, bytes: &[u8], stride: usize| {
+            if !bytes.is_empty() {
+                queue.write_buffer(buffer, index as u64 * stride as u64, bytes);
+            }
+        };
+        // State: positions (and the predicted ones), velocities, cluster states, grabs.
+        let (x, v, cstate) = pack_state(state);
+        let grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
+        let b = &self.b;
+        write(&b.x, n0, bytemuck::cast_slice(&x), 16);
+        write(&b.x, self.regions.p_base + n0, bytemuck::cast_slice(&x), 16);
+        write(&b.v, n0, bytemuck::cast_slice(&v), 16);
+        write(&b.cstate, n0, bytemuck::cast_slice(&cstate), 48);
+        write(
+            &b.aux,
+            self.regions.grab_base + n0,
+            bytemuck::cast_slice(&grab),
+            16,
+        );
+        // The model, its indices numbered on from the world's.
+        let pins: Vec<[f32; 4]> = state
+            .pin_targets
+            .iter()
+            .map(|p| p.extend(0.0).to_array())
+            .collect();
+        write(&b.rest, n0, bytemuck::cast_slice(&packed.rest), 16);
+        write(
+            &b.rest,
+            self.regions.pin_base + self.pins,
+            bytemuck::cast_slice(&pins),
+            16,
+        );
+        let pinfo: Vec<[u32; 4]> = packed
+            .pinfo
+            .iter()
+            .map(|&[body, slot, inv, start]| {
+                [
+                    body + b0,
+                    if slot == NONE { NONE } else { slot + self.pins },
+                    inv + at.members,
+                    start + at.members,
+                ]
+            })
+            .collect();
+        write(&b.pinfo, n0, bytemuck::cast_slice(&pinfo), 16);
+        // Members are particles and the inverse lists' entries clusters: both numbered
+        // as the particles.
+        let (members, inverse) = packed.lists.split_at(packed.inv_offset as usize);
+        write(
+            &b.lists,
+            at.members,
+            bytemuck::cast_slice(&shift_by(members, n0)),
+            4,
+        );
+        let inv_at = self.cap.members + at.members;
+        write(
+            &b.lists,
+            inv_at,
+            bytemuck::cast_slice(&shift_by(inverse, n0)),
+            4,
+        );
+        write(
+            &b.crest,
+            n0,
+            bytemuck::cast_slice(&packed.crest),
+            size_of::<GpuClusterRest>(),
+        );
+        let bodies: Vec<GpuBody> = packed
+            .bodies
+            .iter()
+            .map(|g| {
+                let fits = self.has_body_kernel && body_fits(g);
+                GpuBody {
+                    first: g.first + n0,
+                    in_workgroup: (fits && self.body_kernel) as u32,
+                    ..*g
+                }
+            })
+            .collect();
+        write(
+            &b.bodies,
+            b0,
+            bytemuck::cast_slice(&bodies),
+            size_of::<GpuBody>(),
+        );
+        // Skin: influences are particles; the body index rides in the rest vertex's w.
+        let nv = packed.vertex_count();
+        let vinf: Vec<[u32; 4]> = packed.vinf.iter().map(|i| i.map(|p| p + n0)).collect();
+        let vrest: Vec<[f32; 4]> = packed
+            .vrest
+            .iter()
+            .map(|&[x, y, z, w]| [x, y, z, f32::from_bits(w.to_bits() + b0)])
+            .collect();
+        write(&b.vinf, v0, bytemuck::cast_slice(&vinf), 16);
+        write(&b.vwt, v0, bytemuck::cast_slice(&packed.vwt), 16);
+        write(&b.vrest, v0, bytemuck::cast_slice(&vrest), 16);
+        let starts: Vec<u32> = packed.adj[..=nv].iter().map(|s| s + at.triangles).collect();
+        let corners = shift_by(&packed.adj[nv + 1..], v0);
+        write(&b.adj, v0, bytemuck::cast_slice(&starts), 4);
+        let corner_at = self.cap.vertices + 1 + 3 * at.triangles;
+        write(&b.adj, corner_at, bytemuck::cast_slice(&corners), 4);
+        // The world's own records of the bodies.
+        for (i, body) in model.bodies.iter().enumerate() {
+            self.ranges.push(BodyRange {
+                first: body.first + n0,
+                count: body.count,
+                vfirst: packed.vfirst[i] + v0,
+                vcount: body.skin.rest_vertices.len() as u32,
+            });
+            self.body_fits
+                .push(self.has_body_kernel && body_fits(&packed.bodies[i]));
+            self.asleep.push(false);
+            self.retired.push(false);
+            self.stiffness.push(match body.material {
+                crate::core::model::Material::ShapeMatching { stiffness } => Some(stiffness),
+                _ => None,
+            });
+        }
+        self.used = at.add(more);
+        self.pins += model.pinned.len() as u32;
+        self.n = self.used.particles;
+        self.n_vertices = self.used.vertices;
+        self.contacts_on =
+            self.settings.particle_contacts && self.ranges.len() > 1 && self.contact_k > 0;
+        let p = &mut self.params;
+        p.n = self.n;
+        p.n_bodies = self.ranges.len() as u32;
+        p.n_vertices = self.n_vertices;
+        p.contacts = self.contacts_on as u32;
+        p.max_radius = p.max_radius.max(packed.max_radius);
+        p.contact_reach = crate::core::knn::contact_reach_bound(p.max_radius);
+        let lrecs = range_records(
+            self.n,
+            self.contacts_on,
+            &self.coarse,
+            self.records_base,
+            self.block_records,
+        );
+        queue.write_buffer(&self.lrec_buf, 0, bytemuck::cast_slice(&lrecs));
+        self.refresh_contacts = self.contacts_on;
+        Ok(true)
     }
 
     /// Whether body `body` (model order) was retired ([`GpuWorld::retire`]).
@@ -1130,12 +1631,12 @@ impl GpuWorld {
     /// order (true: near another body), read back from [`GpuWorld::bounds`] (blocking:
     /// for tests and benchmarks).
     pub fn read_near_flags(&self, device: &RenderDevice, queue: &RenderQueue) -> Vec<bool> {
-        let nb = self.ranges.len();
+        let (nb, cap) = (self.ranges.len(), self.cap.bodies as usize);
         let (buffer, at) = self.bounds();
-        let bytes = read_buffer(device, queue, buffer, at, (3 * nb * 16) as u64);
+        let bytes = read_buffer(device, queue, buffer, at, (3 * cap * 16) as u64);
         let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes);
         (0..nb)
-            .map(|b| f32::from_bits(words[(2 * nb + b) * 4]) != 0.0)
+            .map(|b| f32::from_bits(words[(2 * cap + b) * 4]) != 0.0)
             .collect()
     }
 
@@ -1312,7 +1813,9 @@ impl GpuWorld {
         let mut r = Recording::new(encoder, rec, &self.binds);
         let s = &self.settings;
         for step in 0..steps {
-            if self.contacts_on && self.step.is_multiple_of(s.knn_every as u64) {
+            let due = self.step.is_multiple_of(s.knn_every as u64) || self.refresh_contacts;
+            if self.contacts_on && due {
+                self.refresh_contacts = false;
                 // Broad phase first: bodies near no other skip the search and the
                 // contact pass until the next refresh.
                 let bg = per_body_groups(nb);

@@ -31,9 +31,9 @@ fn asleep(i: u32) -> bool {
 }
 
 // Whether body b was near another at the last contact refresh (broad.wgsl; the flags
-// follow the 2 n_bodies boxes in `bounds`): only then can its particles have contacts.
+// follow the 2 body_cap boxes in `bounds`): only then can its particles have contacts.
 fn near_body(b: u32) -> bool {
-    return aux[params.bounds_base + 2u * params.n_bodies + b].x != 0.0;
+    return aux[params.bounds_base + 2u * params.body_cap + b].x != 0.0;
 }
 
 // Other bodies listed per body for the contact search's per-particle test (knn.wgsl,
@@ -48,7 +48,7 @@ const NEAR_SLOTS: u32 = 32u;
 // of them has no candidate within its reach and its list is empty, as a full search's).
 // True when b has more near bodies than the list holds.
 fn may_touch(b: u32, q: vec3<f32>) -> bool {
-    let nb = params.n_bodies;
+    let nb = params.body_cap;
     let count = u32(aux[params.bounds_base + 2u * nb + b].y);
     if (count > NEAR_SLOTS) {
         return true;

@@ -1,7 +1,7 @@
 // Broad phase of the particle contacts, at each contact refresh: per body, whether its
 // bounding box (bounds[2b], bounds[2b + 1], from `body_bounds` on the same positions)
 // grown by the contact reach bound (`params.contact_reach`) overlaps another body's box. Written to
-// bounds[2 n_bodies + b].x (1: near, 0: near no other). A body near no other gets empty
+// bounds[2 body_cap + b].x (1: near, 0: near no other). A body near no other gets empty
 // contact lists without a search (`knn_contacts`), runs all iterations of a substep in
 // one dispatch (body.wgsl, `body_substep`) or goes straight to p after the gather
 // (`store_gathered`), and the contact pass skips it: the same result, as no particle of
@@ -53,10 +53,10 @@ fn near_bodies(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
     let count = atomicLoad(&near_count);
     if (lid == 0u) {
         let hit = f32(atomicLoad(&near_hit));
-        aux[params.bounds_base + 2u * params.n_bodies + b] = vec4<f32>(hit, f32(count), 0.0, 0.0);
+        aux[params.bounds_base + 2u * params.body_cap + b] = vec4<f32>(hit, f32(count), 0.0, 0.0);
     }
     // The list (in no particular order: the per-particle test does not depend on it).
-    let base = 3u * params.n_bodies + b * (NEAR_SLOTS / 4u);
+    let base = 3u * params.body_cap + b * (NEAR_SLOTS / 4u);
     if (count <= NEAR_SLOTS && lid < NEAR_SLOTS / 4u) {
         var v = vec4<u32>(0u);
         for (var k = 0u; k < 4u; k = k + 1u) {

@@ -35,9 +35,9 @@ struct Params {
     grab_base: u32,          // first grab in `aux`
     bounds_base: u32,        // first per-body box in `aux`
     sorted_base: u32,        // first grid-sorted point in `aux`
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    body_cap: u32,           // bodies the per-body arrays have room for (bounds layout)
+    vertex_cap: u32,         // render vertices the vertex arrays have room for (adj layout)
+    _pad: u32,
 };
 
 // Per body, per frame: world → entity-local affine map for drawing, and where the

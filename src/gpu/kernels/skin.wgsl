@@ -57,7 +57,7 @@ fn slab_pos(vtx: u32) -> vec3<f32> {
     return vec3<f32>(slab[o], slab[o + 1u], slab[o + 2u]);
 }
 
-// adj: [start per render vertex (n_vertices + 1)] then triangle corners (3 global render
+// adj: [start per render vertex (vertex_cap + 1)] then triangle corners (3 global render
 // vertex ids per adjacent triangle of the vertex's welded vertex, in triangle order).
 @compute @workgroup_size(128)
 fn normals(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -65,7 +65,7 @@ fn normals(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (vtx >= span.end) {
         return;
     }
-    let nv = params.n_vertices + 1u;
+    let nv = params.vertex_cap + 1u;
     var n = vec3<f32>(0.0);
     for (var s = adj[vtx]; s < adj[vtx + 1u]; s = s + 1u) {
         let t = nv + 3u * s;
