@@ -1165,7 +1165,7 @@ fn gravity_changes_without_a_rebuild() {
 /// Despawning a body retires it in the render graph's world instead of rebuilding it:
 /// the other bodies step on with their state, and the world is not rebuilt.
 #[test]
-fn despawning_a_body_does_not_rebuild_the_world() {
+fn despawning_or_spawning_a_body_does_not_rebuild_the_world() {
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
     if !gpu_available() {
         return;
@@ -1211,4 +1211,42 @@ fn despawning_a_body_does_not_rebuild_the_world() {
         assert!(p.step >= before + 10, "body {e} stopped: step {}", p.step);
         assert!(p.positions.iter().all(|x| x.is_finite() && x.y < 1.0));
     }
+    // A spawned body is appended into the world's room: no rebuild, and it steps (it
+    // sags from its pins) while the others go on.
+    let (b, pinned) = body_of(TissueMaterial::ShapeMatching { stiffness: 0.5 });
+    let new = spawn_body(&mut app, Vec3::new(1.5, 0.3, 0.0), b, Some(pinned));
+    app.world_mut()
+        .entity_mut(new)
+        .insert(ReadbackParticles { continuous: true });
+    let now = step(&app, bodies[0]).unwrap();
+    assert!(
+        until(&mut app, 200, |app| step(app, new).is_some()),
+        "the spawned body did not step"
+    );
+    let first = app.world().get::<ParticlePositions>(new).unwrap().clone();
+    assert!(
+        until(&mut app, 200, |app| step(app, new)
+            .is_some_and(|s| s >= first.step + 20)),
+        "the spawned body stopped"
+    );
+    let gpu = app.sub_app(RenderApp).world().resource::<TissueGpu>();
+    assert_eq!(
+        gpu.rebuilds(),
+        rebuilds,
+        "the world was rebuilt for a spawn"
+    );
+    assert_eq!(gpu.world().expect("world").ranges.len(), 5, "appended");
+    let p = app.world().get::<ParticlePositions>(new).unwrap();
+    assert!(p.positions.iter().all(|x| x.is_finite()));
+    let moved = p
+        .positions
+        .iter()
+        .zip(&first.positions)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    assert!(moved > 1e-5, "sags from its pins: moved {moved} m");
+    assert!(
+        step(&app, bodies[0]).unwrap() >= now + 20,
+        "the others go on"
+    );
 }

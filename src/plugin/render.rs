@@ -4,6 +4,7 @@
 
 use super::build::BuiltBody;
 use super::components::*;
+use crate::core::TissueError;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::model::Model;
 use crate::gpu::buffers::GpuDrawBody;
@@ -333,8 +334,9 @@ pub fn prepare_tissue(
     if in_place {
         gpu.settings = Some(ex.settings.clone());
     } else if keys != gpu.keys || settings_changed {
-        // Bodies that only went away are retired in place; anything else rebuilds.
-        if settings_changed || !retire_removed(&mut gpu, &keys, &queue) {
+        // Bodies that went away are retired in place and new ones appended; a body
+        // rebuilt (or no room left) rebuilds the world.
+        if settings_changed || !edit_in_place(&mut gpu, &ex, &keys, &device, &queue, &sender) {
             rebuild(&mut gpu, &ex, &device, &queue, &sender, keys);
         }
     }
@@ -380,19 +382,72 @@ pub fn prepare_tissue(
     }
 }
 
-/// Where `keys` are the world's bodies less some (none new, none rebuilt), retires those
-/// in the world ([`GpuWorld::retire`]) instead of rebuilding it, unless retired bodies
-/// would then hold more than a quarter of its particles (then the caller rebuilds, which
-/// compacts). Returns whether it did.
-fn retire_removed(gpu: &mut TissueGpu, keys: &[(Entity, u64)], queue: &RenderQueue) -> bool {
-    let Some(world) = gpu.world.as_mut() else {
+/// Room a rebuilt world leaves for bodies spawned later: half as much again as its
+/// bodies need, and at least one more of its largest.
+const ROOM: f32 = 1.5;
+
+/// Where `keys` are the world's bodies less some and plus some (none rebuilt), retires
+/// the ones that went ([`GpuWorld::retire`]) and appends the new ones
+/// ([`GpuWorld::append`]) instead of rebuilding the world, unless the new ones do not
+/// fit in its room or retired bodies would then hold more than a quarter of its
+/// particles (then the caller rebuilds, which compacts and makes room). Returns whether
+/// it did. A new body too big for the adapter is reported and left out, as in a rebuild.
+fn edit_in_place(
+    gpu: &mut TissueGpu,
+    ex: &ExtractedTissue,
+    keys: &[(Entity, u64)],
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    sender: &ReadbackSender,
+) -> bool {
+    let TissueGpu {
+        world: Some(world),
+        world_keys,
+        ..
+    } = gpu
+    else {
         return false;
     };
-    if keys.iter().any(|k| !gpu.keys.contains(k)) {
+    // A body rebuilt (same entity, new generation) rebuilds the world.
+    let new: Vec<&ExtractedBody> = ex
+        .bodies
+        .iter()
+        .filter(|b| !world_keys.contains(&(b.entity, b.generation)))
+        .collect();
+    if new
+        .iter()
+        .any(|b| world_keys.iter().any(|k| k.0 == b.entity))
+    {
+        return false;
+    }
+    // Check the new bodies before retiring anything (no room: rebuild).
+    let solver = ex.settings.to_core();
+    let limits = device.limits();
+    let mut model = Model::new();
+    let mut added = Vec::new();
+    for b in new {
+        match GpuWorld::check_limits(&limits, &b.model, &solver) {
+            Ok(()) => {
+                model.append(&b.model);
+                added.push((b.entity, b.generation));
+            }
+            Err(e) => {
+                let _ = sender
+                    .0
+                    .send(ReadbackResult::Error(b.entity, e.to_string()));
+            }
+        }
+    }
+    let room = world.capacity();
+    let used = world.used();
+    let fits = |u: u32, more: usize, cap: u32| u as usize + more <= cap as usize;
+    if !fits(used.particles, model.particle_count(), room.particles)
+        || !fits(used.bodies, model.bodies.len(), room.bodies)
+    {
         return false;
     }
     let mut retired = 0;
-    for (i, k) in gpu.world_keys.iter().enumerate() {
+    for (i, k) in world_keys.iter().enumerate() {
         if !keys.contains(k) {
             match world.retire(queue, i) {
                 Some(n) => retired = n,
@@ -400,8 +455,19 @@ fn retire_removed(gpu: &mut TissueGpu, keys: &[(Entity, u64)], queue: &RenderQue
             }
         }
     }
-    if retired as u64 * 4 > world.particle_count() as u64 {
+    if retired as u64 * 4 > world.particle_count() as u64 + model.particle_count() as u64 {
         return false;
+    }
+    if !added.is_empty() {
+        let state = crate::core::solver::State::new(&model);
+        match world.append(queue, &model, &state) {
+            Ok(true) => world_keys.extend(added),
+            Ok(false) => return false,
+            Err(e) => {
+                warn!("bevy_tissue: {e}");
+                return false;
+            }
+        }
     }
     gpu.keys = keys.to_vec();
     true
@@ -449,7 +515,14 @@ fn rebuild(
     let Some(Ok(kernels)) = &gpu.kernels else {
         return;
     };
-    match GpuWorld::new(device, kernels, &model, &state, ex.settings.to_core(), 0) {
+    // Room for bodies spawned later; where the adapter cannot bind that much, none.
+    let made = match GpuWorld::with_room(device, kernels, &model, &state, solver.clone(), 0, ROOM) {
+        Err(TissueError::GpuLimit { .. }) => {
+            GpuWorld::new(device, kernels, &model, &state, solver, 0)
+        }
+        other => other,
+    };
+    match made {
         Ok(world) => {
             // Keep the pose of bodies that were already simulated: unchanged ones, and
             // rebuilt ones with the same particles (a new K or material resamples
