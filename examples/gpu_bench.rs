@@ -33,6 +33,14 @@
 //! step never runs: it searches only for contact candidates, and those searches stay);
 //! the KNN columns still time it on its own.
 //!
+//! `--edits` instead measures what changing the world costs a frame, as the plugin
+//! changes it: the `1000g` bodies (`--bodies N`) stepped one step a frame with the
+//! plugin's settings in a world with the plugin's room for more, then gravity halved
+//! (`GpuWorld::set_settings`), a body despawned (`retire`), a body spawned (`append`) and,
+//! for comparison, the whole world made again (what every change cost before). For each:
+//! the CPU time of the call, and the GPU and wall time of the frame after it, against
+//! the median frame.
+//!
 //! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
 //! guarantees; the tests run the example so).
 #[path = "support/bench.rs"]
@@ -314,7 +322,132 @@ options:
   --steps N             steps per repeat (default 300; --quick 20)
   --repeats N           repeats (default 5; --quick 3)
   --scale [--sizes ..]  the liver from 37,982 to 4,000,000 particles
+  --edits               what a gravity change, a despawn and a spawn cost a frame
   --help                this text";
+
+/// One frame as the plugin records it (one step, no all-particle search), timed: GPU ms
+/// between timestamps around the step, and wall ms from `since` to the GPU's end.
+fn frame(g: &Headless, world: &mut GpuWorld, prof: &mut GpuProfiler, since: Instant) -> (f64, f64) {
+    world.write_params(&g.queue);
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    prof.mark(&mut enc);
+    world.record_steps(&mut enc, &g.kernels, 1, &mut NoTiming);
+    prof.mark(&mut enc);
+    prof.resolve(&mut enc);
+    g.queue.submit([enc.finish()]);
+    let m = prof.read_marks(&g.device, &g.queue);
+    let wall = since.elapsed().as_secs_f64() * 1e3;
+    let gpu = if m.len() == 2 { m[1] - m[0] } else { f64::NAN };
+    (gpu, wall)
+}
+
+/// `--edits`: what each change of the world costs a frame (see the module docs).
+fn edits(g: &Headless, bodies: u32, quick: bool) {
+    let sm = Material::ShapeMatching { stiffness: 1.0 };
+    let model = on_ground(bodies, 512, 32, sm, 0.15);
+    let settings = TissueSettings::default().to_core();
+    let ground = [Collider::ground(0.0)];
+    let make = |model: &Model| {
+        let state = State::new(model);
+        GpuWorld::with_room(
+            &g.device,
+            &g.kernels,
+            model,
+            &state,
+            settings.clone(),
+            0,
+            1.5,
+        )
+        .unwrap_or_else(|e| panic!("edits: {e}"))
+    };
+    let mut world = make(&model);
+    world.set_colliders(&g.queue, &ground).unwrap();
+    let Some(mut prof) = GpuProfiler::new(&g.device, &g.queue, 4) else {
+        eprintln!("edits: no timestamp queries on this adapter");
+        return;
+    };
+    let frames = if quick { 10 } else { 120 };
+    for _ in 0..frames / 2 {
+        frame(g, &mut world, &mut prof, Instant::now());
+    }
+    let (mut gpu, mut wall) = (Vec::new(), Vec::new());
+    for _ in 0..frames {
+        let (a, b) = frame(g, &mut world, &mut prof, Instant::now());
+        gpu.push(a);
+        wall.push(b);
+    }
+    let slowest = wall.iter().copied().fold(0.0, f64::max);
+    println!(
+        "{} bodies x 512 on the ground, one step a frame with the plugin's settings \
+         (contact search every {} steps), room for {} particles and {} bodies\n",
+        bodies,
+        settings.knn_every,
+        world.capacity().particles,
+        world.capacity().bodies
+    );
+    println!(
+        "| change | CPU µs of the call | GPU ms of the next frame | wall ms of the next frame | slowest wall ms of the 10 after |"
+    );
+    println!("|---|---|---|---|---|");
+    println!(
+        "| none: median frame of {frames} (slowest {slowest:.3}) | | {:.3} | {:.3} | |",
+        bench::median(gpu),
+        bench::median(wall)
+    );
+    // Each change, then the frame after it and ten more.
+    let mut change = |name: &str, world: &mut GpuWorld, f: &mut dyn FnMut(&mut GpuWorld)| {
+        let t = Instant::now();
+        f(world);
+        let call = t.elapsed().as_secs_f64() * 1e6;
+        let (gpu, wall) = frame(g, world, &mut prof, t);
+        let after = (0..10)
+            .map(|_| frame(g, world, &mut prof, Instant::now()).1)
+            .fold(0.0, f64::max);
+        println!("| {name} | {call:.0} | {gpu:.3} | {wall:.3} | {after:.3} |");
+    };
+    let used_before = world.used();
+    change("gravity halved (set_settings)", &mut world, &mut |w| {
+        let s = SolverSettings {
+            gravity: settings.gravity * 0.5,
+            ..settings.clone()
+        };
+        assert!(w.set_settings(&g.queue, s).unwrap(), "in place");
+    });
+    change("a body despawned (retire)", &mut world, &mut |w| {
+        assert!(
+            w.retire(&g.queue, (bodies / 2) as usize).is_some(),
+            "retired"
+        );
+    });
+    // A new ball on the ground beyond the others.
+    let mut one = on_ground(1, 512, 32, sm, 0.15);
+    one.bodies[0].translation = Vec3::new(-0.3, 0.06, -0.3);
+    let one_state = State::new(&one);
+    change("a body spawned (append)", &mut world, &mut |w| {
+        assert!(
+            w.append(&g.queue, &one, &one_state).unwrap(),
+            "appended in place"
+        );
+    });
+    assert_eq!(world.used().bodies, used_before.bodies + 1);
+    change(
+        "the world made again (what each change cost before)",
+        &mut world,
+        &mut |w| {
+            let mut all = model.clone();
+            all.append(&one);
+            *w = make(&all);
+            w.set_colliders(&g.queue, &ground).unwrap();
+        },
+    );
+    let x = read_vec3(
+        &g.device,
+        &g.queue,
+        world.positions(),
+        world.particle_count(),
+    );
+    assert!(x.iter().all(|p| p.is_finite()), "edits: non-finite state");
+}
 
 fn main() {
     let args = bench::Args::new();
@@ -330,6 +463,14 @@ fn main() {
             std::process::exit(1);
         }
     };
+    if args.flag("--edits") {
+        edits(
+            &g,
+            args.num("--bodies", if quick { 8 } else { 1000 }),
+            quick,
+        );
+        return;
+    }
     let (every, omega) = plugin_contacts();
     let every: u32 = args.num("--contact-every", every);
     let omega: f32 = args.num("--contact-relaxation", omega);

@@ -439,6 +439,27 @@ fn contacts_quick_fills_every_cell() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// `gpu_bench --edits`: a gravity change, a despawn and a spawn change the world in place
+/// (the example asserts each took effect without a new world) and every frame after
+/// them is timed with finite numbers.
+#[test]
+fn gpu_bench_edits_times_every_change() {
+    let (_, stdout, _) = run_quick_with("gpu_bench", &["--edits"]);
+    let rows: Vec<&str> = stdout
+        .lines()
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| change"))
+        .collect();
+    assert_eq!(rows.len(), 5, "baseline and four changes:\n{stdout}");
+    for r in &rows {
+        let numbers: Vec<f64> = r
+            .split('|')
+            .filter_map(|c| c.trim().parse::<f64>().ok())
+            .collect();
+        assert!(numbers.len() >= 2, "a row without times: {r}");
+        assert!(numbers.iter().all(|x| x.is_finite() && *x >= 0.0), "{r}");
+    }
+}
+
 #[test]
 fn kernel_stats_translates_every_kernel() {
     // naga translates every entry point of every kernel module with wgpu's options; a
