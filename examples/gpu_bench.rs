@@ -346,6 +346,7 @@ fn edits(g: &Headless, bodies: u32, quick: bool) {
     let sm = Material::ShapeMatching { stiffness: 1.0 };
     let model = on_ground(bodies, 512, 32, sm, 0.15);
     let settings = TissueSettings::default().to_core();
+    let every = settings.knn_every.max(1) as u64;
     let ground = [Collider::ground(0.0)];
     let make = |model: &Model| {
         let state = State::new(model);
@@ -366,76 +367,123 @@ fn edits(g: &Headless, bodies: u32, quick: bool) {
         eprintln!("edits: no timestamp queries on this adapter");
         return;
     };
-    let frames = if quick { 10 } else { 120 };
+    let (frames, reps) = if quick { (10, 2) } else { (120, 5) };
     for _ in 0..frames / 2 {
         frame(g, &mut world, &mut prof, Instant::now());
     }
-    let (mut gpu, mut wall) = (Vec::new(), Vec::new());
+    // Frames with and without the contact search.
+    let (mut plain, mut search) = ((Vec::new(), Vec::new()), (Vec::new(), Vec::new()));
     for _ in 0..frames {
+        let due = world.step.is_multiple_of(every);
         let (a, b) = frame(g, &mut world, &mut prof, Instant::now());
-        gpu.push(a);
-        wall.push(b);
+        let into = if due { &mut search } else { &mut plain };
+        into.0.push(a);
+        into.1.push(b);
     }
-    let slowest = wall.iter().copied().fold(0.0, f64::max);
     println!(
         "{} bodies x 512 on the ground, one step a frame with the plugin's settings \
-         (contact search every {} steps), room for {} particles and {} bodies\n",
+         (contact search every {every} steps), room for {} particles and {} bodies; \
+         medians of {reps} changes each, made where the next step has no contact search \
+         of its own\n",
         bodies,
-        settings.knn_every,
         world.capacity().particles,
         world.capacity().bodies
     );
     println!(
-        "| change | CPU µs of the call | GPU ms of the next frame | wall ms of the next frame | slowest wall ms of the 10 after |"
+        "| change | CPU µs of the call | GPU ms of the next frame | wall ms of the next frame (from the call) | slowest wall ms of the 10 after |"
     );
     println!("|---|---|---|---|---|");
-    println!(
-        "| none: median frame of {frames} (slowest {slowest:.3}) | | {:.3} | {:.3} | |",
-        bench::median(gpu),
-        bench::median(wall)
-    );
-    // Each change, then the frame after it and ten more.
-    let mut change = |name: &str, world: &mut GpuWorld, f: &mut dyn FnMut(&mut GpuWorld)| {
-        let t = Instant::now();
-        f(world);
-        let call = t.elapsed().as_secs_f64() * 1e6;
-        let (gpu, wall) = frame(g, world, &mut prof, t);
-        let after = (0..10)
-            .map(|_| frame(g, world, &mut prof, Instant::now()).1)
-            .fold(0.0, f64::max);
-        println!("| {name} | {call:.0} | {gpu:.3} | {wall:.3} | {after:.3} |");
+    for (name, (gpu, wall)) in [
+        ("none: a frame", plain),
+        ("none: a frame with the contact search", search),
+    ] {
+        if !gpu.is_empty() {
+            println!(
+                "| {name} (median of {}) | | {:.3} | {:.3} | |",
+                gpu.len(),
+                bench::median(gpu),
+                bench::median(wall)
+            );
+        }
+    }
+    // Each change `reps` times, each where the next step has no search of its own, then
+    // the frame after it and ten more.
+    let mut change = |name: &str, world: &mut GpuWorld, f: &mut dyn FnMut(&mut GpuWorld, usize)| {
+        let (mut calls, mut gpus, mut walls, mut after) =
+            (Vec::new(), Vec::new(), Vec::new(), 0.0f64);
+        for r in 0..reps {
+            while world.step % every != every / 2 {
+                frame(g, world, &mut prof, Instant::now());
+            }
+            let t = Instant::now();
+            f(world, r);
+            calls.push(t.elapsed().as_secs_f64() * 1e6);
+            let (gpu, wall) = frame(g, world, &mut prof, t);
+            gpus.push(gpu);
+            walls.push(wall);
+            for _ in 0..10 {
+                after = after.max(frame(g, world, &mut prof, Instant::now()).1);
+            }
+        }
+        println!(
+            "| {name} | {:.0} | {:.3} | {:.3} | {after:.3} |",
+            bench::median(calls),
+            bench::median(gpus),
+            bench::median(walls)
+        );
     };
-    let used_before = world.used();
-    change("gravity halved (set_settings)", &mut world, &mut |w| {
+    change("gravity changed (set_settings)", &mut world, &mut |w, r| {
         let s = SolverSettings {
-            gravity: settings.gravity * 0.5,
+            gravity: settings.gravity * if r % 2 == 0 { 0.5 } else { 1.0 },
             ..settings.clone()
         };
         assert!(w.set_settings(&g.queue, s).unwrap(), "in place");
     });
-    change("a body despawned (retire)", &mut world, &mut |w| {
+    change("a body despawned (retire)", &mut world, &mut |w, r| {
         assert!(
-            w.retire(&g.queue, (bodies / 2) as usize).is_some(),
+            w.retire(&g.queue, bodies as usize / 2 + r).is_some(),
             "retired"
         );
     });
-    // A new ball on the ground beyond the others.
-    let mut one = on_ground(1, 512, 32, sm, 0.15);
-    one.bodies[0].translation = Vec3::new(-0.3, 0.06, -0.3);
-    let one_state = State::new(&one);
-    change("a body spawned (append)", &mut world, &mut |w| {
+    // New balls on the ground beyond the others.
+    let spawned: Vec<Model> = (0..reps)
+        .map(|r| {
+            let mut one = on_ground(1, 512, 32, sm, 0.15);
+            one.bodies[0].translation = Vec3::new(-0.3 - 0.15 * r as f32, 0.06, -0.3);
+            one
+        })
+        .collect();
+    let used_before = world.used();
+    change("a body spawned (append)", &mut world, &mut |w, r| {
+        let state = State::new(&spawned[r]);
         assert!(
-            w.append(&g.queue, &one, &one_state).unwrap(),
+            w.append(&g.device, &g.queue, &spawned[r], &state).unwrap(),
             "appended in place"
         );
     });
-    assert_eq!(world.used().bodies, used_before.bodies + 1);
+    assert_eq!(world.used().bodies, used_before.bodies + reps as u32);
+    // Of which the CPU packing of the body alone.
+    let packing: Vec<f64> = spawned
+        .iter()
+        .map(|m| {
+            let t = Instant::now();
+            let p = bevy_tissue::gpu::buffers::Packed::new(m, &settings);
+            std::hint::black_box(&p);
+            t.elapsed().as_secs_f64() * 1e6
+        })
+        .collect();
+    println!(
+        "| of which packing the body's arrays (CPU) | {:.0} | | | |",
+        bench::median(packing)
+    );
+    let mut all = model.clone();
+    for m in &spawned {
+        all.append(m);
+    }
     change(
         "the world made again (what each change cost before)",
         &mut world,
-        &mut |w| {
-            let mut all = model.clone();
-            all.append(&one);
+        &mut |w, _| {
             *w = make(&all);
             w.set_colliders(&g.queue, &ground).unwrap();
         },

@@ -1865,7 +1865,11 @@ fn appended_bodies_equal_a_world_made_with_them() {
     )
     .unwrap();
     assert_eq!(grown.capacity(), cap);
-    assert!(grown.append(&g.queue, &more, &State::new(&more)).unwrap());
+    assert!(
+        grown
+            .append(&g.device, &g.queue, &more, &State::new(&more))
+            .unwrap()
+    );
     assert_eq!(grown.used(), made.used());
     assert_eq!(grown.ranges, made.ranges);
     assert!(
@@ -1890,7 +1894,11 @@ fn appended_bodies_equal_a_world_made_with_them() {
     );
     // No room for another copy of everything: refused, nothing changed.
     let before = grown.used();
-    assert!(!grown.append(&g.queue, &all, &State::new(&all)).unwrap());
+    assert!(
+        !grown
+            .append(&g.device, &g.queue, &all, &State::new(&all))
+            .unwrap()
+    );
     assert_eq!(grown.used(), before);
     assert_eq!(grown.ranges.len(), 3);
 }

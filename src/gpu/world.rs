@@ -617,6 +617,49 @@ fn shift_by(list: &[u32], by: u32) -> Vec<u32> {
     list.iter().map(|i| i + by).collect()
 }
 
+/// Buffer writes gathered into one staging buffer and copied in one submission (one
+/// mapping instead of one per write).
+#[derive(Default)]
+struct Uploads<'a> {
+    data: Vec<u8>,
+    /// Destination, its byte offset, the source's byte offset, bytes.
+    copies: Vec<(&'a Buffer, u64, u64, u64)>,
+}
+
+impl<'a> Uploads<'a> {
+    /// `bytes` (a multiple of 4) to `buffer` at byte `offset`.
+    fn add(&mut self, buffer: &'a Buffer, offset: u64, bytes: &[u8]) {
+        if bytes.is_empty() {
+            return;
+        }
+        self.copies
+            .push((buffer, offset, self.data.len() as u64, bytes.len() as u64));
+        self.data.extend_from_slice(bytes);
+    }
+
+    /// `bytes` to element `index` of `buffer`, whose elements are `stride` bytes.
+    fn put(&mut self, buffer: &'a Buffer, index: u32, bytes: &[u8], stride: usize) {
+        self.add(buffer, index as u64 * stride as u64, bytes);
+    }
+
+    fn submit(self, device: &RenderDevice, queue: &RenderQueue) {
+        if self.copies.is_empty() {
+            return;
+        }
+        let staging =
+            device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
+                label: Some("tissue append"),
+                contents: &self.data,
+                usage: BufferUsages::COPY_SRC,
+            });
+        let mut enc = device.create_command_encoder(&Default::default());
+        for (dst, at, from, bytes) in self.copies {
+            enc.copy_buffer_to_buffer(&staging, from, dst, at, bytes);
+        }
+        queue.submit([enc.finish()]);
+    }
+}
+
 /// Contact candidates kept per particle in a world with room for `particles`.
 fn contact_k(settings: &SolverSettings, particles: u32) -> u32 {
     settings
@@ -1308,6 +1351,7 @@ impl GpuWorld {
     /// parameters ([`GpuWorld::write_params`]) before the next steps.
     pub fn append(
         &mut self,
+        device: &RenderDevice,
         queue: &RenderQueue,
         model: &Model,
         state: &State,
@@ -1344,20 +1388,17 @@ impl GpuWorld {
         }
         let at = self.used;
         let (n0, b0, v0) = (at.particles, at.bodies, at.vertices);
-        let write = |buffer: &Buffer, index: u32, bytes: &[u8], stride: usize| {
-            if !bytes.is_empty() {
-                queue.write_buffer(buffer, index as u64 * stride as u64, bytes);
-            }
-        };
+        // Every write through one staging buffer, copied in one submission.
+        let mut up = Uploads::default();
         // State: positions (and the predicted ones), velocities, cluster states, grabs.
         let (x, v, cstate) = pack_state(state);
         let grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
         let b = &self.b;
-        write(&b.x, n0, bytemuck::cast_slice(&x), 16);
-        write(&b.x, self.regions.p_base + n0, bytemuck::cast_slice(&x), 16);
-        write(&b.v, n0, bytemuck::cast_slice(&v), 16);
-        write(&b.cstate, n0, bytemuck::cast_slice(&cstate), 48);
-        write(
+        up.put(&b.x, n0, bytemuck::cast_slice(&x), 16);
+        up.put(&b.x, self.regions.p_base + n0, bytemuck::cast_slice(&x), 16);
+        up.put(&b.v, n0, bytemuck::cast_slice(&v), 16);
+        up.put(&b.cstate, n0, bytemuck::cast_slice(&cstate), 48);
+        up.put(
             &b.aux,
             self.regions.grab_base + n0,
             bytemuck::cast_slice(&grab),
@@ -1369,8 +1410,8 @@ impl GpuWorld {
             .iter()
             .map(|p| p.extend(0.0).to_array())
             .collect();
-        write(&b.rest, n0, bytemuck::cast_slice(&packed.rest), 16);
-        write(
+        up.put(&b.rest, n0, bytemuck::cast_slice(&packed.rest), 16);
+        up.put(
             &b.rest,
             self.regions.pin_base + self.pins,
             bytemuck::cast_slice(&pins),
@@ -1388,24 +1429,24 @@ impl GpuWorld {
                 ]
             })
             .collect();
-        write(&b.pinfo, n0, bytemuck::cast_slice(&pinfo), 16);
+        up.put(&b.pinfo, n0, bytemuck::cast_slice(&pinfo), 16);
         // Members are particles and the inverse lists' entries clusters: both numbered
         // as the particles.
         let (members, inverse) = packed.lists.split_at(packed.inv_offset as usize);
-        write(
+        up.put(
             &b.lists,
             at.members,
             bytemuck::cast_slice(&shift_by(members, n0)),
             4,
         );
         let inv_at = self.cap.members + at.members;
-        write(
+        up.put(
             &b.lists,
             inv_at,
             bytemuck::cast_slice(&shift_by(inverse, n0)),
             4,
         );
-        write(
+        up.put(
             &b.crest,
             n0,
             bytemuck::cast_slice(&packed.crest),
@@ -1423,7 +1464,7 @@ impl GpuWorld {
                 }
             })
             .collect();
-        write(
+        up.put(
             &b.bodies,
             b0,
             bytemuck::cast_slice(&bodies),
@@ -1437,14 +1478,15 @@ impl GpuWorld {
             .iter()
             .map(|&[x, y, z, w]| [x, y, z, f32::from_bits(w.to_bits() + b0)])
             .collect();
-        write(&b.vinf, v0, bytemuck::cast_slice(&vinf), 16);
-        write(&b.vwt, v0, bytemuck::cast_slice(&packed.vwt), 16);
-        write(&b.vrest, v0, bytemuck::cast_slice(&vrest), 16);
+        up.put(&b.vinf, v0, bytemuck::cast_slice(&vinf), 16);
+        up.put(&b.vwt, v0, bytemuck::cast_slice(&packed.vwt), 16);
+        up.put(&b.vrest, v0, bytemuck::cast_slice(&vrest), 16);
         let starts: Vec<u32> = packed.adj[..=nv].iter().map(|s| s + at.triangles).collect();
         let corners = shift_by(&packed.adj[nv + 1..], v0);
-        write(&b.adj, v0, bytemuck::cast_slice(&starts), 4);
+        up.put(&b.adj, v0, bytemuck::cast_slice(&starts), 4);
         let corner_at = self.cap.vertices + 1 + 3 * at.triangles;
-        write(&b.adj, corner_at, bytemuck::cast_slice(&corners), 4);
+        up.put(&b.adj, corner_at, bytemuck::cast_slice(&corners), 4);
+        up.submit(device, queue);
         // The world's own records of the bodies.
         for (i, body) in model.bodies.iter().enumerate() {
             self.ranges.push(BodyRange {

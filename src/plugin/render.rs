@@ -460,7 +460,7 @@ fn edit_in_place(
     }
     if !added.is_empty() {
         let state = crate::core::solver::State::new(&model);
-        match world.append(queue, &model, &state) {
+        match world.append(device, queue, &model, &state) {
             Ok(true) => world_keys.extend(added),
             Ok(false) => return false,
             Err(e) => {
