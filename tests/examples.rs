@@ -461,7 +461,10 @@ fn gpu_bench_edits_times_every_change() {
         assert!(numbers.iter().all(|x| x.is_finite() && *x >= 0.0), "{r}");
     }
     for change in ["set_settings", "retire", "append", "made again"] {
-        assert!(rows.iter().any(|r| r.contains(change)), "no {change} row:\n{stdout}");
+        assert!(
+            rows.iter().any(|r| r.contains(change)),
+            "no {change} row:\n{stdout}"
+        );
     }
 }
 

@@ -21,312 +21,22 @@ use crate::core::colliders::Collider;
 use crate::core::model::Model;
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
-    BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferDescriptor,
-    BufferUsages, CommandEncoder, ComputePass, ComputePassDescriptor, MapMode,
+    BindGroup, BindingResource, Buffer, BufferBinding, BufferDescriptor, BufferUsages,
+    CommandEncoder,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use glam::Vec3;
-use wgpu::{ComputePassTimestampWrites, QuerySet};
 
-/// Hooks around every compute pass a world records: GPU timestamps for benchmarks, or
-/// Bevy's render-diagnostic spans in the plugin.
-pub trait PassRecorder {
-    /// Timestamp writes for the pass named `name` (query set and the index of its
-    /// beginning; the end is the next index), if this recorder takes them.
-    fn timestamps(&mut self, _name: &'static str) -> Option<(QuerySet, u32)> {
-        None
-    }
-    /// Called after the pass begins.
-    fn begin(&mut self, _pass: &mut ComputePass<'_>, _name: &'static str) {}
-    /// Called before the pass ends.
-    fn end(&mut self, _pass: &mut ComputePass<'_>) {}
-}
-
-/// Records nothing around passes.
-pub struct NoTiming;
-impl PassRecorder for NoTiming {}
-
-/// Dispatches recorded into one compute pass, or into a pass each when the recorder
-/// times passes (timestamp writes are per pass). One pass per step spares the per-pass
-/// cost of wgpu's resource tracking, which on an H100 was measured to exceed the kernels'
-/// own time at 38k particles.
-struct Recording<'e, 'r, 'b> {
-    encoder: &'e mut CommandEncoder,
-    pass: Option<ComputePass<'static>>,
-    rec: &'r mut dyn PassRecorder,
-    /// The world's bind groups, by [`kernels::Kernel::id`].
-    binds: &'b [KernelBind],
-}
-
-/// Group 3 (per dispatch) of a dispatch.
-#[derive(Clone, Copy)]
-enum Window<'a> {
-    /// The kernel binds nothing per dispatch.
-    None,
-    /// The world's range or scan-level record at this byte offset.
-    At(u32),
-    /// A vertex slab's group (one of a [`SlabGroup`]) with the skin span at this offset.
-    Slab(&'a BindGroup, u32),
-}
-
-impl<'e, 'r, 'b> Recording<'e, 'r, 'b> {
-    fn new(
-        encoder: &'e mut CommandEncoder,
-        rec: &'r mut dyn PassRecorder,
-        binds: &'b [KernelBind],
-    ) -> Self {
-        Self {
-            encoder,
-            pass: None,
-            rec,
-            binds,
-        }
-    }
-
-    fn dispatch(
-        &mut self,
-        name: &'static str,
-        kernel: &kernels::Kernel,
-        window: Window<'_>,
-        workgroups: (u32, u32),
-    ) {
-        let ts = self.rec.timestamps(name);
-        let mut own;
-        let pass: &mut ComputePass<'static> = if ts.is_some() {
-            let timestamp_writes = ts.as_ref().map(|(qs, i)| ComputePassTimestampWrites {
-                query_set: qs,
-                beginning_of_pass_write_index: Some(*i),
-                end_of_pass_write_index: Some(*i + 1),
-            });
-            self.pass = None;
-            own = self
-                .encoder
-                .begin_compute_pass(&ComputePassDescriptor {
-                    label: Some(name),
-                    timestamp_writes,
-                })
-                .forget_lifetime();
-            &mut own
-        } else {
-            let enc = &mut *self.encoder;
-            self.pass.get_or_insert_with(|| {
-                enc.begin_compute_pass(&ComputePassDescriptor {
-                    label: Some("tissue"),
-                    timestamp_writes: None,
-                })
-                .forget_lifetime()
-            })
-        };
-        self.rec.begin(pass, name);
-        pass.set_pipeline(&kernel.pipeline);
-        if let Some(bind) = self.binds.get(kernel.id) {
-            for (g, group) in bind.fixed.iter().enumerate() {
-                pass.set_bind_group(g as u32, group, &[]);
-            }
-            match window {
-                Window::None => {}
-                Window::At(offset) => {
-                    if let Some(group) = &bind.window {
-                        pass.set_bind_group(3, group, &[offset]);
-                    }
-                }
-                Window::Slab(group, offset) => pass.set_bind_group(3, group, &[offset]),
-            }
-        }
-        pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
-        self.rec.end(pass);
-    }
-}
-
-/// One kernel's bind groups in a world: groups 0–2 (up to the last it uses, empty where
-/// it uses nothing), and group 3 where it reads the world's range or scan-level records.
-pub struct KernelBind {
-    fixed: Vec<BindGroup>,
-    window: Option<BindGroup>,
-}
-
-impl KernelBind {
-    /// `kernel`'s bind groups over the world's buffers `b` and records.
-    fn new(
-        device: &RenderDevice,
-        kernel: &kernels::Kernel,
-        b: &Buffers,
-        scan_buf: &Buffer,
-        lrec_buf: &Buffer,
-    ) -> Self {
-        let window = |name: &str| -> Option<BindingResource<'_>> {
-            let (buffer, size) = match name {
-                "level" => (scan_buf, size_of::<u32>() as u64 * 4),
-                // The WGSL `Range`: 8 words.
-                "range" => (lrec_buf, size_of::<u32>() as u64 * 8),
-                _ => return b.named(name).map(|buf| buf.as_entire_binding()),
-            };
-            Some(BindingResource::Buffer(BufferBinding {
-                buffer,
-                offset: 0,
-                size: std::num::NonZeroU64::new(size),
-            }))
-        };
-        let mut fixed = Vec::new();
-        let mut own = None;
-        for (g, (layout, uses)) in kernel.groups.iter().enumerate() {
-            if g < 3 {
-                fixed.push(bind_group(device, kernel.name, layout, uses, &window));
-            } else if uses
-                .iter()
-                .all(|&i| window(kernels::bindings::TABLE[i].name).is_some())
-            {
-                // Group 3 from the world's own records; the draw kernels' comes with the
-                // slab ([`GpuWorld::slab_group`]).
-                own = Some(bind_group(device, kernel.name, layout, uses, &window));
-            }
-        }
-        Self { fixed, window: own }
-    }
-}
-
-/// A bind group of `layout` with each of the table entries `uses` bound to the resource
-/// `resource` names for it (entries it has none for are left out, and the group is
-/// then invalid: a defect the device reports).
-fn bind_group<'a>(
-    device: &RenderDevice,
-    label: &str,
-    layout: &bevy::render::render_resource::BindGroupLayout,
-    uses: &[usize],
-    resource: &dyn Fn(&str) -> Option<BindingResource<'a>>,
-) -> BindGroup {
-    let entries: Vec<BindGroupEntry> = uses
-        .iter()
-        .filter_map(|&i| {
-            let (_, binding) = kernels::bindings::location(i);
-            Some(BindGroupEntry {
-                binding,
-                resource: resource(kernels::bindings::TABLE[i].name)?,
-            })
-        })
-        .collect();
-    device.create_bind_group(label, layout, &entries)
-}
-
-/// The bind groups that let the draw kernels write into one vertex slab (one per kernel
-/// that writes it); made by [`GpuWorld::slab_group`].
-pub struct SlabGroup {
-    skin: BindGroup,
-    normals: BindGroup,
-}
-
-/// The world's buffers, by their names in the binding table
-/// ([`kernels::bindings::TABLE`]; the per-dispatch records are [`GpuWorld`]'s own).
-struct Buffers {
-    params: Buffer,
-    colliders: Buffer,
-    draw: Buffer,
-    x: Buffer,
-    v: Buffer,
-    aux: Buffer,
-    cstate: Buffer,
-    corr: Buffer,
-    contacts: Buffer,
-    scan: Buffer,
-    cursor: Buffer,
-    cell_of: Buffer,
-    forces: Buffer,
-    fgrad: Buffer,
-    knn_out: Buffer,
-    status: Buffer,
-    spare: Buffer,
-    rest: Buffer,
-    pinfo: Buffer,
-    lists: Buffer,
-    crest: Buffer,
-    bodies: Buffer,
-    hier: Buffer,
-    vinf: Buffer,
-    vwt: Buffer,
-    vrest: Buffer,
-    adj: Buffer,
-}
-
-impl Buffers {
-    /// The buffer bound as the table's `name` (groups 0–2).
-    fn named(&self, name: &str) -> Option<&Buffer> {
-        Some(match name {
-            "params" => &self.params,
-            "colliders" => &self.colliders,
-            "draw" => &self.draw,
-            "x" => &self.x,
-            "v" => &self.v,
-            "aux" => &self.aux,
-            "cstate" => &self.cstate,
-            "corr" => &self.corr,
-            "contacts" => &self.contacts,
-            "scan" => &self.scan,
-            "cursor" => &self.cursor,
-            "cell_of" => &self.cell_of,
-            "forces" => &self.forces,
-            "fgrad" => &self.fgrad,
-            "knn_out" => &self.knn_out,
-            "status" => &self.status,
-            "spare" => &self.spare,
-            "rest" => &self.rest,
-            "pinfo" => &self.pinfo,
-            "lists" => &self.lists,
-            "crest" => &self.crest,
-            "bodies" => &self.bodies,
-            "hier" => &self.hier,
-            "vinf" => &self.vinf,
-            "vwt" => &self.vwt,
-            "vrest" => &self.vrest,
-            "adj" => &self.adj,
-            _ => return None,
-        })
-    }
-}
-
-/// Where the arrays that share a buffer start (in `vec4` entries; the kernels read the
-/// same bases from `Params`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-struct Regions {
-    /// Predicted positions in `x` (after every level's positions).
-    p_base: u32,
-    /// Pin targets in `rest`.
-    pin_base: u32,
-    /// Collider displacements in `aux` (after the contact pass's two halves).
-    coldp_base: u32,
-    /// Grabs in `aux`.
-    grab_base: u32,
-    /// Per-body boxes, flags and near lists in `aux`.
-    bounds_base: u32,
-    /// Grid-sorted points in `aux`.
-    sorted_base: u32,
-    /// Entries of `aux`.
-    aux_len: u32,
-}
-
-impl Regions {
-    /// The regions of a world of `n` level-0 particles, `total` particles of all levels,
-    /// `rest` rest records and `bodies` bodies.
-    fn new(n: u32, total: u32, rest: u32, bodies: u32) -> Self {
-        let halves = total.max(2 * n);
-        let coldp_base = halves;
-        let grab_base = coldp_base + total;
-        let bounds_base = grab_base + total;
-        let sorted_base = bounds_base + bodies * BOUNDS_PER_BODY;
-        Self {
-            p_base: total,
-            pin_base: rest,
-            coldp_base,
-            grab_base,
-            bounds_base,
-            sorted_base,
-            aux_len: sorted_base + n,
-        }
-    }
-}
-
-/// `vec4` entries per body in the bounds region: min and max, the broad phase's flag,
-/// then the near list (`NEAR_SLOTS` indices, four to an entry).
-const BOUNDS_PER_BODY: u32 = 3 + kernels::broad::NEAR_SLOTS / 4;
+mod alloc;
+use alloc::*;
+pub mod plan;
+mod readback;
+mod record;
+pub use alloc::{Capacity, SlabGroup};
+use plan::groups;
+pub use readback::{read_buffer, read_buffers, read_u32, read_vec3};
+use record::{Bound, Recording};
+pub use record::{NoTiming, PassRecorder};
 
 /// Per body: particle range and render-vertex range.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -339,110 +49,6 @@ pub struct BodyRange {
     pub vfirst: u32,
     /// Render vertices.
     pub vcount: u32,
-}
-
-/// What a world's buffers have room for. A world made by [`GpuWorld::new`] has room for
-/// its model and no more; [`GpuWorld::with_room`] and [`GpuWorld::with_capacity`] leave
-/// room for bodies appended later ([`GpuWorld::append`]) without a new allocation.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Capacity {
-    /// Particles (a world with hierarchy levels has room for its own only).
-    pub particles: u32,
-    /// Bodies.
-    pub bodies: u32,
-    /// Render vertices.
-    pub vertices: u32,
-    /// Cluster memberships (entries of the member lists; the inverse lists have as many).
-    pub members: u32,
-    /// Triangles of the normal adjacency (a render vertex's triangles, three corners each).
-    pub triangles: u32,
-}
-
-impl Capacity {
-    /// The larger of each count.
-    pub fn max(self, o: Capacity) -> Capacity {
-        Capacity {
-            particles: self.particles.max(o.particles),
-            bodies: self.bodies.max(o.bodies),
-            vertices: self.vertices.max(o.vertices),
-            members: self.members.max(o.members),
-            triangles: self.triangles.max(o.triangles),
-        }
-    }
-
-    /// Whether `self` plus `more` fits in `cap`.
-    fn fits(self, more: Capacity, cap: Capacity) -> bool {
-        let fit = |a: u32, b: u32, c: u32| a.checked_add(b).is_some_and(|s| s <= c);
-        fit(self.particles, more.particles, cap.particles)
-            && fit(self.bodies, more.bodies, cap.bodies)
-            && fit(self.vertices, more.vertices, cap.vertices)
-            && fit(self.members, more.members, cap.members)
-            && fit(self.triangles, more.triangles, cap.triangles)
-    }
-
-    fn add(self, o: Capacity) -> Capacity {
-        Capacity {
-            particles: self.particles + o.particles,
-            bodies: self.bodies + o.bodies,
-            vertices: self.vertices + o.vertices,
-            members: self.members + o.members,
-            triangles: self.triangles + o.triangles,
-        }
-    }
-
-    /// `growth` times each count (rounded up), and at least `extra` more.
-    fn grown(self, growth: f32, extra: Capacity) -> Capacity {
-        let g = |a: u32| {
-            ((a as f64) * growth.max(1.0) as f64)
-                .ceil()
-                .min(u32::MAX as f64) as u32
-        };
-        Capacity {
-            particles: g(self.particles),
-            bodies: g(self.bodies),
-            vertices: g(self.vertices),
-            members: g(self.members),
-            triangles: g(self.triangles),
-        }
-        .max(self.add(extra))
-    }
-}
-
-/// What the packed arrays of a model use, in all and for its largest body.
-fn packed_use(model: &Model, packed: &Packed) -> (Capacity, Capacity) {
-    let nv = packed.vertex_count();
-    let mut largest = Capacity::default();
-    for (i, b) in model.bodies.iter().enumerate() {
-        let (p0, p1) = (b.first as usize, (b.first + b.count) as usize);
-        let v0 = packed.vfirst[i] as usize;
-        let v1 = v0 + b.skin.rest_vertices.len();
-        largest = largest.max(Capacity {
-            particles: b.count,
-            bodies: 1,
-            vertices: (v1 - v0) as u32,
-            members: packed.pinfo[p1][3] - packed.pinfo[p0][3],
-            triangles: packed.adj[v1] - packed.adj[v0],
-        });
-    }
-    let used = Capacity {
-        particles: packed.n0,
-        bodies: model.bodies.len() as u32,
-        vertices: nv as u32,
-        members: packed.inv_offset,
-        triangles: packed.adj[nv],
-    };
-    (used, largest)
-}
-
-/// How a new world sizes its buffers.
-#[derive(Debug, Clone, Copy)]
-enum Sizing {
-    /// Room for the model only.
-    Exact,
-    /// `growth` times what the model needs, and at least one more of its largest body.
-    Grow(f32),
-    /// At least this much.
-    AtLeast(Capacity),
 }
 
 /// All bodies of a scene on the GPU (see the module docs).
@@ -546,61 +152,6 @@ fn step_params(params: &mut GpuParams, s: &SolverSettings) {
 /// Largest number of skin dispatches (runs of bodies sharing a vertex slab) per frame.
 pub const MAX_SKIN_RUNS: usize = 64;
 
-/// A buffer of `entries` neighbour-list entries, all NONE (no previous search: the
-/// first search of each particle starts without a bound).
-fn unknown_lists(device: &RenderDevice, label: &str, entries: u64, usage: BufferUsages) -> Buffer {
-    let buffer = device.create_buffer(&BufferDescriptor {
-        label: Some(label),
-        size: (entries * 4).max(16),
-        usage,
-        mapped_at_creation: true,
-    });
-    buffer.slice(..).get_mapped_range_mut().slice(..).fill(0xff);
-    buffer.unmap();
-    buffer
-}
-
-/// Checks that arrays of `total` particles (all levels), `n0` level-0 particles, `nv`
-/// render vertices, `lists` cluster-list entries and `bodies` bodies fit a device with
-/// `limits`: every buffer binding and the per-particle dispatch size.
-fn check_counts(
-    limits: &bevy::render::render_resource::WgpuLimits,
-    [n, n0, nv, lists, bodies]: [u64; 5],
-    settings: &SolverSettings,
-) -> Result<(), TissueError> {
-    let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
-    let aux = n.max(2 * n0) + 2 * n + bodies * BOUNDS_PER_BODY as u64 + n0;
-    let checks: [(&'static str, u64); 8] = [
-        ("positions and predicted positions", 2 * n * 16),
-        (
-            "particle scratch (contact pass, colliders, grabs, bounds, grid)",
-            aux * 16,
-        ),
-        ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
-        ("cluster corrections", n * CORR_BYTES),
-        ("cluster lists", lists * 4),
-        ("contact lists", n * contact_k.max(1) * 4),
-        (
-            "neighbour search candidate store",
-            n * (contact_k + SPARE_EXTRA as u64) * 4,
-        ),
-        ("render vertices", nv * 32),
-    ];
-    for (what, bytes) in checks {
-        check_binding(limits, what, bytes)?;
-    }
-    let max_groups = limits.max_compute_workgroups_per_dimension as u64;
-    let needed = n.div_ceil(WORKGROUP as u64);
-    if needed > max_groups {
-        return Err(TissueError::GpuLimit {
-            what: "workgroups per dispatch (particles / 128)",
-            needed,
-            limit: max_groups,
-        });
-    }
-    Ok(())
-}
-
 /// A grab as the kernels read it: offset in the grasper's frame (m) and the grasper + 1
 /// (0: free).
 fn grab_record(g: &crate::core::colliders::Grab) -> [f32; 4] {
@@ -615,49 +166,6 @@ fn grab_record(g: &crate::core::colliders::Grab) -> [f32; 4] {
 /// `list` with `by` added to every entry.
 fn shift_by(list: &[u32], by: u32) -> Vec<u32> {
     list.iter().map(|i| i + by).collect()
-}
-
-/// Buffer writes gathered into one staging buffer and copied in one submission (one
-/// mapping instead of one per write).
-#[derive(Default)]
-struct Uploads<'a> {
-    data: Vec<u8>,
-    /// Destination, its byte offset, the source's byte offset, bytes.
-    copies: Vec<(&'a Buffer, u64, u64, u64)>,
-}
-
-impl<'a> Uploads<'a> {
-    /// `bytes` (a multiple of 4) to `buffer` at byte `offset`.
-    fn add(&mut self, buffer: &'a Buffer, offset: u64, bytes: &[u8]) {
-        if bytes.is_empty() {
-            return;
-        }
-        self.copies
-            .push((buffer, offset, self.data.len() as u64, bytes.len() as u64));
-        self.data.extend_from_slice(bytes);
-    }
-
-    /// `bytes` to element `index` of `buffer`, whose elements are `stride` bytes.
-    fn put(&mut self, buffer: &'a Buffer, index: u32, bytes: &[u8], stride: usize) {
-        self.add(buffer, index as u64 * stride as u64, bytes);
-    }
-
-    fn submit(self, device: &RenderDevice, queue: &RenderQueue) {
-        if self.copies.is_empty() {
-            return;
-        }
-        let staging =
-            device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
-                label: Some("tissue append"),
-                contents: &self.data,
-                usage: BufferUsages::COPY_SRC,
-            });
-        let mut enc = device.create_command_encoder(&Default::default());
-        for (dst, at, from, bytes) in self.copies {
-            enc.copy_buffer_to_buffer(&staging, from, dst, at, bytes);
-        }
-        queue.submit([enc.finish()]);
-    }
 }
 
 /// Contact candidates kept per particle in a world with room for `particles`.
@@ -766,81 +274,12 @@ fn no_elements(model: &Model) -> Result<(), TissueError> {
     })
 }
 
-/// A [`TissueError::GpuLimit`] where a buffer of `bytes` cannot be bound on a device
-/// with `limits`.
-fn check_binding(
-    limits: &bevy::render::render_resource::WgpuLimits,
-    what: &'static str,
-    bytes: u64,
-) -> Result<(), TissueError> {
-    let limit = limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size);
-    if bytes > limit {
-        return Err(TissueError::GpuLimit {
-            what,
-            needed: bytes,
-            limit,
-        });
-    }
-    Ok(())
-}
-
-fn groups(n: u32, per: u32) -> u32 {
-    n.div_ceil(per).max(1)
-}
-
-/// Particles handled by one workgroup of the gather kernel (4 threads each; the lane
-/// count is `LANES` in `gather.wgsl`).
-pub const PER_LANE_GROUP: u32 = WORKGROUP / 4;
-
-/// A 2-D grid of workgroups for the gather kernel (the kernels linearise it), so that
-/// millions of particles stay under the 65,535 groups per dimension.
-fn lane_groups(n: u32) -> (u32, u32) {
-    grid_2d(groups(n, PER_LANE_GROUP))
-}
-
 /// Below this many clusters a range is solved by `solve_clusters_lanes` (8 threads per
 /// cluster), from it on by `solve_clusters` (a thread per cluster). Measured on an H100
 /// (BENCHMARKS.md, "GPU" and "Hierarchy"): a thread per cluster was faster from 13,824
 /// clusters up (hyperelastic; 37,982 shape matching), 8 lanes on the hierarchy's coarse
 /// levels of 6,534 and 972 clusters.
 pub const LANE_CLUSTERS_BELOW: u32 = 8192;
-
-/// Threads per cluster of `solve_clusters_lanes` (`LANES` in `cluster.wgsl`).
-const CLUSTER_LANES: u32 = 8;
-
-/// The cluster kernel for a range of `n` clusters and its workgroup grid
-/// ([`CLUSTER_LANES`] threads per cluster below `lanes_below` clusters).
-fn cluster_kernel(k: &Kernels, n: u32, lanes_below: u32) -> (&kernels::Kernel, (u32, u32)) {
-    if n < lanes_below {
-        (
-            &k.clusters_lanes,
-            grid_2d(groups(n, WORKGROUP / CLUSTER_LANES)),
-        )
-    } else {
-        (&k.clusters, grid_2d(groups(n, WORKGROUP)))
-    }
-}
-
-/// A workgroup per body for `nb` bodies, as the per-body kernels index them
-/// (`wid.x + wid.y * 65535`: `body_bounds`, `near_bodies`).
-fn per_body_groups(nb: u32) -> (u32, u32) {
-    (nb.min(65_535), nb.div_ceil(65_535))
-}
-
-/// Bytes per range record in the level group (`GpuRange`).
-const REC: u32 = size_of::<GpuRange>() as u32;
-
-/// `g` workgroups as a 2-D grid within 65,535 per dimension.
-fn grid_2d(g: u32) -> (u32, u32) {
-    if g <= 65_535 {
-        (g, 1)
-    } else {
-        let y = g.div_ceil(65_535);
-        (g.div_ceil(y), y)
-    }
-}
 
 impl GpuWorld {
     /// Uploads `model` with its current `state`. `knn_k` is the K of the optional
@@ -1171,7 +610,7 @@ impl GpuWorld {
             bytemuck::cast_slice(&recs),
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
         );
-        let block_records = Self::max_block(&settings);
+        let block_records = plan::max_block(&settings);
         let lrecs = range_records(
             n,
             contacts_on,
@@ -1689,9 +1128,9 @@ impl GpuWorld {
         k: &Kernels,
         rec: &mut dyn PassRecorder,
     ) {
-        let groups = per_body_groups(self.ranges.len() as u32);
+        let groups = plan::per_body_groups(self.ranges.len() as u32);
         let mut r = Recording::new(encoder, rec, &self.binds);
-        r.dispatch("tissue/bounds", &k.body_bounds, Window::None, groups);
+        r.dispatch("tissue/bounds", &k.body_bounds, Bound::None, groups);
     }
 
     /// Clears the divergence flags.
@@ -1764,7 +1203,7 @@ impl GpuWorld {
         let old = &self.settings;
         if settings.particle_contacts != old.particle_contacts
             || settings.contact_neighbours != old.contact_neighbours
-            || Self::max_block(&settings) > self.block_records
+            || plan::max_block(&settings) > self.block_records
         {
             return Ok(false);
         }
@@ -1788,26 +1227,24 @@ impl GpuWorld {
         queue.write_buffer(&self.b.params, 0, bytemuck::bytes_of(&self.params));
     }
 
-    /// Records the grid build over the current positions (clear, counts, prefix sum,
-    /// scatter); `all` picks the all-particle search's cell size, else the contacts'.
-    fn record_grid(&self, r: &mut Recording<'_, '_, '_>, k: &Kernels, all: bool) {
-        let g = groups(self.n, WORKGROUP);
-        let cfg =
-            Window::At(((self.levels.len() + all as usize) * size_of::<GpuScanLevel>()) as u32);
-        let clear = groups(self.scan_len.max(self.params.grid_table), WORKGROUP).min(65_535);
-        r.dispatch("tissue/grid", &k.grid_clear, cfg, (clear, 1));
-        r.dispatch("tissue/grid", &k.grid_count, cfg, (g, 1));
-        for (l, &(_, c)) in self.levels.iter().enumerate() {
-            let off = Window::At((l * size_of::<GpuScanLevel>()) as u32);
-            let wg = groups(c, SCAN_BLOCK);
-            r.dispatch("tissue/scan", &k.scan_block, off, (wg, 1));
+    /// What the dispatch plan needs of the world.
+    fn shape(&self) -> plan::Shape {
+        plan::Shape {
+            n: self.n,
+            bodies: self.ranges.len() as u32,
+            colliders: self.n_colliders,
+            contacts_on: self.contacts_on,
+            contact_k: self.contact_k,
+            body_kernel: self.has_body_kernel && self.body_kernel(),
+            all_in_body: self.body_fits.iter().all(|f| *f),
+            coarse: self.coarse.clone(),
+            scan_levels: self.levels.clone(),
+            scan_len: self.scan_len,
+            grid_table: self.params.grid_table,
+            iteration_records: self.iteration_records,
+            block_records: self.block_records,
+            lanes_below: self.lane_clusters_below,
         }
-        for l in (0..self.levels.len().saturating_sub(1)).rev() {
-            let off = Window::At((l * size_of::<GpuScanLevel>()) as u32);
-            let wg = groups(self.levels[l].1, SCAN_BLOCK);
-            r.dispatch("tissue/scan", &k.scan_add, off, (wg, 1));
-        }
-        r.dispatch("tissue/grid", &k.grid_scatter, cfg, (g, 1));
     }
 
     /// Records the exact K nearest neighbours of every particle (K = `knn_k` given at
@@ -1818,18 +1255,16 @@ impl GpuWorld {
         k: &Kernels,
         rec: &mut dyn PassRecorder,
     ) {
-        let knn = &k.knn_all[self.knn_warm as usize][Kernels::knn_slots(self.knn_k)];
+        let plan = plan::knn_all(&self.shape(), self.knn_k, self.knn_warm);
         self.knn_warm = true;
-        let mut r = Recording::new(encoder, rec, &self.binds);
-        self.record_grid(&mut r, k, true);
-        let g = groups(self.n, WORKGROUP);
-        r.dispatch("tissue/knn", knn, Window::None, (g, 1));
+        record::replay(encoder, rec, &self.binds, k, &plan);
     }
 
-    /// Records `steps` time steps (one compute pass, unless the recorder times passes).
-    /// Call [`GpuWorld::write_params`] before submitting. Within a recording a substep's
-    /// finish also predicts the next substep (one dispatch fewer each), so colliders,
-    /// pin targets and sleep flags set before the call hold for all its steps.
+    /// Records `steps` time steps ([`plan::steps`]; one compute pass, unless the
+    /// recorder times passes). Call [`GpuWorld::write_params`] before submitting.
+    /// Within a recording a substep's finish also predicts the next substep (one
+    /// dispatch fewer each), so colliders, pin targets and sleep flags set before the
+    /// call hold for all its steps.
     pub fn record_steps(
         &mut self,
         encoder: &mut CommandEncoder,
@@ -1837,159 +1272,16 @@ impl GpuWorld {
         steps: u32,
         rec: &mut dyn PassRecorder,
     ) {
-        let g = groups(self.n, WORKGROUP);
-        let lg = lane_groups(self.n);
-        let (cp, cg) = cluster_kernel(k, self.n, self.lane_clusters_below);
-        // `body.wgsl` for the bodies it solves, the cluster and gather kernels for the
-        // others (each skips the other's bodies).
-        let body = k
-            .body
-            .as_ref()
-            .filter(|_| self.body_kernel())
-            .map(|b| (&b.substep, &b.iteration));
-        let all_in_body = body.is_some() && self.body_fits.iter().all(|f| *f);
-        // With `body.wgsl` and contacts, an iteration's contact pass for its bodies runs
-        // at the start of the next body_iteration (see the iteration loop below).
-        let folded = body.is_some() && self.contacts_on;
-        let nb = self.ranges.len() as u32;
-        let mut r = Recording::new(encoder, rec, &self.binds);
-        let s = &self.settings;
-        for step in 0..steps {
-            let due = self.step.is_multiple_of(s.knn_every as u64) || self.refresh_contacts;
-            if self.contacts_on && due {
-                self.refresh_contacts = false;
-                // Broad phase first: bodies near no other skip the search and the
-                // contact pass until the next refresh.
-                let bg = per_body_groups(nb);
-                r.dispatch("tissue/broad", &k.body_bounds, Window::None, bg);
-                r.dispatch("tissue/broad", &k.near_bodies, Window::None, bg);
-                self.record_grid(&mut r, k, false);
-                let knn = &k.knn_contacts[self.contacts_warm as usize]
-                    [Kernels::knn_slots(self.contact_k)];
-                self.contacts_warm = true;
-                r.dispatch("tissue/knn", knn, Window::None, (g, 1));
-            }
-            let nc = self.n_colliders;
-            if nc > 0 {
-                r.dispatch("tissue/forces", &k.force_clear, Window::None, (1, 1));
-            }
-            let lv0 = Window::At(0);
-            for sub in 0..s.substeps {
-                // The first substep of the recording predicts; the others were predicted
-                // by the finish before them (inputs such as colliders, pins and sleep
-                // only change between recordings).
-                if step == 0 && sub == 0 {
-                    r.dispatch("tissue/predict", &k.predict, Window::None, (g, 1));
-                }
-                if s.coarse_iterations > 0 && !self.coarse.is_empty() {
-                    self.record_levels(&mut r, k);
-                }
-                // `body.wgsl`: all iterations of the bodies near no other at once (they
-                // meet nothing between two iterations), then one dispatch per iteration
-                // for those with contact candidates (only with particle contacts on). With
-                // contacts the first of those dispatches solves the bodies near no other
-                // too, so body_substep runs only without them.
-                if let (Some((all, _)), false) = (body, self.contacts_on) {
-                    r.dispatch("tissue/body_substep", all, lv0, grid_2d(nb));
-                }
-                // Iterations in blocks that end with one solving particle contacts (every
-                // `contact_every`-th and the last; without contacts one block, which only
-                // the cluster and gather kernels see). Blocks alternate between the halves
-                // of p2. With `folded`, a block's contact pass for `body.wgsl`'s bodies runs
-                // at the start of the next block's body_iteration (`prev`), so the contact
-                // dispatch leaves them out (`skip`) but after the last block, and is not
-                // needed at all before then when every body is `body.wgsl`'s.
-                let every = if self.contacts_on {
-                    // (At most the block length the records were built for, should the
-                    // settings have been changed since.)
-                    Self::max_block(s).min(self.block_records)
-                } else {
-                    s.iterations
-                };
-                let mut start = 0;
-                let mut block = 0u32;
-                while start < s.iterations {
-                    let end = (start + every).min(s.iterations);
-                    let last = end == s.iterations;
-                    let v = (block % 2)
-                        | (((folded && block > 0) as u32) << 1)
-                        | (((folded && !last) as u32) << 2);
-                    let rec = |v: u32, iters: u32| {
-                        let i = self.iteration_records + v + 16 * (iters - 1);
-                        Window::At(i * REC)
-                    };
-                    if let (Some((_, one)), true) = (body, self.contacts_on) {
-                        let dispatch = rec(v, end - start);
-                        r.dispatch("tissue/body_iteration", one, dispatch, grid_2d(nb));
-                    }
-                    if !all_in_body {
-                        for it in start..end {
-                            // Iterations before the block's last: no contact pass (flag 0).
-                            let one = if it + 1 == end {
-                                rec(v, 1)
-                            } else {
-                                rec(v | 8, 1)
-                            };
-                            r.dispatch("tissue/clusters", cp, one, cg);
-                            r.dispatch("tissue/gather", &k.gather, one, lg);
-                        }
-                    }
-                    if self.contacts_on && (last || !(folded && all_in_body)) {
-                        r.dispatch("tissue/contacts", &k.contact, rec(v, 1), (g, 1));
-                    }
-                    start = end;
-                    block += 1;
-                }
-                if nc > 0 {
-                    let fg = (FORCE_GROUPS, nc);
-                    r.dispatch("tissue/forces", &k.force_partial, Window::None, fg);
-                    r.dispatch("tissue/forces", &k.force_total, Window::None, (1, 1));
-                }
-                if step + 1 == steps && sub + 1 == s.substeps {
-                    r.dispatch("tissue/finish", &k.finish, Window::None, (g, 1));
-                } else {
-                    r.dispatch("tissue/finish", &k.finish_predict, Window::None, (g, 1));
-                }
-            }
-            self.step += 1;
-        }
-    }
-
-    /// Most Jacobi iterations between two contact passes:
-    /// [`SolverSettings::contact_every`], at most `iterations`.
-    fn max_block(s: &SolverSettings) -> u32 {
-        s.contact_every.clamp(1, s.iterations.max(1))
-    }
-
-    /// The hierarchy's coarse levels for one substep, coarsest first (the twin of
-    /// `core::solver::Solver::solve_levels`): snapshot, then per level: its particles
-    /// in, `coarse_iterations` Jacobi iterations over its range, out, prolongation, and
-    /// its multipliers handed to the finer level.
-    fn record_levels(&self, r: &mut Recording<'_, '_, '_>, k: &Kernels) {
-        r.dispatch(
-            "tissue/levels",
-            &k.level_snapshot,
-            Window::None,
-            (groups(self.n, WORKGROUP), 1),
-        );
-        for (l, lv) in self.coarse.iter().enumerate().rev() {
-            let parts = Window::At((1 + 3 * l as u32) * REC);
-            let recs = Window::At((2 + 3 * l as u32) * REC);
-            let trs = Window::At((3 + 3 * l as u32) * REC);
-            let g = (groups(lv.count, WORKGROUP), 1);
-            let lg = lane_groups(lv.count);
-            let (cp, cg) = cluster_kernel(k, lv.count, self.lane_clusters_below);
-            r.dispatch("tissue/levels", &k.level_in, parts, g);
-            for _ in 0..self.settings.coarse_iterations {
-                r.dispatch("tissue/levels", cp, parts, cg);
-                r.dispatch("tissue/levels", &k.gather, parts, lg);
-            }
-            r.dispatch("tissue/levels", &k.level_out, parts, g);
-            let gr = (groups(lv.rec_count, WORKGROUP), 1);
-            r.dispatch("tissue/levels", &k.prolong, recs, gr);
-            let gt = (groups(lv.tr_count, WORKGROUP), 1);
-            r.dispatch("tissue/levels", &k.transfer, trs, gt);
-        }
+        let mut cursor = plan::Cursor {
+            step: self.step,
+            contacts_warm: self.contacts_warm,
+            refresh: self.refresh_contacts,
+        };
+        let plan = plan::steps(&self.shape(), &self.settings, &mut cursor, steps);
+        self.step = cursor.step;
+        self.contacts_warm = cursor.contacts_warm;
+        self.refresh_contacts = cursor.refresh;
+        record::replay(encoder, rec, &self.binds, k, &plan);
     }
 
     /// The bind groups that let the draw kernels write into `slab` (the world's own
@@ -2060,19 +1352,19 @@ impl GpuWorld {
         queue.write_buffer(&self.range_buf, 0, bytemuck::cast_slice(&recs));
         let g = groups(self.n, WORKGROUP);
         let mut r = Recording::new(encoder, rec, &self.binds);
-        r.dispatch("tissue/deform", &k.deform, Window::None, (g, 1));
+        r.dispatch("tissue/deform", &k.deform, Bound::None, (g, 1));
         for &(group, off, b, e) in &jobs {
             let wg = groups(e.saturating_sub(b), WORKGROUP);
             r.dispatch(
                 "tissue/skin",
                 &k.skin,
-                Window::Slab(&group.skin, off),
+                Bound::Slab(&group.skin, off),
                 (wg, 1),
             );
         }
         for &(group, off, b, e) in &jobs {
             let wg = groups(e.saturating_sub(b), WORKGROUP);
-            let slab = Window::Slab(&group.normals, off);
+            let slab = Bound::Slab(&group.normals, off);
             r.dispatch("tissue/normals", &k.normals, slab, (wg, 1));
         }
     }
@@ -2104,75 +1396,4 @@ impl GpuWorld {
             c * 16,
         );
     }
-}
-
-/// Blocking read of `size` bytes at `offset` of `buffer` (tests and benchmarks; the
-/// plugin reads back asynchronously).
-pub fn read_buffer(
-    device: &RenderDevice,
-    queue: &RenderQueue,
-    buffer: &Buffer,
-    offset: u64,
-    size: u64,
-) -> Vec<u8> {
-    read_buffers(device, queue, &[(buffer, offset, size)])
-        .pop()
-        .unwrap_or_default()
-}
-
-/// Blocking read of several `(buffer, byte offset, bytes)` ranges (offsets and sizes
-/// multiples of 4) with one copy submission and one wait.
-pub fn read_buffers(
-    device: &RenderDevice,
-    queue: &RenderQueue,
-    ranges: &[(&Buffer, u64, u64)],
-) -> Vec<Vec<u8>> {
-    let total: u64 = ranges.iter().map(|r| r.2).sum();
-    let staging = device.create_buffer(&BufferDescriptor {
-        label: Some("tissue readback"),
-        size: total.max(4),
-        usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut enc = device.create_command_encoder(&Default::default());
-    let mut at = 0;
-    for &(buffer, offset, size) in ranges {
-        if size > 0 {
-            enc.copy_buffer_to_buffer(buffer, offset, &staging, at, size);
-        }
-        at += size;
-    }
-    queue.submit([enc.finish()]);
-    let slice = staging.slice(..);
-    slice.map_async(MapMode::Read, |_| {});
-    let _ = device.poll(bevy::render::render_resource::PollType::wait_indefinitely());
-    let out = {
-        let data = slice.get_mapped_range();
-        let mut at = 0usize;
-        ranges
-            .iter()
-            .map(|r| {
-                let part = data[at..at + r.2 as usize].to_vec();
-                at += r.2 as usize;
-                part
-            })
-            .collect()
-    };
-    staging.unmap();
-    out
-}
-
-/// Blocking read of a vec4 buffer's first `n` entries as `Vec3`s.
-pub fn read_vec3(device: &RenderDevice, queue: &RenderQueue, buffer: &Buffer, n: u32) -> Vec<Vec3> {
-    let bytes = read_buffer(device, queue, buffer, 0, n as u64 * 16);
-    bytemuck::cast_slice::<u8, [f32; 4]>(&bytes)
-        .iter()
-        .map(|a| Vec3::new(a[0], a[1], a[2]))
-        .collect()
-}
-
-/// Blocking read of a u32 buffer's first `n` entries.
-pub fn read_u32(device: &RenderDevice, queue: &RenderQueue, buffer: &Buffer, n: u64) -> Vec<u32> {
-    let bytes = read_buffer(device, queue, buffer, 0, n * 4);
-    bytemuck::cast_slice(&bytes).to_vec()
 }

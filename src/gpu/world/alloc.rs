@@ -1,0 +1,433 @@
+//! Allocation: the world's buffers by bind group (frame, particle state, static model:
+//! the lifetimes of [`kernels::bindings::TABLE`]), their room for bodies appended later
+//! ([`Capacity`]), where the arrays that share a buffer start ([`Regions`]), each
+//! kernel's bind groups over them ([`KernelBind`]), the adapter-limit checks, and
+//! staged uploads.
+
+use crate::core::TissueError;
+use crate::core::model::Model;
+use crate::core::solver::SolverSettings;
+use crate::gpu::buffers::*;
+use crate::gpu::kernels;
+use bevy::render::render_resource::{
+    BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferDescriptor,
+    BufferUsages,
+};
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+
+/// One kernel's bind groups in a world: groups 0–2 (up to the last it uses, empty where
+/// it uses nothing), and group 3 where it reads the world's range or scan-level records.
+pub struct KernelBind {
+    pub(super) fixed: Vec<BindGroup>,
+    pub(super) window: Option<BindGroup>,
+}
+
+impl KernelBind {
+    /// `kernel`'s bind groups over the world's buffers `b` and records.
+    pub(super) fn new(
+        device: &RenderDevice,
+        kernel: &kernels::Kernel,
+        b: &Buffers,
+        scan_buf: &Buffer,
+        lrec_buf: &Buffer,
+    ) -> Self {
+        let window = |name: &str| -> Option<BindingResource<'_>> {
+            let (buffer, size) = match name {
+                "level" => (scan_buf, size_of::<u32>() as u64 * 4),
+                // The WGSL `Range`: 8 words.
+                "range" => (lrec_buf, size_of::<u32>() as u64 * 8),
+                _ => return b.named(name).map(|buf| buf.as_entire_binding()),
+            };
+            Some(BindingResource::Buffer(BufferBinding {
+                buffer,
+                offset: 0,
+                size: std::num::NonZeroU64::new(size),
+            }))
+        };
+        let mut fixed = Vec::new();
+        let mut own = None;
+        for (g, (layout, uses)) in kernel.groups.iter().enumerate() {
+            if g < 3 {
+                fixed.push(bind_group(device, kernel.name, layout, uses, &window));
+            } else if uses
+                .iter()
+                .all(|&i| window(kernels::bindings::TABLE[i].name).is_some())
+            {
+                // Group 3 from the world's own records; the draw kernels' comes with the
+                // slab ([`GpuWorld::slab_group`]).
+                own = Some(bind_group(device, kernel.name, layout, uses, &window));
+            }
+        }
+        Self { fixed, window: own }
+    }
+}
+
+/// A bind group of `layout` with each of the table entries `uses` bound to the resource
+/// `resource` names for it (entries it has none for are left out, and the group is
+/// then invalid: a defect the device reports).
+pub(super) fn bind_group<'a>(
+    device: &RenderDevice,
+    label: &str,
+    layout: &bevy::render::render_resource::BindGroupLayout,
+    uses: &[usize],
+    resource: &dyn Fn(&str) -> Option<BindingResource<'a>>,
+) -> BindGroup {
+    let entries: Vec<BindGroupEntry> = uses
+        .iter()
+        .filter_map(|&i| {
+            let (_, binding) = kernels::bindings::location(i);
+            Some(BindGroupEntry {
+                binding,
+                resource: resource(kernels::bindings::TABLE[i].name)?,
+            })
+        })
+        .collect();
+    device.create_bind_group(label, layout, &entries)
+}
+
+/// The bind groups that let the draw kernels write into one vertex slab (one per kernel
+/// that writes it); made by [`GpuWorld::slab_group`].
+pub struct SlabGroup {
+    pub(super) skin: BindGroup,
+    pub(super) normals: BindGroup,
+}
+
+/// The world's buffers, by their names in the binding table
+/// ([`kernels::bindings::TABLE`]; the per-dispatch records are [`GpuWorld`]'s own).
+pub(super) struct Buffers {
+    pub(super) params: Buffer,
+    pub(super) colliders: Buffer,
+    pub(super) draw: Buffer,
+    pub(super) x: Buffer,
+    pub(super) v: Buffer,
+    pub(super) aux: Buffer,
+    pub(super) cstate: Buffer,
+    pub(super) corr: Buffer,
+    pub(super) contacts: Buffer,
+    pub(super) scan: Buffer,
+    pub(super) cursor: Buffer,
+    pub(super) cell_of: Buffer,
+    pub(super) forces: Buffer,
+    pub(super) fgrad: Buffer,
+    pub(super) knn_out: Buffer,
+    pub(super) status: Buffer,
+    pub(super) spare: Buffer,
+    pub(super) rest: Buffer,
+    pub(super) pinfo: Buffer,
+    pub(super) lists: Buffer,
+    pub(super) crest: Buffer,
+    pub(super) bodies: Buffer,
+    pub(super) hier: Buffer,
+    pub(super) vinf: Buffer,
+    pub(super) vwt: Buffer,
+    pub(super) vrest: Buffer,
+    pub(super) adj: Buffer,
+}
+
+impl Buffers {
+    /// The buffer bound as the table's `name` (groups 0–2).
+    pub(super) fn named(&self, name: &str) -> Option<&Buffer> {
+        Some(match name {
+            "params" => &self.params,
+            "colliders" => &self.colliders,
+            "draw" => &self.draw,
+            "x" => &self.x,
+            "v" => &self.v,
+            "aux" => &self.aux,
+            "cstate" => &self.cstate,
+            "corr" => &self.corr,
+            "contacts" => &self.contacts,
+            "scan" => &self.scan,
+            "cursor" => &self.cursor,
+            "cell_of" => &self.cell_of,
+            "forces" => &self.forces,
+            "fgrad" => &self.fgrad,
+            "knn_out" => &self.knn_out,
+            "status" => &self.status,
+            "spare" => &self.spare,
+            "rest" => &self.rest,
+            "pinfo" => &self.pinfo,
+            "lists" => &self.lists,
+            "crest" => &self.crest,
+            "bodies" => &self.bodies,
+            "hier" => &self.hier,
+            "vinf" => &self.vinf,
+            "vwt" => &self.vwt,
+            "vrest" => &self.vrest,
+            "adj" => &self.adj,
+            _ => return None,
+        })
+    }
+}
+
+/// Where the arrays that share a buffer start (in `vec4` entries; the kernels read the
+/// same bases from `Params`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub(super) struct Regions {
+    /// Predicted positions in `x` (after every level's positions).
+    pub(super) p_base: u32,
+    /// Pin targets in `rest`.
+    pub(super) pin_base: u32,
+    /// Collider displacements in `aux` (after the contact pass's two halves).
+    pub(super) coldp_base: u32,
+    /// Grabs in `aux`.
+    pub(super) grab_base: u32,
+    /// Per-body boxes, flags and near lists in `aux`.
+    pub(super) bounds_base: u32,
+    /// Grid-sorted points in `aux`.
+    pub(super) sorted_base: u32,
+    /// Entries of `aux`.
+    pub(super) aux_len: u32,
+}
+
+impl Regions {
+    /// The regions of a world of `n` level-0 particles, `total` particles of all levels,
+    /// `rest` rest records and `bodies` bodies.
+    pub(super) fn new(n: u32, total: u32, rest: u32, bodies: u32) -> Self {
+        let halves = total.max(2 * n);
+        let coldp_base = halves;
+        let grab_base = coldp_base + total;
+        let bounds_base = grab_base + total;
+        let sorted_base = bounds_base + bodies * BOUNDS_PER_BODY;
+        Self {
+            p_base: total,
+            pin_base: rest,
+            coldp_base,
+            grab_base,
+            bounds_base,
+            sorted_base,
+            aux_len: sorted_base + n,
+        }
+    }
+}
+
+/// `vec4` entries per body in the bounds region: min and max, the broad phase's flag,
+/// then the near list (`NEAR_SLOTS` indices, four to an entry).
+pub(super) const BOUNDS_PER_BODY: u32 = 3 + kernels::broad::NEAR_SLOTS / 4;
+
+/// What a world's buffers have room for. A world made by [`GpuWorld::new`] has room for
+/// its model and no more; [`GpuWorld::with_room`] and [`GpuWorld::with_capacity`] leave
+/// room for bodies appended later ([`GpuWorld::append`]) without a new allocation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Capacity {
+    /// Particles (a world with hierarchy levels has room for its own only).
+    pub particles: u32,
+    /// Bodies.
+    pub bodies: u32,
+    /// Render vertices.
+    pub vertices: u32,
+    /// Cluster memberships (entries of the member lists; the inverse lists have as many).
+    pub members: u32,
+    /// Triangles of the normal adjacency (a render vertex's triangles, three corners each).
+    pub triangles: u32,
+}
+
+impl Capacity {
+    /// The larger of each count.
+    pub fn max(self, o: Capacity) -> Capacity {
+        Capacity {
+            particles: self.particles.max(o.particles),
+            bodies: self.bodies.max(o.bodies),
+            vertices: self.vertices.max(o.vertices),
+            members: self.members.max(o.members),
+            triangles: self.triangles.max(o.triangles),
+        }
+    }
+
+    /// Whether `self` plus `more` fits in `cap`.
+    pub(super) fn fits(self, more: Capacity, cap: Capacity) -> bool {
+        let fit = |a: u32, b: u32, c: u32| a.checked_add(b).is_some_and(|s| s <= c);
+        fit(self.particles, more.particles, cap.particles)
+            && fit(self.bodies, more.bodies, cap.bodies)
+            && fit(self.vertices, more.vertices, cap.vertices)
+            && fit(self.members, more.members, cap.members)
+            && fit(self.triangles, more.triangles, cap.triangles)
+    }
+
+    pub(super) fn add(self, o: Capacity) -> Capacity {
+        Capacity {
+            particles: self.particles + o.particles,
+            bodies: self.bodies + o.bodies,
+            vertices: self.vertices + o.vertices,
+            members: self.members + o.members,
+            triangles: self.triangles + o.triangles,
+        }
+    }
+
+    /// `growth` times each count (rounded up), and at least `extra` more.
+    pub(super) fn grown(self, growth: f32, extra: Capacity) -> Capacity {
+        let g = |a: u32| {
+            ((a as f64) * growth.max(1.0) as f64)
+                .ceil()
+                .min(u32::MAX as f64) as u32
+        };
+        Capacity {
+            particles: g(self.particles),
+            bodies: g(self.bodies),
+            vertices: g(self.vertices),
+            members: g(self.members),
+            triangles: g(self.triangles),
+        }
+        .max(self.add(extra))
+    }
+}
+
+/// What the packed arrays of a model use, in all and for its largest body.
+pub(super) fn packed_use(model: &Model, packed: &Packed) -> (Capacity, Capacity) {
+    let nv = packed.vertex_count();
+    let mut largest = Capacity::default();
+    for (i, b) in model.bodies.iter().enumerate() {
+        let (p0, p1) = (b.first as usize, (b.first + b.count) as usize);
+        let v0 = packed.vfirst[i] as usize;
+        let v1 = v0 + b.skin.rest_vertices.len();
+        largest = largest.max(Capacity {
+            particles: b.count,
+            bodies: 1,
+            vertices: (v1 - v0) as u32,
+            members: packed.pinfo[p1][3] - packed.pinfo[p0][3],
+            triangles: packed.adj[v1] - packed.adj[v0],
+        });
+    }
+    let used = Capacity {
+        particles: packed.n0,
+        bodies: model.bodies.len() as u32,
+        vertices: nv as u32,
+        members: packed.inv_offset,
+        triangles: packed.adj[nv],
+    };
+    (used, largest)
+}
+
+/// How a new world sizes its buffers.
+#[derive(Debug, Clone, Copy)]
+pub(super) enum Sizing {
+    /// Room for the model only.
+    Exact,
+    /// `growth` times what the model needs, and at least one more of its largest body.
+    Grow(f32),
+    /// At least this much.
+    AtLeast(Capacity),
+}
+
+/// A buffer of `entries` neighbour-list entries, all NONE (no previous search: the
+/// first search of each particle starts without a bound).
+pub(super) fn unknown_lists(
+    device: &RenderDevice,
+    label: &str,
+    entries: u64,
+    usage: BufferUsages,
+) -> Buffer {
+    let buffer = device.create_buffer(&BufferDescriptor {
+        label: Some(label),
+        size: (entries * 4).max(16),
+        usage,
+        mapped_at_creation: true,
+    });
+    buffer.slice(..).get_mapped_range_mut().slice(..).fill(0xff);
+    buffer.unmap();
+    buffer
+}
+
+/// Checks that arrays of `total` particles (all levels), `n0` level-0 particles, `nv`
+/// render vertices, `lists` cluster-list entries and `bodies` bodies fit a device with
+/// `limits`: every buffer binding and the per-particle dispatch size.
+pub(super) fn check_counts(
+    limits: &bevy::render::render_resource::WgpuLimits,
+    [n, n0, nv, lists, bodies]: [u64; 5],
+    settings: &SolverSettings,
+) -> Result<(), TissueError> {
+    let contact_k = (settings.contact_neighbours as u64).min(MAX_GPU_K as u64);
+    let aux = n.max(2 * n0) + 2 * n + bodies * BOUNDS_PER_BODY as u64 + n0;
+    let checks: [(&'static str, u64); 8] = [
+        ("positions and predicted positions", 2 * n * 16),
+        (
+            "particle scratch (contact pass, colliders, grabs, bounds, grid)",
+            aux * 16,
+        ),
+        ("cluster rest data", n * size_of::<GpuClusterRest>() as u64),
+        ("cluster corrections", n * CORR_BYTES),
+        ("cluster lists", lists * 4),
+        ("contact lists", n * contact_k.max(1) * 4),
+        (
+            "neighbour search candidate store",
+            n * (contact_k + SPARE_EXTRA as u64) * 4,
+        ),
+        ("render vertices", nv * 32),
+    ];
+    for (what, bytes) in checks {
+        check_binding(limits, what, bytes)?;
+    }
+    let max_groups = limits.max_compute_workgroups_per_dimension as u64;
+    let needed = n.div_ceil(WORKGROUP as u64);
+    if needed > max_groups {
+        return Err(TissueError::GpuLimit {
+            what: "workgroups per dispatch (particles / 128)",
+            needed,
+            limit: max_groups,
+        });
+    }
+    Ok(())
+}
+
+/// Buffer writes gathered into one staging buffer and copied in one submission (one
+/// mapping instead of one per write).
+#[derive(Default)]
+pub(super) struct Uploads<'a> {
+    pub(super) data: Vec<u8>,
+    /// Destination, its byte offset, the source's byte offset, bytes.
+    pub(super) copies: Vec<(&'a Buffer, u64, u64, u64)>,
+}
+
+impl<'a> Uploads<'a> {
+    /// `bytes` (a multiple of 4) to `buffer` at byte `offset`.
+    pub(super) fn add(&mut self, buffer: &'a Buffer, offset: u64, bytes: &[u8]) {
+        if bytes.is_empty() {
+            return;
+        }
+        self.copies
+            .push((buffer, offset, self.data.len() as u64, bytes.len() as u64));
+        self.data.extend_from_slice(bytes);
+    }
+
+    /// `bytes` to element `index` of `buffer`, whose elements are `stride` bytes.
+    pub(super) fn put(&mut self, buffer: &'a Buffer, index: u32, bytes: &[u8], stride: usize) {
+        self.add(buffer, index as u64 * stride as u64, bytes);
+    }
+
+    pub(super) fn submit(self, device: &RenderDevice, queue: &RenderQueue) {
+        if self.copies.is_empty() {
+            return;
+        }
+        let staging =
+            device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
+                label: Some("tissue append"),
+                contents: &self.data,
+                usage: BufferUsages::COPY_SRC,
+            });
+        let mut enc = device.create_command_encoder(&Default::default());
+        for (dst, at, from, bytes) in self.copies {
+            enc.copy_buffer_to_buffer(&staging, from, dst, at, bytes);
+        }
+        queue.submit([enc.finish()]);
+    }
+}
+
+/// A [`TissueError::GpuLimit`] where a buffer of `bytes` cannot be bound on a device
+/// with `limits`.
+pub(super) fn check_binding(
+    limits: &bevy::render::render_resource::WgpuLimits,
+    what: &'static str,
+    bytes: u64,
+) -> Result<(), TissueError> {
+    let limit = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
+    if bytes > limit {
+        return Err(TissueError::GpuLimit {
+            what,
+            needed: bytes,
+            limit,
+        });
+    }
+    Ok(())
+}
