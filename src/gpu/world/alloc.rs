@@ -92,12 +92,108 @@ pub struct SlabGroup {
     pub(super) normals: BindGroup,
 }
 
-/// The world's buffers, by their names in the binding table
-/// ([`kernels::bindings::TABLE`]; the per-dispatch records are [`GpuWorld`]'s own).
-pub(super) struct Buffers {
+/// Storage usage of the world's own buffers (copied between worlds, written by uploads).
+const STORAGE: BufferUsages = BufferUsages::STORAGE
+    .union(BufferUsages::COPY_DST)
+    .union(BufferUsages::COPY_SRC);
+
+/// A buffer holding `bytes` (at least 16 bytes: empty arrays still bind).
+pub(super) fn init(
+    device: &RenderDevice,
+    label: &str,
+    bytes: &[u8],
+    usage: BufferUsages,
+) -> Buffer {
+    let mut data = bytes.to_vec();
+    if data.len() < 16 {
+        data.resize(16, 0);
+    }
+    device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
+        label: Some(label),
+        contents: &data,
+        usage,
+    })
+}
+
+/// A zeroed buffer of `bytes` (at least 16).
+pub(super) fn zeroed(
+    device: &RenderDevice,
+    label: &str,
+    bytes: u64,
+    usage: BufferUsages,
+) -> Buffer {
+    device.create_buffer(&BufferDescriptor {
+        label: Some(label),
+        size: bytes.max(16),
+        usage,
+        mapped_at_creation: false,
+    })
+}
+
+/// Group 0, written every frame: the parameters, the colliders and the draw records.
+pub(super) struct FrameBuffers {
     pub(super) params: Buffer,
     pub(super) colliders: Buffer,
     pub(super) draw: Buffer,
+}
+
+impl FrameBuffers {
+    /// Room for `bodies` draw records.
+    pub(super) fn new(device: &RenderDevice, bodies: u32) -> Self {
+        let uniform = BufferUsages::UNIFORM | BufferUsages::COPY_DST;
+        Self {
+            params: zeroed(
+                device,
+                "tissue params",
+                size_of::<GpuParams>() as u64,
+                uniform,
+            ),
+            colliders: zeroed(
+                device,
+                "tissue colliders",
+                (MAX_COLLIDERS * size_of::<GpuCollider>()) as u64,
+                uniform,
+            ),
+            draw: zeroed(
+                device,
+                "tissue draw",
+                bodies as u64 * size_of::<GpuDrawBody>() as u64,
+                STORAGE,
+            ),
+        }
+    }
+}
+
+/// What group 1 starts from: the state arrays (with room) and the sizes of the scratch.
+pub(super) struct StateArrays<'a> {
+    /// Positions, then the predicted positions.
+    pub(super) x: &'a [[f32; 4]],
+    /// Velocities.
+    pub(super) v: &'a [[f32; 4]],
+    /// The shared scratch (`Regions`).
+    pub(super) aux: &'a [[f32; 4]],
+    /// Cluster states.
+    pub(super) cstate: &'a [GpuClusterState],
+    /// Level-0 particles the per-particle scratch has room for.
+    pub(super) particles: u64,
+    /// Particles of all levels.
+    pub(super) total: u64,
+    /// Bodies.
+    pub(super) bodies: u64,
+    /// Contact candidates per particle.
+    pub(super) contact_k: u32,
+    /// All-particle neighbours per particle.
+    pub(super) knn_k: u32,
+    /// Candidate store entries per particle.
+    pub(super) spare_stride: u32,
+    /// Elements of the prefix sum.
+    pub(super) scan_len: u32,
+    /// Hash buckets.
+    pub(super) table: u32,
+}
+
+/// Group 1, the particle state the steps write.
+pub(super) struct StateBuffers {
     pub(super) x: Buffer,
     pub(super) v: Buffer,
     pub(super) aux: Buffer,
@@ -112,6 +208,65 @@ pub(super) struct Buffers {
     pub(super) knn_out: Buffer,
     pub(super) status: Buffer,
     pub(super) spare: Buffer,
+}
+
+impl StateBuffers {
+    pub(super) fn new(device: &RenderDevice, a: &StateArrays) -> Self {
+        let st = STORAGE;
+        let p = a.particles;
+        Self {
+            x: init(device, "tissue x", bytemuck::cast_slice(a.x), st),
+            v: init(device, "tissue v", bytemuck::cast_slice(a.v), st),
+            aux: init(device, "tissue aux", bytemuck::cast_slice(a.aux), st),
+            cstate: init(device, "tissue cstate", bytemuck::cast_slice(a.cstate), st),
+            corr: zeroed(device, "tissue corr", a.total * CORR_BYTES, st),
+            contacts: unknown_lists(device, "tissue contacts", p * a.contact_k.max(1) as u64, st),
+            scan: zeroed(device, "tissue scan", a.scan_len as u64 * 4, st),
+            cursor: zeroed(device, "tissue cursor", a.table as u64 * 4, st),
+            cell_of: zeroed(device, "tissue cell_of", p * 4, st),
+            forces: zeroed(
+                device,
+                "tissue forces",
+                (MAX_COLLIDERS as u64) * (FORCE_GROUPS as u64 + 1) * 16,
+                st,
+            ),
+            fgrad: zeroed(device, "tissue fgrad", p * 48, st),
+            knn_out: unknown_lists(device, "tissue knn", p * a.knn_k.max(1) as u64, st),
+            status: zeroed(device, "tissue status", a.bodies * 4, st),
+            spare: zeroed(
+                device,
+                "tissue knn spare",
+                p * a.spare_stride as u64 * 4,
+                st,
+            ),
+        }
+    }
+}
+
+/// What group 2 holds: the static model's arrays (with room).
+pub(super) struct ModelArrays<'a> {
+    /// Rest records, then the pin targets.
+    pub(super) rest: &'a [[f32; 4]],
+    /// Per particle: body, pin slot, inverse-list and member-list starts.
+    pub(super) pinfo: &'a [[u32; 4]],
+    /// Members, then the inverse lists.
+    pub(super) lists: &'a [u32],
+    /// Cluster rest data.
+    pub(super) crest: &'a [GpuClusterRest],
+    /// Bodies.
+    pub(super) bodies: &'a [GpuBody],
+    /// The hierarchy's tables.
+    pub(super) hier: &'a [u32],
+    /// Skin influences, weights and rest vertices.
+    pub(super) vinf: &'a [[u32; 4]],
+    pub(super) vwt: &'a [[f32; 4]],
+    pub(super) vrest: &'a [[f32; 4]],
+    /// Normal adjacency.
+    pub(super) adj: &'a [u32],
+}
+
+/// Group 2, the static model (written once, and where bodies are appended).
+pub(super) struct ModelBuffers {
     pub(super) rest: Buffer,
     pub(super) pinfo: Buffer,
     pub(super) lists: Buffer,
@@ -124,37 +279,97 @@ pub(super) struct Buffers {
     pub(super) adj: Buffer,
 }
 
+impl ModelBuffers {
+    pub(super) fn new(device: &RenderDevice, a: &ModelArrays) -> Self {
+        let st = STORAGE;
+        Self {
+            rest: init(device, "tissue rest", bytemuck::cast_slice(a.rest), st),
+            pinfo: init(device, "tissue pinfo", bytemuck::cast_slice(a.pinfo), st),
+            lists: init(device, "tissue lists", bytemuck::cast_slice(a.lists), st),
+            crest: init(device, "tissue crest", bytemuck::cast_slice(a.crest), st),
+            bodies: init(device, "tissue bodies", bytemuck::cast_slice(a.bodies), st),
+            hier: init(device, "tissue hierarchy", bytemuck::cast_slice(a.hier), st),
+            vinf: init(device, "tissue vinf", bytemuck::cast_slice(a.vinf), st),
+            vwt: init(device, "tissue vwt", bytemuck::cast_slice(a.vwt), st),
+            vrest: init(device, "tissue vrest", bytemuck::cast_slice(a.vrest), st),
+            adj: init(device, "tissue adj", bytemuck::cast_slice(a.adj), st),
+        }
+    }
+}
+
+/// Group 3's records of the world: the prefix sum's levels and grid builds, the ranges,
+/// the skinning spans.
+pub(super) struct DispatchBuffers {
+    pub(super) scan: Buffer,
+    pub(super) ranges: Buffer,
+    pub(super) spans: Buffer,
+}
+
+impl DispatchBuffers {
+    pub(super) fn new(device: &RenderDevice, scan: &[GpuScanLevel], ranges: &[GpuRange]) -> Self {
+        let uniform = BufferUsages::UNIFORM | BufferUsages::COPY_DST;
+        Self {
+            scan: init(
+                device,
+                "tissue scan levels",
+                bytemuck::cast_slice(scan),
+                uniform,
+            ),
+            ranges: init(
+                device,
+                "tissue level ranges",
+                bytemuck::cast_slice(ranges),
+                uniform,
+            ),
+            spans: zeroed(
+                device,
+                "tissue skin ranges",
+                (super::MAX_SKIN_RUNS * size_of::<GpuSkinRange>()) as u64,
+                uniform,
+            ),
+        }
+    }
+}
+
+/// The world's buffers by bind group ([`kernels::bindings::TABLE`]'s lifetimes).
+pub(super) struct Buffers {
+    pub(super) frame: FrameBuffers,
+    pub(super) state: StateBuffers,
+    pub(super) model: ModelBuffers,
+}
+
 impl Buffers {
     /// The buffer bound as the table's `name` (groups 0–2).
     pub(super) fn named(&self, name: &str) -> Option<&Buffer> {
+        let (f, s, m) = (&self.frame, &self.state, &self.model);
         Some(match name {
-            "params" => &self.params,
-            "colliders" => &self.colliders,
-            "draw" => &self.draw,
-            "x" => &self.x,
-            "v" => &self.v,
-            "aux" => &self.aux,
-            "cstate" => &self.cstate,
-            "corr" => &self.corr,
-            "contacts" => &self.contacts,
-            "scan" => &self.scan,
-            "cursor" => &self.cursor,
-            "cell_of" => &self.cell_of,
-            "forces" => &self.forces,
-            "fgrad" => &self.fgrad,
-            "knn_out" => &self.knn_out,
-            "status" => &self.status,
-            "spare" => &self.spare,
-            "rest" => &self.rest,
-            "pinfo" => &self.pinfo,
-            "lists" => &self.lists,
-            "crest" => &self.crest,
-            "bodies" => &self.bodies,
-            "hier" => &self.hier,
-            "vinf" => &self.vinf,
-            "vwt" => &self.vwt,
-            "vrest" => &self.vrest,
-            "adj" => &self.adj,
+            "params" => &f.params,
+            "colliders" => &f.colliders,
+            "draw" => &f.draw,
+            "x" => &s.x,
+            "v" => &s.v,
+            "aux" => &s.aux,
+            "cstate" => &s.cstate,
+            "corr" => &s.corr,
+            "contacts" => &s.contacts,
+            "scan" => &s.scan,
+            "cursor" => &s.cursor,
+            "cell_of" => &s.cell_of,
+            "forces" => &s.forces,
+            "fgrad" => &s.fgrad,
+            "knn_out" => &s.knn_out,
+            "status" => &s.status,
+            "spare" => &s.spare,
+            "rest" => &m.rest,
+            "pinfo" => &m.pinfo,
+            "lists" => &m.lists,
+            "crest" => &m.crest,
+            "bodies" => &m.bodies,
+            "hier" => &m.hier,
+            "vinf" => &m.vinf,
+            "vwt" => &m.vwt,
+            "vrest" => &m.vrest,
+            "adj" => &m.adj,
             _ => return None,
         })
     }

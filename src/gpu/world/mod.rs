@@ -21,8 +21,7 @@ use crate::core::colliders::Collider;
 use crate::core::model::Model;
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
-    BindGroup, BindingResource, Buffer, BufferBinding, BufferDescriptor, BufferUsages,
-    CommandEncoder,
+    BindGroup, BindingResource, Buffer, BufferBinding, BufferUsages, CommandEncoder,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use glam::Vec3;
@@ -73,8 +72,10 @@ pub struct GpuWorld {
     surface: Buffer,
     levels: Vec<(u32, u32)>,
     scan_len: u32,
-    /// The skinning spans (one 256-byte record per skin dispatch).
-    range_buf: Buffer,
+    /// The per-dispatch records: the prefix sum's levels and grid builds (rewritten
+    /// when an appended body needs larger grid cells), the ranges (rewritten when bodies
+    /// are appended), the skinning spans (one 256-byte record per skin dispatch).
+    records: DispatchBuffers,
     /// Every kernel's bind groups, by [`kernels::Kernel::id`] (they keep the per-dispatch
     /// records alive: the prefix sum's levels, `level`, one 256-byte record per level and
     /// the two build configurations; the ranges, `range`: level 0's particles, then per
@@ -83,7 +84,7 @@ pub struct GpuWorld {
     binds: Vec<KernelBind>,
     /// Where the arrays that share a buffer start.
     regions: Regions,
-    /// Record of level 0's first iteration record in `lrec_buf` (16 variants per
+    /// Record of level 0's first iteration record in the ranges (16 variants per
     /// body_iteration block length, `block_records` lengths).
     iteration_records: u32,
     /// Longest body_iteration block the records were built for (`max_block` at creation).
@@ -119,11 +120,6 @@ pub struct GpuWorld {
     records_base: u32,
     /// The adapter runs `body.wgsl`.
     has_body_kernel: bool,
-    /// The per-dispatch range records (rewritten when bodies are appended).
-    lrec_buf: Buffer,
-    /// The prefix sum's and grid builds' records (rewritten when an appended body needs
-    /// larger grid cells).
-    scan_buf: Buffer,
     /// The next step refreshes the contact lists whatever the step count (bodies were
     /// appended: theirs are empty, and the others' do not list them).
     refresh_contacts: bool,
@@ -496,27 +492,6 @@ impl GpuWorld {
             .map(|p| p.extend(0.0).to_array())
             .collect();
         pins.resize(pcap as usize, [0.0; 4]);
-        let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
-        let init = |label: &str, bytes: &[u8], usage: BufferUsages| {
-            let mut data = bytes.to_vec();
-            if data.len() < 16 {
-                data.resize(16, 0);
-            }
-            device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
-                label: Some(label),
-                contents: &data,
-                usage,
-            })
-        };
-        let zeroed = |label: &str, bytes: u64, usage: BufferUsages| {
-            device.create_buffer(&BufferDescriptor {
-                label: Some(label),
-                size: bytes.max(16),
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        let p64 = pcap as u64;
         let regions = Regions::new(pcap, total as u32, total as u32, bcap);
         // Positions, then the predicted positions (the same at the start).
         let mut xp = x.clone();
@@ -560,56 +535,41 @@ impl GpuWorld {
         aux.extend_from_slice(&grab);
         aux.resize(regions.aux_len as usize, [0.0; 4]);
         let b = Buffers {
-            params: zeroed(
-                "tissue params",
-                size_of::<GpuParams>() as u64,
-                BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+            frame: FrameBuffers::new(device, bcap),
+            state: StateBuffers::new(
+                device,
+                &StateArrays {
+                    x: &xp,
+                    v: &v,
+                    aux: &aux,
+                    cstate: &cstate,
+                    particles: pcap as u64,
+                    total,
+                    bodies: bcap as u64,
+                    contact_k,
+                    knn_k,
+                    spare_stride,
+                    scan_len,
+                    table,
+                },
             ),
-            colliders: zeroed(
-                "tissue colliders",
-                (MAX_COLLIDERS * size_of::<GpuCollider>()) as u64,
-                BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+            model: ModelBuffers::new(
+                device,
+                &ModelArrays {
+                    rest: &rest,
+                    pinfo: &pinfo,
+                    lists: &lists,
+                    crest: &crest,
+                    bodies: &gpu_bodies,
+                    hier: &packed.hier,
+                    vinf: &vinf,
+                    vwt: &vwt,
+                    vrest: &vrest,
+                    adj: &adj,
+                },
             ),
-            x: init("tissue x", bytemuck::cast_slice(&xp), st),
-            v: init("tissue v", bytemuck::cast_slice(&v), st),
-            aux: init("tissue aux", bytemuck::cast_slice(&aux), st),
-            rest: init("tissue rest", bytemuck::cast_slice(&rest), st),
-            pinfo: init("tissue pinfo", bytemuck::cast_slice(&pinfo), st),
-            lists: init("tissue lists", bytemuck::cast_slice(&lists), st),
-            crest: init("tissue crest", bytemuck::cast_slice(&crest), st),
-            bodies: init("tissue bodies", bytemuck::cast_slice(&gpu_bodies), st),
-            cstate: init("tissue cstate", bytemuck::cast_slice(&cstate), st),
-            corr: zeroed("tissue corr", total * CORR_BYTES, st),
-            contacts: unknown_lists(device, "tissue contacts", p64 * contact_k.max(1) as u64, st),
-            scan: zeroed("tissue scan", scan_len as u64 * 4, st),
-            cursor: zeroed("tissue cursor", table as u64 * 4, st),
-            cell_of: zeroed("tissue cell_of", p64 * 4, st),
-            forces: zeroed(
-                "tissue forces",
-                (MAX_COLLIDERS as u64) * (FORCE_GROUPS as u64 + 1) * 16,
-                st,
-            ),
-            fgrad: zeroed("tissue fgrad", p64 * 48, st),
-            vinf: init("tissue vinf", bytemuck::cast_slice(&vinf), st),
-            vwt: init("tissue vwt", bytemuck::cast_slice(&vwt), st),
-            vrest: init("tissue vrest", bytemuck::cast_slice(&vrest), st),
-            adj: init("tissue adj", bytemuck::cast_slice(&adj), st),
-            draw: zeroed(
-                "tissue draw",
-                (bcap as usize * size_of::<GpuDrawBody>()) as u64,
-                st,
-            ),
-            knn_out: unknown_lists(device, "tissue knn", p64 * knn_k.max(1) as u64, st),
-            status: zeroed("tissue status", bcap as u64 * 4, st),
-            hier: init("tissue hierarchy", bytemuck::cast_slice(&packed.hier), st),
-            spare: zeroed("tissue knn spare", p64 * spare_stride as u64 * 4, st),
         };
         let recs = scan_records(&levels, scan_len, cell, knn_cell);
-        let scan_buf = init(
-            "tissue scan levels",
-            bytemuck::cast_slice(&recs),
-            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
-        );
         let block_records = plan::max_block(&settings);
         let lrecs = range_records(
             n,
@@ -619,17 +579,9 @@ impl GpuWorld {
             block_records,
         );
         let iteration_records = iteration_records(&packed.levels);
-        let lrec_buf = init(
-            "tissue level ranges",
-            bytemuck::cast_slice(&lrecs),
-            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
-        );
-        let range_buf = zeroed(
-            "tissue skin ranges",
-            (MAX_SKIN_RUNS * size_of::<GpuSkinRange>()) as u64,
-            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
-        );
+        let records = DispatchBuffers::new(device, &recs, &lrecs);
         let surface = zeroed(
+            device,
             "tissue surface",
             vcap as u64 * 32,
             BufferUsages::STORAGE | BufferUsages::VERTEX | BufferUsages::COPY_SRC,
@@ -637,7 +589,7 @@ impl GpuWorld {
         let binds = kernels
             .all()
             .iter()
-            .map(|k| KernelBind::new(device, k, &b, &scan_buf, &lrec_buf))
+            .map(|k| KernelBind::new(device, k, &b, &records.scan, &records.ranges))
             .collect();
         let ranges = model
             .bodies
@@ -686,7 +638,7 @@ impl GpuWorld {
             surface,
             levels,
             scan_len,
-            range_buf,
+            records,
             binds,
             regions,
             iteration_records,
@@ -717,8 +669,6 @@ impl GpuWorld {
             max_spacing: packed.max_spacing,
             records_base: packed.records_base,
             has_body_kernel: kernels.body.is_some(),
-            lrec_buf,
-            scan_buf,
             refresh_contacts: false,
         })
     }
@@ -734,7 +684,11 @@ impl GpuWorld {
             if *mine != want {
                 *mine = want;
                 let offset = (b * size_of::<GpuBody>() + 12) as u64;
-                queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&(want as u32)));
+                queue.write_buffer(
+                    &self.b.model.bodies,
+                    offset,
+                    bytemuck::bytes_of(&(want as u32)),
+                );
             }
         }
     }
@@ -756,17 +710,21 @@ impl GpuWorld {
             self.retired[body] = true;
             self.asleep[body] = true;
             let offset = (body * size_of::<GpuBody>() + 12) as u64;
-            queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&1u32));
+            queue.write_buffer(&self.b.model.bodies, offset, bytemuck::bytes_of(&1u32));
             let parked: Vec<[f32; 4]> = (0..r.count)
                 .map(|i| (PARKED + Vec3::X * (0.1 * i as f32)).extend(0.0).to_array())
                 .collect();
             let bytes: &[u8] = bytemuck::cast_slice(&parked);
             let at = r.first as u64 * 16;
-            queue.write_buffer(&self.b.x, at, bytes);
-            queue.write_buffer(&self.b.x, self.regions.p_base as u64 * 16 + at, bytes);
+            queue.write_buffer(&self.b.state.x, at, bytes);
+            queue.write_buffer(&self.b.state.x, self.regions.p_base as u64 * 16 + at, bytes);
             let zeros = vec![0u8; r.count as usize * 16];
-            queue.write_buffer(&self.b.v, at, &zeros);
-            queue.write_buffer(&self.b.aux, self.regions.grab_base as u64 * 16 + at, &zeros);
+            queue.write_buffer(&self.b.state.v, at, &zeros);
+            queue.write_buffer(
+                &self.b.state.aux,
+                self.regions.grab_base as u64 * 16 + at,
+                &zeros,
+            );
         }
         Some(
             self.ranges
@@ -823,7 +781,7 @@ impl GpuWorld {
             self.params.grid_cell = cell;
             self.params.knn_cell = knn_cell;
             let recs = scan_records(&self.levels, self.scan_len, cell, knn_cell);
-            queue.write_buffer(&self.scan_buf, 0, bytemuck::cast_slice(&recs));
+            queue.write_buffer(&self.records.scan, 0, bytemuck::cast_slice(&recs));
         }
         let at = self.used;
         let (n0, b0, v0) = (at.particles, at.bodies, at.vertices);
@@ -833,12 +791,17 @@ impl GpuWorld {
         let (x, v, cstate) = pack_state(state);
         let grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
         let b = &self.b;
-        up.put(&b.x, n0, bytemuck::cast_slice(&x), 16);
-        up.put(&b.x, self.regions.p_base + n0, bytemuck::cast_slice(&x), 16);
-        up.put(&b.v, n0, bytemuck::cast_slice(&v), 16);
-        up.put(&b.cstate, n0, bytemuck::cast_slice(&cstate), 48);
+        up.put(&b.state.x, n0, bytemuck::cast_slice(&x), 16);
         up.put(
-            &b.aux,
+            &b.state.x,
+            self.regions.p_base + n0,
+            bytemuck::cast_slice(&x),
+            16,
+        );
+        up.put(&b.state.v, n0, bytemuck::cast_slice(&v), 16);
+        up.put(&b.state.cstate, n0, bytemuck::cast_slice(&cstate), 48);
+        up.put(
+            &b.state.aux,
             self.regions.grab_base + n0,
             bytemuck::cast_slice(&grab),
             16,
@@ -849,9 +812,9 @@ impl GpuWorld {
             .iter()
             .map(|p| p.extend(0.0).to_array())
             .collect();
-        up.put(&b.rest, n0, bytemuck::cast_slice(&packed.rest), 16);
+        up.put(&b.model.rest, n0, bytemuck::cast_slice(&packed.rest), 16);
         up.put(
-            &b.rest,
+            &b.model.rest,
             self.regions.pin_base + self.pins,
             bytemuck::cast_slice(&pins),
             16,
@@ -868,25 +831,25 @@ impl GpuWorld {
                 ]
             })
             .collect();
-        up.put(&b.pinfo, n0, bytemuck::cast_slice(&pinfo), 16);
+        up.put(&b.model.pinfo, n0, bytemuck::cast_slice(&pinfo), 16);
         // Members are particles and the inverse lists' entries clusters: both numbered
         // as the particles.
         let (members, inverse) = packed.lists.split_at(packed.inv_offset as usize);
         up.put(
-            &b.lists,
+            &b.model.lists,
             at.members,
             bytemuck::cast_slice(&shift_by(members, n0)),
             4,
         );
         let inv_at = self.cap.members + at.members;
         up.put(
-            &b.lists,
+            &b.model.lists,
             inv_at,
             bytemuck::cast_slice(&shift_by(inverse, n0)),
             4,
         );
         up.put(
-            &b.crest,
+            &b.model.crest,
             n0,
             bytemuck::cast_slice(&packed.crest),
             size_of::<GpuClusterRest>(),
@@ -904,7 +867,7 @@ impl GpuWorld {
             })
             .collect();
         up.put(
-            &b.bodies,
+            &b.model.bodies,
             b0,
             bytemuck::cast_slice(&bodies),
             size_of::<GpuBody>(),
@@ -917,14 +880,14 @@ impl GpuWorld {
             .iter()
             .map(|&[x, y, z, w]| [x, y, z, f32::from_bits(w.to_bits() + b0)])
             .collect();
-        up.put(&b.vinf, v0, bytemuck::cast_slice(&vinf), 16);
-        up.put(&b.vwt, v0, bytemuck::cast_slice(&packed.vwt), 16);
-        up.put(&b.vrest, v0, bytemuck::cast_slice(&vrest), 16);
+        up.put(&b.model.vinf, v0, bytemuck::cast_slice(&vinf), 16);
+        up.put(&b.model.vwt, v0, bytemuck::cast_slice(&packed.vwt), 16);
+        up.put(&b.model.vrest, v0, bytemuck::cast_slice(&vrest), 16);
         let starts: Vec<u32> = packed.adj[..=nv].iter().map(|s| s + at.triangles).collect();
         let corners = shift_by(&packed.adj[nv + 1..], v0);
-        up.put(&b.adj, v0, bytemuck::cast_slice(&starts), 4);
+        up.put(&b.model.adj, v0, bytemuck::cast_slice(&starts), 4);
         let corner_at = self.cap.vertices + 1 + 3 * at.triangles;
-        up.put(&b.adj, corner_at, bytemuck::cast_slice(&corners), 4);
+        up.put(&b.model.adj, corner_at, bytemuck::cast_slice(&corners), 4);
         up.submit(device, queue);
         // The world's own records of the bodies.
         for (i, body) in model.bodies.iter().enumerate() {
@@ -963,7 +926,7 @@ impl GpuWorld {
             self.records_base,
             self.block_records,
         );
-        queue.write_buffer(&self.lrec_buf, 0, bytemuck::cast_slice(&lrecs));
+        queue.write_buffer(&self.records.ranges, 0, bytemuck::cast_slice(&lrecs));
         self.refresh_contacts = self.contacts_on;
         Ok(true)
     }
@@ -986,7 +949,11 @@ impl GpuWorld {
             if *fits {
                 let offset =
                     (b * size_of::<GpuBody>() + std::mem::offset_of!(GpuBody, in_workgroup)) as u64;
-                queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&(on as u32)));
+                queue.write_buffer(
+                    &self.b.model.bodies,
+                    offset,
+                    bytemuck::bytes_of(&(on as u32)),
+                );
             }
         }
     }
@@ -1032,7 +999,7 @@ impl GpuWorld {
     /// [`crate::core::colliders::Grab`]'s twin): the buffer and the byte offset of the
     /// first particle's record.
     pub fn grabs(&self) -> (&Buffer, u64) {
-        (&self.b.aux, self.regions.grab_base as u64 * 16)
+        (&self.b.state.aux, self.regions.grab_base as u64 * 16)
     }
 
     /// Lets every held particle go (the plugin does this when the collider list changes
@@ -1040,29 +1007,33 @@ impl GpuWorld {
     pub fn release_grabs(&self, queue: &RenderQueue) {
         let records = (self.regions.bounds_base - self.regions.grab_base) as usize;
         let zeros = vec![0u8; records * 16];
-        queue.write_buffer(&self.b.aux, self.regions.grab_base as u64 * 16, &zeros);
+        queue.write_buffer(
+            &self.b.state.aux,
+            self.regions.grab_base as u64 * 16,
+            &zeros,
+        );
     }
 
     /// Cluster states ([`GpuClusterState`]: warm-start rotation and XPBD multipliers),
     /// level 0's clusters first (then the hierarchy's coarse levels).
     pub fn cluster_states(&self) -> &Buffer {
-        &self.b.cstate
+        &self.b.state.cstate
     }
 
     /// Positions buffer (vec4 per particle, m, from offset 0; the predicted positions
     /// follow every level's particles).
     pub fn positions(&self) -> &Buffer {
-        &self.b.x
+        &self.b.state.x
     }
 
     /// Velocities buffer (vec4 per particle, m/s).
     pub fn velocities(&self) -> &Buffer {
-        &self.b.v
+        &self.b.state.v
     }
 
     /// Contact candidate lists (`contact_neighbours()` per particle, `u32::MAX` padded).
     pub fn contact_lists(&self) -> &Buffer {
-        &self.b.contacts
+        &self.b.state.contacts
     }
 
     /// Forgets the previous neighbour searches, so that the next ones run the cold
@@ -1076,13 +1047,13 @@ impl GpuWorld {
 
     /// Output of [`GpuWorld::record_knn_all`] (`knn_k` per particle).
     pub fn knn_lists(&self) -> &Buffer {
-        &self.b.knn_out
+        &self.b.state.knn_out
     }
 
     /// Collider forces buffer: after a step, vec4 (N) per collider at
     /// [`GpuWorld::force_offset`].
     pub fn forces(&self) -> &Buffer {
-        &self.b.forces
+        &self.b.state.forces
     }
 
     /// Byte offset of the collider force totals in [`GpuWorld::forces`].
@@ -1093,7 +1064,7 @@ impl GpuWorld {
     /// Per-body divergence flags (u32 per body; nonzero once a particle of the body
     /// diverged and was held). Clear with [`GpuWorld::clear_status`].
     pub fn status(&self) -> &Buffer {
-        &self.b.status
+        &self.b.state.status
     }
 
     /// Per-body bounding boxes of the particles (two vec4 per body: min, max; m, world
@@ -1105,7 +1076,7 @@ impl GpuWorld {
     /// u32, when that many or fewer). Returns the buffer and the byte offset of the first
     /// body's box.
     pub fn bounds(&self) -> (&Buffer, u64) {
-        (&self.b.aux, self.regions.bounds_base as u64 * 16)
+        (&self.b.state.aux, self.regions.bounds_base as u64 * 16)
     }
 
     /// The contact broad phase's flags of the last contact refresh, one per body in model
@@ -1135,7 +1106,7 @@ impl GpuWorld {
 
     /// Clears the divergence flags.
     pub fn clear_status(&self, encoder: &mut CommandEncoder) {
-        encoder.clear_buffer(&self.b.status, 0, None);
+        encoder.clear_buffer(&self.b.state.status, 0, None);
     }
 
     /// Colliders in use.
@@ -1155,7 +1126,7 @@ impl GpuWorld {
             "at most 128 colliders per world",
         )?;
         if !data.is_empty() {
-            queue.write_buffer(&self.b.colliders, 0, bytemuck::cast_slice(&data));
+            queue.write_buffer(&self.b.frame.colliders, 0, bytemuck::cast_slice(&data));
         }
         self.n_colliders = colliders.len() as u32;
         Ok(())
@@ -1164,7 +1135,7 @@ impl GpuWorld {
     /// Writes the per-body draw records (one per body, in model order).
     pub fn set_draw(&self, queue: &RenderQueue, draw: &[GpuDrawBody]) {
         if !draw.is_empty() {
-            queue.write_buffer(&self.b.draw, 0, bytemuck::cast_slice(draw));
+            queue.write_buffer(&self.b.frame.draw, 0, bytemuck::cast_slice(draw));
         }
     }
 
@@ -1182,7 +1153,7 @@ impl GpuWorld {
         let data: Vec<[f32; 4]> = targets.iter().map(|p| p.extend(0.0).to_array()).collect();
         if !data.is_empty() {
             let at = self.regions.pin_base as u64 * 16;
-            queue.write_buffer(&self.b.rest, at, bytemuck::cast_slice(&data));
+            queue.write_buffer(&self.b.model.rest, at, bytemuck::cast_slice(&data));
         }
     }
 
@@ -1213,7 +1184,7 @@ impl GpuWorld {
                 let k_iter = crate::core::constraints::iteration_stiffness(*k, settings.iterations);
                 let offset =
                     (b * size_of::<GpuBody>() + std::mem::offset_of!(GpuBody, k_iter)) as u64;
-                queue.write_buffer(&self.b.bodies, offset, bytemuck::bytes_of(&k_iter));
+                queue.write_buffer(&self.b.model.bodies, offset, bytemuck::bytes_of(&k_iter));
             }
         }
         step_params(&mut self.params, &settings);
@@ -1224,7 +1195,7 @@ impl GpuWorld {
     /// Writes the per-step constants (call before submitting recorded steps).
     pub fn write_params(&mut self, queue: &RenderQueue) {
         self.params.n_colliders = self.n_colliders;
-        queue.write_buffer(&self.b.params, 0, bytemuck::bytes_of(&self.params));
+        queue.write_buffer(&self.b.frame.params, 0, bytemuck::bytes_of(&self.params));
     }
 
     /// What the dispatch plan needs of the world.
@@ -1292,7 +1263,7 @@ impl GpuWorld {
             match name {
                 "slab" => Some(slab.as_entire_binding()),
                 "span" => Some(BindingResource::Buffer(BufferBinding {
-                    buffer: &self.range_buf,
+                    buffer: &self.records.spans,
                     offset: 0,
                     size: std::num::NonZeroU64::new(size_of::<u32>() as u64 * 4),
                 })),
@@ -1349,7 +1320,7 @@ impl GpuWorld {
                 pad: [0; 62],
             })
             .collect();
-        queue.write_buffer(&self.range_buf, 0, bytemuck::cast_slice(&recs));
+        queue.write_buffer(&self.records.spans, 0, bytemuck::cast_slice(&recs));
         let g = groups(self.n, WORKGROUP);
         let mut r = Recording::new(encoder, rec, &self.binds);
         r.dispatch("tissue/deform", &k.deform, Bound::None, (g, 1));
@@ -1381,17 +1352,23 @@ impl GpuWorld {
         count: u32,
     ) {
         let (f, t, c) = (from as u64, to as u64, count as u64);
-        encoder.copy_buffer_to_buffer(&other.b.x, f * 16, &self.b.x, t * 16, c * 16);
-        encoder.copy_buffer_to_buffer(&other.b.v, f * 16, &self.b.v, t * 16, c * 16);
-        encoder.copy_buffer_to_buffer(&other.b.cstate, f * 48, &self.b.cstate, t * 48, c * 48);
+        encoder.copy_buffer_to_buffer(&other.b.state.x, f * 16, &self.b.state.x, t * 16, c * 16);
+        encoder.copy_buffer_to_buffer(&other.b.state.v, f * 16, &self.b.state.v, t * 16, c * 16);
+        encoder.copy_buffer_to_buffer(
+            &other.b.state.cstate,
+            f * 48,
+            &self.b.state.cstate,
+            t * 48,
+            c * 48,
+        );
         let (from_grab, to_grab) = (
             other.regions.grab_base as u64 * 16,
             self.regions.grab_base as u64 * 16,
         );
         encoder.copy_buffer_to_buffer(
-            &other.b.aux,
+            &other.b.state.aux,
             from_grab + f * 16,
-            &self.b.aux,
+            &self.b.state.aux,
             to_grab + t * 16,
             c * 16,
         );
