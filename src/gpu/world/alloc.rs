@@ -6,7 +6,7 @@
 
 use crate::core::TissueError;
 use crate::core::model::Model;
-use crate::core::solver::SolverSettings;
+use crate::core::solver::{SolverSettings, State};
 use crate::gpu::buffers::*;
 use crate::gpu::kernels;
 use bevy::render::render_resource::{
@@ -164,16 +164,70 @@ impl FrameBuffers {
     }
 }
 
-/// What group 1 starts from: the state arrays (with room) and the sizes of the scratch.
-pub(super) struct StateArrays<'a> {
-    /// Positions, then the predicted positions.
-    pub(super) x: &'a [[f32; 4]],
+/// What group 1 starts from: the state arrays, with room for appended bodies.
+pub(super) struct StateArrays {
+    /// Positions, then the predicted positions (the same at the start).
+    pub(super) x: Vec<[f32; 4]>,
     /// Velocities.
-    pub(super) v: &'a [[f32; 4]],
-    /// The shared scratch (`Regions`).
-    pub(super) aux: &'a [[f32; 4]],
-    /// Cluster states.
-    pub(super) cstate: &'a [GpuClusterState],
+    pub(super) v: Vec<[f32; 4]>,
+    /// The shared scratch ([`Regions`]), grabs included.
+    pub(super) aux: Vec<[f32; 4]>,
+    /// Cluster states (every level's).
+    pub(super) cstate: Vec<GpuClusterState>,
+}
+
+impl StateArrays {
+    /// `state` of `model` (packed as `packed`) in arrays with room for `particles`
+    /// level-0 particles and `total` of all levels, the scratch laid out as `regions`.
+    pub(super) fn new(
+        model: &Model,
+        packed: &Packed,
+        state: &State,
+        particles: u32,
+        total: u64,
+        regions: &Regions,
+    ) -> Self {
+        let (mut x, mut v, mut cstate) = pack_state(state);
+        for &src in &packed.hier[..packed.records_base as usize] {
+            x.push(x[src as usize]);
+        }
+        // Room for appended bodies (level 0 only: a world with levels has none).
+        x.resize(total as usize, [0.0; 4]);
+        v.resize(particles as usize, [0.0; 4]);
+        for lv in &model.levels {
+            for &b in &lv.model.particle_body {
+                cstate.push(GpuClusterState {
+                    rot: lv.model.bodies[b as usize].rotation.to_array(),
+                    ..Default::default()
+                });
+            }
+        }
+        cstate.resize(total as usize, GpuClusterState::default());
+        // Grabs: offset in the grasper's frame (m) and the grasper + 1 (0: free), all
+        // levels.
+        let mut grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
+        grab.resize(total as usize, [0.0; 4]);
+        // The contact pass's two halves of level 0's particles (iterations alternate
+        // between them when particle contacts are on), at least every level's (the
+        // hierarchy's snapshot); collider displacements; grabs; per-body boxes, flags and
+        // near lists (broad.wgsl); grid-sorted points.
+        let mut aux = x.clone();
+        aux.resize(regions.grab_base as usize, [0.0; 4]);
+        aux.extend_from_slice(&grab);
+        aux.resize(regions.aux_len as usize, [0.0; 4]);
+        let mut xp = x.clone();
+        xp.extend_from_slice(&x);
+        Self {
+            x: xp,
+            v,
+            aux,
+            cstate,
+        }
+    }
+}
+
+/// The sizes of group 1's scratch.
+pub(super) struct StateSizes {
     /// Level-0 particles the per-particle scratch has room for.
     pub(super) particles: u64,
     /// Particles of all levels.
@@ -190,6 +244,17 @@ pub(super) struct StateArrays<'a> {
     pub(super) scan_len: u32,
     /// Hash buckets.
     pub(super) table: u32,
+}
+
+/// A grab as the kernels read it: offset in the grasper's frame (m) and the grasper + 1
+/// (0: free).
+pub(super) fn grab_record(g: &crate::core::colliders::Grab) -> [f32; 4] {
+    let id = if g.collider == u32::MAX {
+        0.0
+    } else {
+        g.collider as f32 + 1.0
+    };
+    g.offset.extend(id).to_array()
 }
 
 /// Group 1, the particle state the steps write.
@@ -211,18 +276,18 @@ pub(super) struct StateBuffers {
 }
 
 impl StateBuffers {
-    pub(super) fn new(device: &RenderDevice, a: &StateArrays) -> Self {
+    pub(super) fn new(device: &RenderDevice, a: &StateArrays, z: &StateSizes) -> Self {
         let st = STORAGE;
-        let p = a.particles;
+        let p = z.particles;
         Self {
-            x: init(device, "tissue x", bytemuck::cast_slice(a.x), st),
-            v: init(device, "tissue v", bytemuck::cast_slice(a.v), st),
-            aux: init(device, "tissue aux", bytemuck::cast_slice(a.aux), st),
-            cstate: init(device, "tissue cstate", bytemuck::cast_slice(a.cstate), st),
-            corr: zeroed(device, "tissue corr", a.total * CORR_BYTES, st),
-            contacts: unknown_lists(device, "tissue contacts", p * a.contact_k.max(1) as u64, st),
-            scan: zeroed(device, "tissue scan", a.scan_len as u64 * 4, st),
-            cursor: zeroed(device, "tissue cursor", a.table as u64 * 4, st),
+            x: init(device, "tissue x", bytemuck::cast_slice(&a.x), st),
+            v: init(device, "tissue v", bytemuck::cast_slice(&a.v), st),
+            aux: init(device, "tissue aux", bytemuck::cast_slice(&a.aux), st),
+            cstate: init(device, "tissue cstate", bytemuck::cast_slice(&a.cstate), st),
+            corr: zeroed(device, "tissue corr", z.total * CORR_BYTES, st),
+            contacts: unknown_lists(device, "tissue contacts", p * z.contact_k.max(1) as u64, st),
+            scan: zeroed(device, "tissue scan", z.scan_len as u64 * 4, st),
+            cursor: zeroed(device, "tissue cursor", z.table as u64 * 4, st),
             cell_of: zeroed(device, "tissue cell_of", p * 4, st),
             forces: zeroed(
                 device,
@@ -231,38 +296,94 @@ impl StateBuffers {
                 st,
             ),
             fgrad: zeroed(device, "tissue fgrad", p * 48, st),
-            knn_out: unknown_lists(device, "tissue knn", p * a.knn_k.max(1) as u64, st),
-            status: zeroed(device, "tissue status", a.bodies * 4, st),
+            knn_out: unknown_lists(device, "tissue knn", p * z.knn_k.max(1) as u64, st),
+            status: zeroed(device, "tissue status", z.bodies * 4, st),
             spare: zeroed(
                 device,
                 "tissue knn spare",
-                p * a.spare_stride as u64 * 4,
+                p * z.spare_stride as u64 * 4,
                 st,
             ),
         }
     }
 }
 
-/// What group 2 holds: the static model's arrays (with room).
-pub(super) struct ModelArrays<'a> {
-    /// Rest records, then the pin targets.
-    pub(super) rest: &'a [[f32; 4]],
-    /// Per particle: body, pin slot, inverse-list and member-list starts.
-    pub(super) pinfo: &'a [[u32; 4]],
-    /// Members, then the inverse lists.
-    pub(super) lists: &'a [u32],
+/// What group 2 holds: the static model's arrays, with room for appended bodies.
+pub(super) struct ModelArrays {
+    /// Rest records, then from the pin base the pin targets.
+    pub(super) rest: Vec<[f32; 4]>,
+    /// Per particle: body, pin slot, inverse-list and member-list starts (and the
+    /// sentinel row after the last; the rest of the rows are written by `append`).
+    pub(super) pinfo: Vec<[u32; 4]>,
+    /// Members from 0, inverse lists from the member room.
+    pub(super) lists: Vec<u32>,
     /// Cluster rest data.
-    pub(super) crest: &'a [GpuClusterRest],
+    pub(super) crest: Vec<GpuClusterRest>,
     /// Bodies.
-    pub(super) bodies: &'a [GpuBody],
-    /// The hierarchy's tables.
-    pub(super) hier: &'a [u32],
+    pub(super) bodies: Vec<GpuBody>,
     /// Skin influences, weights and rest vertices.
-    pub(super) vinf: &'a [[u32; 4]],
-    pub(super) vwt: &'a [[f32; 4]],
-    pub(super) vrest: &'a [[f32; 4]],
-    /// Normal adjacency.
-    pub(super) adj: &'a [u32],
+    pub(super) vinf: Vec<[u32; 4]>,
+    pub(super) vwt: Vec<[f32; 4]>,
+    pub(super) vrest: Vec<[f32; 4]>,
+    /// Normal adjacency: starts (and sentinel) per render vertex of room, then from
+    /// `vertex_cap + 1` the triangles' corners.
+    pub(super) adj: Vec<u32>,
+}
+
+impl ModelArrays {
+    /// `packed` (with `state`'s pin targets and the GPU's `bodies`) in arrays with room
+    /// for `cap`, `total` particles of all levels.
+    pub(super) fn new(
+        packed: &Packed,
+        state: &State,
+        cap: Capacity,
+        total: u64,
+        bodies: Vec<GpuBody>,
+    ) -> Self {
+        let mut pins: Vec<[f32; 4]> = state
+            .pin_targets
+            .iter()
+            .map(|p| p.extend(0.0).to_array())
+            .collect();
+        pins.resize(cap.particles as usize, [0.0; 4]);
+        let mut rest = packed.rest.clone();
+        rest.resize(total as usize, [0.0; 4]);
+        rest.extend_from_slice(&pins);
+        let mut pinfo = packed.pinfo.clone();
+        pinfo.resize(total as usize + 1, [0; 4]);
+        let members = cap.members as usize;
+        let mut lists = packed.lists[..packed.inv_offset as usize].to_vec();
+        lists.resize(members, 0);
+        lists.extend_from_slice(&packed.lists[packed.inv_offset as usize..]);
+        lists.resize(2 * members, 0);
+        let mut crest = packed.crest.clone();
+        crest.resize(total as usize, GpuClusterRest::default());
+        let vcap = cap.vertices as usize;
+        let (mut vinf, mut vwt, mut vrest) = (
+            packed.vinf.clone(),
+            packed.vwt.clone(),
+            packed.vrest.clone(),
+        );
+        vinf.resize(vcap, [0; 4]);
+        vwt.resize(vcap, [0.0; 4]);
+        vrest.resize(vcap, [0.0; 4]);
+        let nv = packed.vertex_count();
+        let mut adj = packed.adj[..nv + 1].to_vec();
+        adj.resize(vcap + 1, 0);
+        adj.extend_from_slice(&packed.adj[nv + 1..]);
+        adj.resize(vcap + 1 + 3 * cap.triangles as usize, 0);
+        Self {
+            rest,
+            pinfo,
+            lists,
+            crest,
+            bodies,
+            vinf,
+            vwt,
+            vrest,
+            adj,
+        }
+    }
 }
 
 /// Group 2, the static model (written once, and where bodies are appended).
@@ -280,19 +401,20 @@ pub(super) struct ModelBuffers {
 }
 
 impl ModelBuffers {
-    pub(super) fn new(device: &RenderDevice, a: &ModelArrays) -> Self {
+    /// The model's arrays and the hierarchy's tables `hier`.
+    pub(super) fn new(device: &RenderDevice, a: &ModelArrays, hier: &[u32]) -> Self {
         let st = STORAGE;
         Self {
-            rest: init(device, "tissue rest", bytemuck::cast_slice(a.rest), st),
-            pinfo: init(device, "tissue pinfo", bytemuck::cast_slice(a.pinfo), st),
-            lists: init(device, "tissue lists", bytemuck::cast_slice(a.lists), st),
-            crest: init(device, "tissue crest", bytemuck::cast_slice(a.crest), st),
-            bodies: init(device, "tissue bodies", bytemuck::cast_slice(a.bodies), st),
-            hier: init(device, "tissue hierarchy", bytemuck::cast_slice(a.hier), st),
-            vinf: init(device, "tissue vinf", bytemuck::cast_slice(a.vinf), st),
-            vwt: init(device, "tissue vwt", bytemuck::cast_slice(a.vwt), st),
-            vrest: init(device, "tissue vrest", bytemuck::cast_slice(a.vrest), st),
-            adj: init(device, "tissue adj", bytemuck::cast_slice(a.adj), st),
+            rest: init(device, "tissue rest", bytemuck::cast_slice(&a.rest), st),
+            pinfo: init(device, "tissue pinfo", bytemuck::cast_slice(&a.pinfo), st),
+            lists: init(device, "tissue lists", bytemuck::cast_slice(&a.lists), st),
+            crest: init(device, "tissue crest", bytemuck::cast_slice(&a.crest), st),
+            bodies: init(device, "tissue bodies", bytemuck::cast_slice(&a.bodies), st),
+            hier: init(device, "tissue hierarchy", bytemuck::cast_slice(hier), st),
+            vinf: init(device, "tissue vinf", bytemuck::cast_slice(&a.vinf), st),
+            vwt: init(device, "tissue vwt", bytemuck::cast_slice(&a.vwt), st),
+            vrest: init(device, "tissue vrest", bytemuck::cast_slice(&a.vrest), st),
+            adj: init(device, "tissue adj", bytemuck::cast_slice(&a.adj), st),
         }
     }
 }

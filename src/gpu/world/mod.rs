@@ -148,17 +148,6 @@ fn step_params(params: &mut GpuParams, s: &SolverSettings) {
 /// Largest number of skin dispatches (runs of bodies sharing a vertex slab) per frame.
 pub const MAX_SKIN_RUNS: usize = 64;
 
-/// A grab as the kernels read it: offset in the grasper's frame (m) and the grasper + 1
-/// (0: free).
-fn grab_record(g: &crate::core::colliders::Grab) -> [f32; 4] {
-    let id = if g.collider == u32::MAX {
-        0.0
-    } else {
-        g.collider as f32 + 1.0
-    };
-    g.offset.extend(id).to_array()
-}
-
 /// `list` with `by` added to every entry.
 fn shift_by(list: &[u32], by: u32) -> Vec<u32> {
     list.iter().map(|i| i + by).collect()
@@ -467,82 +456,15 @@ impl GpuWorld {
             off += c;
         }
         let scan_len = off + 1;
-        let (mut x, mut v, mut cstate) = pack_state(state);
-        for &src in &packed.hier[..packed.records_base as usize] {
-            x.push(x[src as usize]);
-        }
-        // Room for appended bodies (level 0 only: a world with levels has none).
-        x.resize(total as usize, [0.0; 4]);
-        v.resize(pcap as usize, [0.0; 4]);
-        for lv in &model.levels {
-            for &b in &lv.model.particle_body {
-                cstate.push(GpuClusterState {
-                    rot: lv.model.bodies[b as usize].rotation.to_array(),
-                    ..Default::default()
-                });
-            }
-        }
-        cstate.resize(total as usize, GpuClusterState::default());
-        // Grabs: offset in the grasper's frame (m) and the grasper + 1 (0: free), all levels.
-        let mut grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
-        grab.resize(total as usize, [0.0; 4]);
-        let mut pins: Vec<[f32; 4]> = state
-            .pin_targets
-            .iter()
-            .map(|p| p.extend(0.0).to_array())
-            .collect();
-        pins.resize(pcap as usize, [0.0; 4]);
         let regions = Regions::new(pcap, total as u32, total as u32, bcap);
-        // Positions, then the predicted positions (the same at the start).
-        let mut xp = x.clone();
-        xp.extend_from_slice(&x);
-        // Rest records, then the pin targets.
-        let mut rest = packed.rest.clone();
-        rest.resize(total as usize, [0.0; 4]);
-        rest.extend_from_slice(&pins);
-        // Per particle (and its sentinel row, after the last): the rest of the rows are
-        // written by `append`.
-        let mut pinfo = packed.pinfo.clone();
-        pinfo.resize(total as usize + 1, [0; 4]);
-        // Cluster members from 0, inverse lists from `inv_offset` (room for both).
-        let inv_offset = cap.members;
-        let mut lists = packed.lists[..packed.inv_offset as usize].to_vec();
-        lists.resize(inv_offset as usize, 0);
-        lists.extend_from_slice(&packed.lists[packed.inv_offset as usize..]);
-        lists.resize(2 * inv_offset as usize, 0);
-        let mut crest = packed.crest.clone();
-        crest.resize(total as usize, GpuClusterRest::default());
-        // Skin per render vertex; the adjacency's starts (and sentinel), then from
-        // `vertex_cap + 1` its triangles' corners.
-        let (mut vinf, mut vwt, mut vrest) = (
-            packed.vinf.clone(),
-            packed.vwt.clone(),
-            packed.vrest.clone(),
-        );
-        vinf.resize(vcap as usize, [0; 4]);
-        vwt.resize(vcap as usize, [0.0; 4]);
-        vrest.resize(vcap as usize, [0.0; 4]);
-        let mut adj = packed.adj[..nv as usize + 1].to_vec();
-        adj.resize(vcap as usize + 1, 0);
-        adj.extend_from_slice(&packed.adj[nv as usize + 1..]);
-        adj.resize((vcap + 1 + 3 * cap.triangles) as usize, 0);
-        // The contact pass's two halves of level 0's particles (iterations alternate
-        // between them when particle contacts are on), at least every level's (the
-        // hierarchy's snapshot); collider displacements; grabs; per-body boxes, flags and
-        // near lists (broad.wgsl); grid-sorted points.
-        let mut aux = x.clone();
-        aux.resize(regions.grab_base as usize, [0.0; 4]);
-        aux.extend_from_slice(&grab);
-        aux.resize(regions.aux_len as usize, [0.0; 4]);
+        let st = StateArrays::new(model, &packed, state, pcap, total, &regions);
+        let ma = ModelArrays::new(&packed, state, cap, total, gpu_bodies);
         let b = Buffers {
             frame: FrameBuffers::new(device, bcap),
             state: StateBuffers::new(
                 device,
-                &StateArrays {
-                    x: &xp,
-                    v: &v,
-                    aux: &aux,
-                    cstate: &cstate,
+                &st,
+                &StateSizes {
                     particles: pcap as u64,
                     total,
                     bodies: bcap as u64,
@@ -553,21 +475,7 @@ impl GpuWorld {
                     table,
                 },
             ),
-            model: ModelBuffers::new(
-                device,
-                &ModelArrays {
-                    rest: &rest,
-                    pinfo: &pinfo,
-                    lists: &lists,
-                    crest: &crest,
-                    bodies: &gpu_bodies,
-                    hier: &packed.hier,
-                    vinf: &vinf,
-                    vwt: &vwt,
-                    vrest: &vrest,
-                    adj: &adj,
-                },
-            ),
+            model: ModelBuffers::new(device, &ma, &packed.hier),
         };
         let recs = scan_records(&levels, scan_len, cell, knn_cell);
         let block_records = plan::max_block(&settings);
@@ -605,7 +513,7 @@ impl GpuWorld {
         let mut params = GpuParams {
             n,
             contacts: contacts_on as u32,
-            inv_offset,
+            inv_offset: cap.members,
             contact_k,
             n_vertices: nv,
             grid_cell: cell,
