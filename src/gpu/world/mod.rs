@@ -13,6 +13,42 @@
 //!
 //! The world works on a bare `RenderDevice`/`RenderQueue`, so it runs inside Bevy's
 //! render graph (the plugin) and standalone (tests, benchmarks) alike.
+//!
+//! It changes without being made again: per-step settings go to the parameters
+//! ([`GpuWorld::set_settings`]), a despawned body is retired in place
+//! ([`GpuWorld::retire`]), and a new one is appended into the room the buffers were made
+//! with ([`GpuWorld::with_room`], [`GpuWorld::append`]); every other body keeps its state
+//! and neighbour lists.
+//!
+//! Parts: [`plan`] (the steps' dispatches as data, a pure function of the world's shape
+//! and the settings), `record` (replays a plan into an encoder), `alloc` (the buffers
+//! by bind group, their room, the bind groups, limit checks, uploads), `readback`.
+//!
+//! ```no_run
+//! # use bevy_tissue::core::model::{BodyDesc, Model};
+//! # use bevy_tissue::core::{procedural, solver::{SolverSettings, State}};
+//! # use bevy_tissue::gpu::{headless, GpuWorld, NoTiming};
+//! let g = headless().expect("a GPU adapter");
+//! let desc = BodyDesc {
+//!     discretisation: bevy_tissue::core::model::Discretisation::Clusters,
+//!     ..Default::default()
+//! };
+//! let mut one = Model::new();
+//! one.add_body(&procedural::cuboid(glam::Vec3::splat(0.05), 2), &desc)?;
+//! let s = SolverSettings::default();
+//! // Room for half as much again (and at least one more of the largest body).
+//! let mut world = GpuWorld::with_room(&g.device, &g.kernels, &one, &State::new(&one), s, 0, 1.5)?;
+//! // A second body later, without a new world.
+//! let mut two = Model::new();
+//! let beside = BodyDesc { translation: glam::Vec3::new(0.2, 0.0, 0.0), ..desc };
+//! two.add_body(&procedural::cuboid(glam::Vec3::splat(0.05), 2), &beside)?;
+//! assert!(world.append(&g.device, &g.queue, &two, &State::new(&two))?);
+//! world.write_params(&g.queue);
+//! let mut enc = g.device.create_command_encoder(&Default::default());
+//! world.record_steps(&mut enc, &g.kernels, 1, &mut NoTiming);
+//! g.queue.submit([enc.finish()]);
+//! # Ok::<(), bevy_tissue::core::TissueError>(())
+//! ```
 
 use super::buffers::*;
 use super::kernels::{self, Kernels};
