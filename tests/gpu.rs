@@ -1903,6 +1903,84 @@ fn appended_bodies_equal_a_world_made_with_them() {
     assert_eq!(grown.ranges.len(), 3);
 }
 
+/// A body's model replaced in place (`GpuWorld::replace_body`: a new material, the same
+/// sampling) keeps its pose and moves as in a world made with the new model; a model of
+/// another size is refused; a body appended anew takes an old slot's pose
+/// (`copy_body_state`).
+#[test]
+fn a_replaced_body_moves_as_in_a_world_made_with_it() {
+    let Some(g) = gpu() else { return };
+    let (two, s, ground) = boxes_on_the_ground(0.6, &[-0.2, 0.2]);
+    let (stiffer, _, _) = boxes_on_the_ground(0.95, &[0.2]);
+    let make = |m: &Model| {
+        GpuWorld::with_room(&g.device, &g.kernels, m, &State::new(m), s.clone(), 0, 1.5).unwrap()
+    };
+    let mut replaced = make(&two);
+    run_gpu(g, &mut replaced, &ground, 10);
+    let before = read_vec3(
+        &g.device,
+        &g.queue,
+        replaced.positions(),
+        replaced.particle_count(),
+    );
+    assert!(
+        replaced
+            .replace_body(&g.device, &g.queue, 1, &stiffer, None)
+            .unwrap()
+    );
+    let kept = read_vec3(
+        &g.device,
+        &g.queue,
+        replaced.positions(),
+        replaced.particle_count(),
+    );
+    assert_eq!(kept, before, "the pose is kept");
+    // Against a world made with the stiffer body from the same pose.
+    let mut both = Model::new();
+    both.append(&boxes_on_the_ground(0.6, &[-0.2]).0);
+    both.append(&stiffer);
+    let mut made = make(&both);
+    made.write_params(&g.queue);
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    for b in 0..2 {
+        let r = replaced.ranges[b];
+        made.copy_state_from(&mut enc, &replaced, r.first, made.ranges[b].first, r.count);
+    }
+    g.queue.submit([enc.finish()]);
+    made.step = replaced.step;
+    made.forget_neighbours();
+    replaced.forget_neighbours();
+    let a = run_gpu(g, &mut replaced, &ground, 30);
+    let b = run_gpu(g, &mut made, &ground, 30);
+    assert_eq!(max_dist(&a, &b), 0.0, "moves as in a world made with it");
+    assert!(max_dist(&a, &kept) > 1e-4, "the scene moved");
+    // Another size: refused, nothing changed.
+    let (bigger, _) = hanging(Material::ShapeMatching { stiffness: 0.6 });
+    assert!(
+        !replaced
+            .replace_body(&g.device, &g.queue, 1, &bigger, None)
+            .unwrap()
+    );
+    // A body appended anew takes an old slot's pose.
+    let copy = boxes_on_the_ground(0.6, &[-0.2]).0;
+    assert!(
+        replaced
+            .append(&g.device, &g.queue, &copy, &State::new(&copy))
+            .unwrap()
+    );
+    replaced.copy_body_state(&g.device, &g.queue, 0, 2);
+    let x = read_vec3(
+        &g.device,
+        &g.queue,
+        replaced.positions(),
+        replaced.particle_count(),
+    );
+    let (r0, r2) = (replaced.ranges[0], replaced.ranges[2]);
+    let at =
+        |r: bevy_tissue::gpu::world::BodyRange| (r.first as usize)..((r.first + r.count) as usize);
+    assert_eq!(x[at(r0)], x[at(r2)], "the appended body took the pose");
+}
+
 /// A retired body (`GpuWorld::retire`, what the plugin does on a despawn) leaves every
 /// other body's motion exactly as it was, sleeps for good, and its particles are parked
 /// far away; a world with hierarchy levels refuses (the caller rebuilds).

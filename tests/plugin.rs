@@ -446,12 +446,24 @@ fn changing_k_rebuilds_and_removing_the_component_stops_the_simulation() {
         )
     };
     assert!(until(&mut app, 600, |app| ready(app, e) && ready(app, other)));
+    // The particles of the world's bodies that are not retired.
     let particles = |app: &App| {
         app.sub_app(RenderApp)
             .world()
             .resource::<TissueGpu>()
             .world()
-            .map(|w| w.particle_count())
+            .map(|w| {
+                (0..w.ranges.len())
+                    .filter(|&i| !w.is_retired(i))
+                    .map(|i| w.ranges[i].count)
+                    .sum::<u32>()
+            })
+    };
+    let rebuilds = |app: &App| {
+        app.sub_app(RenderApp)
+            .world()
+            .resource::<TissueGpu>()
+            .rebuilds()
     };
     assert!(until(&mut app, 10, |app| particles(app).is_some()));
     let before = particles(&app).unwrap();
@@ -507,6 +519,26 @@ fn changing_k_rebuilds_and_removing_the_component_stops_the_simulation() {
     // The rebuilt body keeps its pose (paused: exactly).
     let after = read(&mut app);
     assert_eq!(after, sagged, "the rebuild lost the body's pose");
+    // (New clusters: the body is appended anew and its old slot retired; with two bodies
+    // that retires a third of the particles, so the world is compacted, made again.)
+    let made = rebuilds(&app);
+    let gen1 = gen0 + 1;
+    // A new stiffness only: replaced in place, pose kept, the world not made again.
+    app.world_mut().get_mut::<SoftBody>(e).unwrap().material =
+        TissueMaterial::ShapeMatching { stiffness: 0.2 };
+    assert!(until(&mut app, 600, |app| app
+        .world()
+        .get::<BuiltBody>(e)
+        .is_some_and(|b| b.generation == gen1 + 1)));
+    app.update();
+    app.update();
+    assert_eq!(
+        read(&mut app),
+        sagged,
+        "a new stiffness lost the body's pose"
+    );
+    assert_eq!(rebuilds(&app), made, "a new stiffness made the world again");
+    assert_eq!(particles(&app), Some(before));
     // Removing the component drops the body from the GPU world.
     app.world_mut().entity_mut(e).remove::<SoftBody>();
     let other_count = app

@@ -386,12 +386,15 @@ pub fn prepare_tissue(
 /// bodies need, and at least one more of its largest.
 const ROOM: f32 = 1.5;
 
-/// Where `keys` are the world's bodies less some and plus some (none rebuilt), retires
-/// the ones that went ([`GpuWorld::retire`]) and appends the new ones
-/// ([`GpuWorld::append`]) instead of rebuilding the world, unless the new ones do not
-/// fit in its room or retired bodies would then hold more than a quarter of its
-/// particles (then the caller rebuilds, which compacts and makes room). Returns whether
-/// it did. A new body too big for the adapter is reported and left out, as in a rebuild.
+/// Where `keys` are the world's bodies less some, plus some, and some rebuilt, changes
+/// the world in place instead of rebuilding it: retires the ones that went
+/// ([`GpuWorld::retire`]), replaces a rebuilt one's model where it has as many
+/// particles (a new material or stiffness: [`GpuWorld::replace_body`], keeping its
+/// pose unless it was reset) or else retires it and appends it anew, and appends the new
+/// ones ([`GpuWorld::append`]); every other body keeps its state. Returns false (the
+/// caller rebuilds, which compacts and makes room) where the new ones do not fit in its
+/// room or retired bodies would then hold more than a quarter of its particles. A new
+/// body too big for the adapter is reported and left out, as in a rebuild.
 fn edit_in_place(
     gpu: &mut TissueGpu,
     ex: &ExtractedTissue,
@@ -408,19 +411,32 @@ fn edit_in_place(
     else {
         return false;
     };
-    // A body rebuilt (same entity, new generation) rebuilds the world.
+    // Rebuilt bodies (same entity, new generation) in place where their sizes allow;
+    // the others are appended anew with the new bodies, and their old slots retired.
+    let mut moved = Vec::new();
+    for b in &ex.bodies {
+        let Some(i) = world_keys
+            .iter()
+            .position(|k| k.0 == b.entity && k.1 != b.generation)
+        else {
+            continue;
+        };
+        let state = b.reset.then(|| crate::core::solver::State::new(&b.model));
+        match world.replace_body(device, queue, i, &b.model, state.as_ref()) {
+            Ok(true) => world_keys[i].1 = b.generation,
+            Ok(false) => moved.push((i, b)),
+            Err(e) => {
+                warn!("bevy_tissue: {e}");
+                return false;
+            }
+        }
+    }
     let new: Vec<&ExtractedBody> = ex
         .bodies
         .iter()
         .filter(|b| !world_keys.contains(&(b.entity, b.generation)))
         .collect();
-    if new
-        .iter()
-        .any(|b| world_keys.iter().any(|k| k.0 == b.entity))
-    {
-        return false;
-    }
-    // Check the new bodies before retiring anything (no room: rebuild).
+    // Check the new bodies before changing anything (no room: rebuild).
     let solver = ex.settings.to_core();
     let limits = device.limits();
     let mut model = Model::new();
@@ -446,18 +462,6 @@ fn edit_in_place(
     {
         return false;
     }
-    let mut retired = 0;
-    for (i, k) in world_keys.iter().enumerate() {
-        if !keys.contains(k) {
-            match world.retire(queue, i) {
-                Some(n) => retired = n,
-                None => return false,
-            }
-        }
-    }
-    if retired as u64 * 4 > world.particle_count() as u64 + model.particle_count() as u64 {
-        return false;
-    }
     if !added.is_empty() {
         let state = crate::core::solver::State::new(&model);
         match world.append(device, queue, &model, &state) {
@@ -468,6 +472,33 @@ fn edit_in_place(
                 return false;
             }
         }
+    }
+    // A rebuilt body appended anew keeps its pose where its particles are the same
+    // points (same count, not reset), as in a rebuild of the world.
+    for (old, b) in moved {
+        let Some(new) = world_keys
+            .iter()
+            .position(|k| *k == (b.entity, b.generation))
+        else {
+            continue;
+        };
+        if !b.reset && world.ranges[old].count == world.ranges[new].count {
+            world.copy_body_state(device, queue, old, new);
+        }
+        // The old slot no longer stands for the entity.
+        world_keys[old] = (Entity::PLACEHOLDER, u64::MAX);
+    }
+    let mut retired = 0;
+    for (i, k) in world_keys.iter().enumerate() {
+        if !keys.contains(k) {
+            match world.retire(queue, i) {
+                Some(n) => retired = n,
+                None => return false,
+            }
+        }
+    }
+    if retired as u64 * 4 > world.particle_count() as u64 {
+        return false;
     }
     gpu.keys = keys.to_vec();
     true

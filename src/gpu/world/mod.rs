@@ -86,6 +86,61 @@ pub struct BodyRange {
     pub vcount: u32,
 }
 
+/// Where one body's arrays are in the world's buffers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct BodySlot {
+    /// First particle, the body's index, first render vertex, first membership and
+    /// first adjacency triangle.
+    start: Capacity,
+    /// How many of each (one body).
+    size: Capacity,
+    /// First pin slot.
+    pin_start: u32,
+    /// Pins.
+    pins: u32,
+}
+
+/// The slots of the bodies of `model` packed as `packed`, numbered on from `at` (pins
+/// from `pins`).
+fn body_slots(model: &Model, packed: &Packed, at: Capacity, pins: u32) -> Vec<BodySlot> {
+    let mut pin = pins;
+    model
+        .bodies
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let (p0, p1) = (b.first as usize, (b.first + b.count) as usize);
+            let v0 = packed.vfirst[i] as usize;
+            let v1 = v0 + b.skin.rest_vertices.len();
+            let count = model
+                .pinned
+                .iter()
+                .filter(|&&p| (p0..p1).contains(&(p as usize)))
+                .count() as u32;
+            let slot = BodySlot {
+                start: at.add(Capacity {
+                    particles: b.first,
+                    bodies: i as u32,
+                    vertices: v0 as u32,
+                    members: packed.pinfo[p0][3],
+                    triangles: packed.adj[v0],
+                }),
+                size: Capacity {
+                    particles: b.count,
+                    bodies: 1,
+                    vertices: (v1 - v0) as u32,
+                    members: packed.pinfo[p1][3] - packed.pinfo[p0][3],
+                    triangles: packed.adj[v1] - packed.adj[v0],
+                },
+                pin_start: pin,
+                pins: count,
+            };
+            pin += count;
+            slot
+        })
+        .collect()
+}
+
 /// All bodies of a scene on the GPU (see the module docs).
 pub struct GpuWorld {
     /// Solver settings (the same fields as the CPU solver's; `method` is ignored: the GPU
@@ -145,6 +200,10 @@ pub struct GpuWorld {
     stiffness: Vec<Option<f32>>,
     /// Per body, whether it was retired ([`GpuWorld::retire`]).
     retired: Vec<bool>,
+    /// Per body: where its arrays start (particles, its body index, render vertices,
+    /// cluster memberships, adjacency triangles) and how much of each it holds, and
+    /// its first pin slot and pin count.
+    slots: Vec<BodySlot>,
     /// What the buffers have room for, and what the bodies use of it.
     cap: Capacity,
     used: Capacity,
@@ -607,6 +666,7 @@ impl GpuWorld {
                     _ => None,
                 })
                 .collect(),
+            slots: body_slots(model, &packed, Capacity::default(), 0),
             cap,
             used,
             pins: model.pinned.len() as u32,
@@ -718,121 +778,13 @@ impl GpuWorld {
         if !self.used.fits(more, self.cap) {
             return Ok(false);
         }
-        if packed.max_spacing > self.max_spacing {
-            // Grid cells for the larger spacing (the next contact search builds them).
-            self.max_spacing = packed.max_spacing;
-            let (cell, knn_cell, _) = grid_params(self.cap.particles as usize, self.max_spacing);
-            self.params.grid_cell = cell;
-            self.params.knn_cell = knn_cell;
-            let recs = scan_records(&self.levels, self.scan_len, cell, knn_cell);
-            queue.write_buffer(&self.records.scan, 0, bytemuck::cast_slice(&recs));
-        }
+        self.widen_grid(queue, packed.max_spacing);
         let at = self.used;
-        let (n0, b0, v0) = (at.particles, at.bodies, at.vertices);
-        // Every write through one staging buffer, copied in one submission.
+        let (n0, v0) = (at.particles, at.vertices);
         let mut up = Uploads::default();
-        // State: positions (and the predicted ones), velocities, cluster states, grabs.
-        let (x, v, cstate) = pack_state(state);
-        let grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
-        let b = &self.b;
-        up.put(&b.state.x, n0, bytemuck::cast_slice(&x), 16);
-        up.put(
-            &b.state.x,
-            self.regions.p_base + n0,
-            bytemuck::cast_slice(&x),
-            16,
-        );
-        up.put(&b.state.v, n0, bytemuck::cast_slice(&v), 16);
-        up.put(&b.state.cstate, n0, bytemuck::cast_slice(&cstate), 48);
-        up.put(
-            &b.state.aux,
-            self.regions.grab_base + n0,
-            bytemuck::cast_slice(&grab),
-            16,
-        );
-        // The model, its indices numbered on from the world's.
-        let pins: Vec<[f32; 4]> = state
-            .pin_targets
-            .iter()
-            .map(|p| p.extend(0.0).to_array())
-            .collect();
-        up.put(&b.model.rest, n0, bytemuck::cast_slice(&packed.rest), 16);
-        up.put(
-            &b.model.rest,
-            self.regions.pin_base + self.pins,
-            bytemuck::cast_slice(&pins),
-            16,
-        );
-        let pinfo: Vec<[u32; 4]> = packed
-            .pinfo
-            .iter()
-            .map(|&[body, slot, inv, start]| {
-                [
-                    body + b0,
-                    if slot == NONE { NONE } else { slot + self.pins },
-                    inv + at.members,
-                    start + at.members,
-                ]
-            })
-            .collect();
-        up.put(&b.model.pinfo, n0, bytemuck::cast_slice(&pinfo), 16);
-        // Members are particles and the inverse lists' entries clusters: both numbered
-        // as the particles.
-        let (members, inverse) = packed.lists.split_at(packed.inv_offset as usize);
-        up.put(
-            &b.model.lists,
-            at.members,
-            bytemuck::cast_slice(&shift_by(members, n0)),
-            4,
-        );
-        let inv_at = self.cap.members + at.members;
-        up.put(
-            &b.model.lists,
-            inv_at,
-            bytemuck::cast_slice(&shift_by(inverse, n0)),
-            4,
-        );
-        up.put(
-            &b.model.crest,
-            n0,
-            bytemuck::cast_slice(&packed.crest),
-            size_of::<GpuClusterRest>(),
-        );
-        let bodies: Vec<GpuBody> = packed
-            .bodies
-            .iter()
-            .map(|g| {
-                let fits = self.has_body_kernel && body_fits(g);
-                GpuBody {
-                    first: g.first + n0,
-                    in_workgroup: (fits && self.body_kernel) as u32,
-                    ..*g
-                }
-            })
-            .collect();
-        up.put(
-            &b.model.bodies,
-            b0,
-            bytemuck::cast_slice(&bodies),
-            size_of::<GpuBody>(),
-        );
-        // Skin: influences are particles; the body index rides in the rest vertex's w.
-        let nv = packed.vertex_count();
-        let vinf: Vec<[u32; 4]> = packed.vinf.iter().map(|i| i.map(|p| p + n0)).collect();
-        let vrest: Vec<[f32; 4]> = packed
-            .vrest
-            .iter()
-            .map(|&[x, y, z, w]| [x, y, z, f32::from_bits(w.to_bits() + b0)])
-            .collect();
-        up.put(&b.model.vinf, v0, bytemuck::cast_slice(&vinf), 16);
-        up.put(&b.model.vwt, v0, bytemuck::cast_slice(&packed.vwt), 16);
-        up.put(&b.model.vrest, v0, bytemuck::cast_slice(&vrest), 16);
-        let starts: Vec<u32> = packed.adj[..=nv].iter().map(|s| s + at.triangles).collect();
-        let corners = shift_by(&packed.adj[nv + 1..], v0);
-        up.put(&b.model.adj, v0, bytemuck::cast_slice(&starts), 4);
-        let corner_at = self.cap.vertices + 1 + 3 * at.triangles;
-        up.put(&b.model.adj, corner_at, bytemuck::cast_slice(&corners), 4);
+        self.write_bodies(&mut up, &packed, at, self.pins, Some(state), true);
         up.submit(device, queue);
+        self.slots.extend(body_slots(model, &packed, at, self.pins));
         // The world's own records of the bodies.
         for (i, body) in model.bodies.iter().enumerate() {
             self.ranges.push(BodyRange {
@@ -872,6 +824,191 @@ impl GpuWorld {
         );
         queue.write_buffer(&self.records.ranges, 0, bytemuck::cast_slice(&lrecs));
         self.refresh_contacts = self.contacts_on;
+        Ok(true)
+    }
+
+    /// Writes the bodies of `packed` into the world's arrays from `at` (particles, body
+    /// index, render vertices, memberships, triangles) and pin slot `pins`, their indices
+    /// numbered on from there, with their `state` where given; with `sentinel`, also the
+    /// particle row after their last (where the lists' ends are read: the world's end).
+    fn write_bodies<'a>(
+        &'a self,
+        up: &mut Uploads<'a>,
+        packed: &Packed,
+        at: Capacity,
+        pins: u32,
+        state: Option<&State>,
+        sentinel: bool,
+    ) {
+        let (n0, b0, v0) = (at.particles, at.bodies, at.vertices);
+        let b = &self.b;
+        if let Some(state) = state {
+            // Positions (and the predicted ones), velocities, cluster states, grabs, pin
+            // targets.
+            let (x, v, cstate) = pack_state(state);
+            let grab: Vec<[f32; 4]> = state.grab.iter().map(grab_record).collect();
+            up.put(&b.state.x, n0, bytemuck::cast_slice(&x), 16);
+            let p_at = self.regions.p_base + n0;
+            up.put(&b.state.x, p_at, bytemuck::cast_slice(&x), 16);
+            up.put(&b.state.v, n0, bytemuck::cast_slice(&v), 16);
+            up.put(&b.state.cstate, n0, bytemuck::cast_slice(&cstate), 48);
+            let g_at = self.regions.grab_base + n0;
+            up.put(&b.state.aux, g_at, bytemuck::cast_slice(&grab), 16);
+            let targets: Vec<[f32; 4]> = state
+                .pin_targets
+                .iter()
+                .map(|p| p.extend(0.0).to_array())
+                .collect();
+            let pin_at = self.regions.pin_base + pins;
+            up.put(&b.model.rest, pin_at, bytemuck::cast_slice(&targets), 16);
+        }
+        up.put(&b.model.rest, n0, bytemuck::cast_slice(&packed.rest), 16);
+        let pinfo: Vec<[u32; 4]> = packed
+            .pinfo
+            .iter()
+            .map(|&[body, slot, inv, start]| {
+                [
+                    body + b0,
+                    if slot == NONE { NONE } else { slot + pins },
+                    inv + at.members,
+                    start + at.members,
+                ]
+            })
+            .collect();
+        let rows = if sentinel {
+            pinfo.len()
+        } else {
+            pinfo.len() - 1
+        };
+        up.put(&b.model.pinfo, n0, bytemuck::cast_slice(&pinfo[..rows]), 16);
+        // Members are particles and the inverse lists' entries clusters: both numbered
+        // as the particles.
+        let (members, inverse) = packed.lists.split_at(packed.inv_offset as usize);
+        let members = shift_by(members, n0);
+        up.put(
+            &b.model.lists,
+            at.members,
+            bytemuck::cast_slice(&members),
+            4,
+        );
+        let inv_at = self.cap.members + at.members;
+        let inverse = shift_by(inverse, n0);
+        up.put(&b.model.lists, inv_at, bytemuck::cast_slice(&inverse), 4);
+        let crest_size = size_of::<GpuClusterRest>();
+        up.put(
+            &b.model.crest,
+            n0,
+            bytemuck::cast_slice(&packed.crest),
+            crest_size,
+        );
+        let bodies: Vec<GpuBody> = packed
+            .bodies
+            .iter()
+            .enumerate()
+            .map(|(i, g)| {
+                let fits = self.has_body_kernel && body_fits(g);
+                let asleep = self.asleep.get(b0 as usize + i).copied().unwrap_or(false);
+                GpuBody {
+                    first: g.first + n0,
+                    asleep: asleep as u32,
+                    in_workgroup: (fits && self.body_kernel) as u32,
+                    ..*g
+                }
+            })
+            .collect();
+        let body_size = size_of::<GpuBody>();
+        up.put(
+            &b.model.bodies,
+            b0,
+            bytemuck::cast_slice(&bodies),
+            body_size,
+        );
+        // Skin: influences are particles; the body index rides in the rest vertex's w.
+        let nv = packed.vertex_count();
+        let vinf: Vec<[u32; 4]> = packed.vinf.iter().map(|i| i.map(|p| p + n0)).collect();
+        let vrest: Vec<[f32; 4]> = packed
+            .vrest
+            .iter()
+            .map(|&[x, y, z, w]| [x, y, z, f32::from_bits(w.to_bits() + b0)])
+            .collect();
+        up.put(&b.model.vinf, v0, bytemuck::cast_slice(&vinf), 16);
+        up.put(&b.model.vwt, v0, bytemuck::cast_slice(&packed.vwt), 16);
+        up.put(&b.model.vrest, v0, bytemuck::cast_slice(&vrest), 16);
+        let starts: Vec<u32> = packed.adj[..=nv].iter().map(|s| s + at.triangles).collect();
+        let corners = shift_by(&packed.adj[nv + 1..], v0);
+        up.put(&b.model.adj, v0, bytemuck::cast_slice(&starts), 4);
+        let corner_at = self.cap.vertices + 1 + 3 * at.triangles;
+        up.put(&b.model.adj, corner_at, bytemuck::cast_slice(&corners), 4);
+    }
+
+    /// Grid cells for a lattice spacing of `spacing` where it is larger than the grid was
+    /// made for (the next contact search builds them).
+    fn widen_grid(&mut self, queue: &RenderQueue, spacing: f32) {
+        if spacing <= self.max_spacing {
+            return;
+        }
+        self.max_spacing = spacing;
+        let (cell, knn_cell, _) = grid_params(self.cap.particles as usize, spacing);
+        self.params.grid_cell = cell;
+        self.params.knn_cell = knn_cell;
+        let recs = scan_records(&self.levels, self.scan_len, cell, knn_cell);
+        queue.write_buffer(&self.records.scan, 0, bytemuck::cast_slice(&recs));
+    }
+
+    /// Replaces body `body`'s model with `model` (one cluster body) in place, where it
+    /// holds as many particles, render vertices, cluster memberships, adjacency triangles
+    /// and pins: a new material, density, stiffness or pin targets, the same sampling.
+    /// With `state` the body starts from it (a reset); without, it keeps its positions,
+    /// velocities and cluster states. Every other body is untouched. Returns `Ok(false)`
+    /// and changes nothing where the sizes differ, the body was retired, or the world has
+    /// hierarchy levels (the caller then retires the body and appends the new model).
+    pub fn replace_body(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        body: usize,
+        model: &Model,
+        state: Option<&State>,
+    ) -> Result<bool, TissueError> {
+        no_elements(model)?;
+        let Some(&slot) = self.slots.get(body) else {
+            return Ok(false);
+        };
+        if self.retired[body] || !self.coarse.is_empty() || !model.levels.is_empty() {
+            return Ok(false);
+        }
+        if let Some(st) = state
+            && (st.x.len() != model.particle_count() || st.pin_targets.len() != model.pinned.len())
+        {
+            return Err(TissueError::InvalidParameter {
+                name: "state",
+                value: format!(
+                    "{} positions for {} particles",
+                    st.x.len(),
+                    model.particle_count()
+                ),
+                expected: "the state of the new model",
+            });
+        }
+        let packed = Packed::new(model, &self.settings);
+        let (size, _) = packed_use(model, &packed);
+        if size != slot.size || model.pinned.len() as u32 != slot.pins {
+            return Ok(false);
+        }
+        self.widen_grid(queue, packed.max_spacing);
+        let mut up = Uploads::default();
+        // (The row after the body's last particle already holds the list ends: the sizes
+        // are the same.)
+        self.write_bodies(&mut up, &packed, slot.start, slot.pin_start, state, false);
+        up.submit(device, queue);
+        let b = &model.bodies[0];
+        self.body_fits[body] = self.has_body_kernel && body_fits(&packed.bodies[0]);
+        self.stiffness[body] = match b.material {
+            crate::core::model::Material::ShapeMatching { stiffness } => Some(stiffness),
+            _ => None,
+        };
+        self.params.max_radius = self.params.max_radius.max(packed.max_radius);
+        self.params.contact_reach = crate::core::knn::contact_reach_bound(self.params.max_radius);
         Ok(true)
     }
 
@@ -1282,6 +1419,63 @@ impl GpuWorld {
             let slab = Bound::Slab(&group.normals, off);
             r.dispatch("tissue/normals", &k.normals, slab, (wg, 1));
         }
+    }
+
+    /// Copies body `from`'s positions, velocities, cluster states and grabs onto body
+    /// `to` (the same particle count; model order), through a temporary buffer (a buffer
+    /// cannot be copied onto itself): a body appended anew for a new model keeps the pose
+    /// of its old slot. Does nothing where the counts differ.
+    pub fn copy_body_state(
+        &self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        from: usize,
+        to: usize,
+    ) {
+        let (Some(f), Some(t)) = (self.ranges.get(from), self.ranges.get(to)) else {
+            return;
+        };
+        if f.count != t.count || f.count == 0 {
+            return;
+        }
+        let c = f.count as u64;
+        let grab = self.regions.grab_base as u64 * 16;
+        let parts: [(&Buffer, u64, u64); 4] = [
+            (&self.b.state.x, 0, 16),
+            (&self.b.state.v, 0, 16),
+            (&self.b.state.cstate, 0, 48),
+            (&self.b.state.aux, grab, 16),
+        ];
+        let temp = device.create_buffer(&bevy::render::render_resource::BufferDescriptor {
+            label: Some("tissue body state"),
+            size: c * (16 + 16 + 48 + 16),
+            usage: BufferUsages::COPY_SRC | BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = device.create_command_encoder(&Default::default());
+        let mut at = 0;
+        for &(buffer, base, stride) in &parts {
+            enc.copy_buffer_to_buffer(
+                buffer,
+                base + f.first as u64 * stride,
+                &temp,
+                at,
+                c * stride,
+            );
+            at += c * stride;
+        }
+        at = 0;
+        for &(buffer, base, stride) in &parts {
+            enc.copy_buffer_to_buffer(
+                &temp,
+                at,
+                buffer,
+                base + t.first as u64 * stride,
+                c * stride,
+            );
+            at += c * stride;
+        }
+        queue.submit([enc.finish()]);
     }
 
     /// Copies `count` particles' positions, velocities, cluster states and grabs starting at
