@@ -156,40 +156,53 @@ fn identity3() -> mat3x3<f32> {
     return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
 }
 
-// Hourglass amplitudes c_m = Σ_q g_mq · Rᵀ (x_q − x_0), summed over the modes as
-// ½ Σ k_m c_m² (energy) by `hourglass_energy`.
-fn hourglass_energy(b: u32, x: array<vec3<f32>, 8>, rt: mat3x3<f32>, scale: f32) -> f32 {
+// Hourglass amplitudes c_m = Σ_q g_mq · Rᵀ (x_q − x_0) of an element of material b
+// (linear in x: along a line y + a d they are c(y) + a c(d)).
+fn hourglass_amplitudes(b: u32, x: array<vec3<f32>, 8>, rt: mat3x3<f32>) -> array<f32, 12> {
     var lx: array<vec3<f32>, 8>;
     for (var q = 0u; q < 8u; q = q + 1u) {
         lx[q] = rt * (x[q] - x[0]);
     }
-    var out = 0.0;
+    var c: array<f32, 12>;
     let base = b * MAT_STRIDE;
     for (var m = 0u; m < MODES; m = m + 1u) {
-        var c = 0.0;
+        var cm = 0.0;
         for (var q = 0u; q < 8u; q = q + 1u) {
-            c = c + dot(mats[base + 4u + m * 8u + q].xyz, lx[q]);
+            cm = cm + dot(mats[base + 4u + m * 8u + q].xyz, lx[q]);
         }
-        let k = mats[base + 1u + m / 4u][m % 4u];
-        out = out + 0.5 * k * scale * (c * c);
+        c[m] = cm;
     }
-    return out;
+    return c;
 }
 
-// Element energy (J) with rotation r held (core::multigrid::element_energy).
-fn element_energy(e: u32, x: array<vec3<f32>, 8>, r: mat3x3<f32>) -> f32 {
+// Element energy (J) from its deformation gradient f and hourglass amplitudes c, with
+// rotation r held (core::multigrid::element_energy): μ V |sym(Rᵀ F) − I|² + ½ λ V (det F −
+// 1)² + ½ Σ k_m V/h² c_m².
+fn energy_of(e: u32, f: mat3x3<f32>, c: array<f32, 12>, r: mat3x3<f32>) -> f32 {
     let info = elems[3u * e + 2u];
     let b = info.y;
     let size = bitcast<f32>(info.z);
     let volume = bitcast<f32>(info.w);
     let lame = mats[b * MAT_STRIDE];
-    let f = element_gradient(x, size);
     let rtf = transpose(r) * f;
     let s = (rtf + transpose(rtf)) * 0.5 - identity3();
     let ee = dot(s[0], s[0]) + dot(s[1], s[1]) + dot(s[2], s[2]);
     let j = determinant(f) - 1.0;
     let elastic = volume * (lame.x * ee + 0.5 * lame.y * (j * j));
-    return elastic + hourglass_energy(b, x, transpose(r), volume / (size * size));
+    let scale = volume / (size * size);
+    var hourglass = 0.0;
+    for (var m = 0u; m < MODES; m = m + 1u) {
+        let k = mats[b * MAT_STRIDE + 1u + m / 4u][m % 4u];
+        hourglass = hourglass + 0.5 * k * scale * (c[m] * c[m]);
+    }
+    return elastic + hourglass;
+}
+
+// Element energy (J) at corners x with rotation r held.
+fn element_energy(e: u32, x: array<vec3<f32>, 8>, r: mat3x3<f32>) -> f32 {
+    let info = elems[3u * e + 2u];
+    let f = element_gradient(x, bitcast<f32>(info.z));
+    return energy_of(e, f, hourglass_amplitudes(info.y, x, transpose(r)), r);
 }
 
 fn load_x(e: u32, region: u32) -> array<vec3<f32>, 8> {
@@ -328,27 +341,43 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                     d[k] = vec3<f32>(0.0);
                 }
             }
-            let size = bitcast<f32>(elems[3u * e + 2u].z);
+            let info = elems[3u * e + 2u];
+            let size = bitcast<f32>(info.z);
             let q0 = rot[e];
-            var base = 0.0;
             if (mode != 0u) {
-                base = element_energy(e, y, quat_mat(q0));
-            }
-            for (var k = 0u; k < kc; k = k + 1u) {
-                let a = candidate(k0 + k, mode);
-                var xc: array<vec3<f32>, 8>;
-                for (var c = 0u; c < 8u; c = c + 1u) {
-                    xc[c] = y[c] + d[c] * a;
+                // Rotation held: the gradient and the hourglass amplitudes are linear
+                // along the step, F(y + a d) = F(y) + a F(d) (likewise c), so each
+                // candidate's energy needs no corner loop.
+                let r = quat_mat(q0);
+                let rt = transpose(r);
+                let f0 = element_gradient(y, size);
+                let f1 = element_gradient(d, size);
+                let c0 = hourglass_amplitudes(info.y, y, rt);
+                let c1 = hourglass_amplitudes(info.y, d, rt);
+                let base = energy_of(e, f0, c0, r);
+                for (var k = 0u; k < kc; k = k + 1u) {
+                    let a = candidate(k0 + k, mode);
+                    var c: array<f32, 12>;
+                    for (var m = 0u; m < MODES; m = m + 1u) {
+                        c[m] = c0[m] + c1[m] * a;
+                    }
+                    acc[k] = acc[k] + (energy_of(e, f0 + f1 * a, c, r) - base);
                 }
-                var q = q0;
-                if (mode == 0u) {
-                    q = extract_rotation(element_gradient(xc, size), q0, params.rot_iters);
+            } else {
+                var base = 0.0;
+                for (var k = 0u; k < kc; k = k + 1u) {
+                    let a = candidate(k0 + k, mode);
+                    var xc: array<vec3<f32>, 8>;
+                    for (var c = 0u; c < 8u; c = c + 1u) {
+                        xc[c] = y[c] + d[c] * a;
+                    }
+                    let q = extract_rotation(element_gradient(xc, size), q0, params.rot_iters);
+                    let g = element_energy(e, xc, quat_mat(q));
+                    if (k == 0u) {
+                        base = g;
+                    }
+                    acc[k] = acc[k] + (g - base);
                 }
-                let g = element_energy(e, xc, quat_mat(q));
-                if (k == 0u && mode == 0u) {
-                    base = g;
-                }
-                acc[k] = acc[k] + (g - base);
             }
         } else {
             let j = i - params.ne;
