@@ -187,7 +187,9 @@ impl TissueHierarchy {
 /// A soft body: put it on an entity with a `Mesh3d` (any closed triangle mesh) and a
 /// material. The plugin samples particles inside the mesh, builds the body off the main
 /// thread, simulates it on the GPU and draws the entity's mesh from the simulation.
-/// Changing any field rebuilds the body. The default is soft tissue that means its SI
+/// Changing any field rebuilds the body (for a cluster body on the GPU, that body alone:
+/// a new material or stiffness is written in place, keeping its pose; lattice bodies are
+/// rebuilt together). The default is soft tissue that means its SI
 /// parameters: hyperelastic, E = 10 kPa, ν = 0.45, 1060 kg/m³, on hexahedral lattice
 /// elements ([`TissueDiscretisation::Lattice`]); the paper's clusters are
 /// [`TissueDiscretisation::Clusters`].

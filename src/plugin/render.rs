@@ -151,9 +151,11 @@ impl TissueGpu {
         self.world.as_ref()
     }
 
-    /// How many times the world was rebuilt: bodies came, went or were rebuilt, or a
-    /// settings change reached its structure (particle contacts, contact neighbours).
-    /// Per-step settings (gravity, damping, dt, iterations, ...) change in place.
+    /// How many times the world was made again: its room ran out, retired bodies came to
+    /// hold a quarter of its particles (compaction), or a settings change reached its
+    /// structure (particle contacts, contact neighbours). Bodies spawned, despawned or
+    /// rebuilt change it in place, and per-step settings (gravity, damping, dt,
+    /// iterations, ...) go to its parameters.
     pub fn rebuilds(&self) -> u64 {
         self.rebuilds
     }
@@ -300,8 +302,10 @@ pub fn remember_collider_poses(mut q: Query<(&GlobalTransform, &mut LastPose)>) 
     }
 }
 
-/// Keeps the GPU world in step with the extracted bodies: rebuilds (keeping the state of
-/// surviving bodies) when bodies come, go or are rebuilt; updates colliders and params.
+/// Keeps the GPU world in step with the extracted bodies: changes it in place when
+/// bodies come, go or are rebuilt (appended into its room, retired, replaced), and makes
+/// it again (keeping the state of surviving bodies, with room) when that cannot be done;
+/// updates colliders and params.
 pub fn prepare_tissue(
     mut gpu: ResMut<TissueGpu>,
     extracted: Option<Res<ExtractedTissue>>,
@@ -324,7 +328,7 @@ pub fn prepare_tissue(
     let keys: Vec<(Entity, u64)> = ex.bodies.iter().map(|b| (b.entity, b.generation)).collect();
     let settings_changed = gpu.settings.as_ref() != Some(&ex.settings);
     // Per-step settings (gravity, damping, dt, iterations, ...) go to the parameters; a
-    // change of the world's structure, or of its bodies, rebuilds it.
+    // change of the world's structure rebuilds it.
     let in_place = keys == gpu.keys
         && settings_changed
         && gpu.world.as_mut().is_some_and(|w| {
@@ -334,8 +338,8 @@ pub fn prepare_tissue(
     if in_place {
         gpu.settings = Some(ex.settings.clone());
     } else if keys != gpu.keys || settings_changed {
-        // Bodies that went away are retired in place and new ones appended; a body
-        // rebuilt (or no room left) rebuilds the world.
+        // Bodies that went away are retired in place, rebuilt ones replaced and new ones
+        // appended; no room left (or too much retired) rebuilds the world.
         if settings_changed || !edit_in_place(&mut gpu, &ex, &keys, &device, &queue, &sender) {
             rebuild(&mut gpu, &ex, &device, &queue, &sender, keys);
         }
