@@ -1,7 +1,7 @@
 //! The one binding table of the simulation kernels ([`TABLE`]), grouped by lifetime, and
 //! what is made from it: the WGSL declarations every module starts with
 //! ([`compose`]), and each entry point's bind group layouts, holding only the bindings
-//! its shader uses (found by naga's analysis of the module, [`used_by`]).
+//! its shader uses (found by naga's analysis of the module, [`Analysis::uses`]).
 //!
 //! A binding's group is its [`Lifetime`]: per-frame parameters and colliders (group 0),
 //! particle state and solver work (group 1), the static model (group 2), and per-dispatch

@@ -54,7 +54,7 @@ impl KernelBind {
                 .all(|&i| window(kernels::bindings::TABLE[i].name).is_some())
             {
                 // Group 3 from the world's own records; the draw kernels' comes with the
-                // slab ([`GpuWorld::slab_group`]).
+                // slab ([`GpuWorld::slab_group`](super::GpuWorld::slab_group)).
                 own = Some(bind_group(device, kernel.name, layout, uses, &window));
             }
         }
@@ -86,7 +86,7 @@ pub(super) fn bind_group<'a>(
 }
 
 /// The bind groups that let the draw kernels write into one vertex slab (one per kernel
-/// that writes it); made by [`GpuWorld::slab_group`].
+/// that writes it); made by [`GpuWorld::slab_group`](super::GpuWorld::slab_group).
 pub struct SlabGroup {
     pub(super) skin: BindGroup,
     pub(super) normals: BindGroup,
@@ -542,9 +542,9 @@ impl Regions {
 /// then the near list (`NEAR_SLOTS` indices, four to an entry).
 pub(super) const BOUNDS_PER_BODY: u32 = 3 + kernels::broad::NEAR_SLOTS / 4;
 
-/// What a world's buffers have room for. A world made by [`GpuWorld::new`] has room for
-/// its model and no more; [`GpuWorld::with_room`] and [`GpuWorld::with_capacity`] leave
-/// room for bodies appended later ([`GpuWorld::append`]) without a new allocation.
+/// What a world's buffers have room for. A world made by [`GpuWorld::new`](super::GpuWorld::new) has room for
+/// its model and no more; [`GpuWorld::with_room`](super::GpuWorld::with_room) and [`GpuWorld::with_capacity`](super::GpuWorld::with_capacity) leave
+/// room for bodies appended later ([`GpuWorld::append`](super::GpuWorld::append)) without a new allocation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Capacity {
     /// Particles (a world with hierarchy levels has room for its own only).

@@ -1,6 +1,6 @@
 //! The dispatches of a world's time steps as data: a pure function of the world's
 //! shape ([`Shape`]) and the solver settings, made and tested on the CPU; the world's
-//! recording replays it ([`super::record`]).
+//! recording replays it (`record`).
 //!
 //! A step (the CPU Jacobi solver's, `core::solver`): contact neighbours every
 //! `knn_every` steps (broad phase, grid, K nearest), then per substep predict (the first
