@@ -36,8 +36,9 @@
 //! `--edits` instead measures what changing the world costs a frame, as the plugin
 //! changes it: the `1000g` bodies (`--bodies N`) stepped one step a frame with the
 //! plugin's settings in a world with the plugin's room for more, then gravity halved
-//! (`GpuWorld::set_settings`), a body despawned (`retire`), a body spawned (`append`) and,
-//! for comparison, the whole world made again (what every change cost before). For each:
+//! (`GpuWorld::set_settings`), a body despawned (`retire`), a body spawned (`append`), the
+//! room grown by half on the GPU (`grow`, what a spawn past the room costs) and, for
+//! comparison, the whole world made again (what every change cost before). For each:
 //! the CPU time of the call, and the GPU and wall time of the frame after it, against
 //! the median frame.
 //!
@@ -476,6 +477,21 @@ fn edits(g: &Headless, bodies: u32, quick: bool) {
         "| of which packing the body's arrays (CPU) | {:.0} | | | |",
         bench::median(packing)
     );
+    change("the room grown by half (grow)", &mut world, &mut |w, _| {
+        let c = w.capacity();
+        let half = |x: u32| x + x / 2;
+        let more = bevy_tissue::gpu::world::Capacity {
+            particles: half(c.particles),
+            bodies: half(c.bodies),
+            vertices: half(c.vertices),
+            members: half(c.members),
+            triangles: half(c.triangles),
+        };
+        assert!(
+            w.grow(&g.device, &g.queue, &g.kernels, more).unwrap(),
+            "grown"
+        );
+    });
     let mut all = model.clone();
     for m in &spawned {
         all.append(m);

@@ -449,8 +449,8 @@ fn gpu_bench_edits_times_every_change() {
         .lines()
         .filter(|l| l.starts_with("| ") && !l.starts_with("| change"))
         .collect();
-    // Frames with and without the contact search, four changes, the packing's share.
-    assert_eq!(rows.len(), 7, "baselines, four changes, packing:\n{stdout}");
+    // Frames with and without the contact search, five changes, the packing's share.
+    assert_eq!(rows.len(), 8, "baselines, five changes, packing:\n{stdout}");
     for r in &rows {
         let numbers: Vec<f64> = r
             .split('|')
@@ -460,7 +460,7 @@ fn gpu_bench_edits_times_every_change() {
         assert!(numbers.len() >= want, "a row without times: {r}");
         assert!(numbers.iter().all(|x| x.is_finite() && *x >= 0.0), "{r}");
     }
-    for change in ["set_settings", "retire", "append", "made again"] {
+    for change in ["set_settings", "retire", "append", "grow", "made again"] {
         assert!(
             rows.iter().any(|r| r.contains(change)),
             "no {change} row:\n{stdout}"

@@ -1981,6 +1981,50 @@ fn a_replaced_body_moves_as_in_a_world_made_with_it() {
     assert_eq!(x[at(r0)], x[at(r2)], "the appended body took the pose");
 }
 
+/// A world grown on the GPU (`GpuWorld::grow`: new buffers, everything copied over) moves
+/// on exactly as a world made with that room from the start, draws the same, and takes
+/// appended bodies into its new room.
+#[test]
+fn a_grown_world_moves_on_as_one_made_with_the_room() {
+    let Some(g) = gpu() else { return };
+    let (two, s, ground) = boxes_on_the_ground(0.6, &[-0.1, -0.068]);
+    let state = State::new(&two);
+    let mut roomy =
+        GpuWorld::with_room(&g.device, &g.kernels, &two, &state, s.clone(), 0, 2.5).unwrap();
+    let cap = roomy.capacity();
+    let mut grown = GpuWorld::new(&g.device, &g.kernels, &two, &state, s.clone(), 0).unwrap();
+    assert!(grown.capacity().particles < cap.particles);
+    run_gpu(g, &mut roomy, &ground, 10);
+    run_gpu(g, &mut grown, &ground, 10);
+    assert!(grown.grow(&g.device, &g.queue, &g.kernels, cap).unwrap());
+    assert_eq!(grown.capacity(), cap);
+    let a = run_gpu(g, &mut roomy, &ground, 30);
+    let b = run_gpu(g, &mut grown, &ground, 30);
+    assert!(
+        max_dist(&a, &b) == 0.0,
+        "moved on differently by {} m",
+        max_dist(&a, &b)
+    );
+    assert!(max_dist(&a, &state.x) > 0.005, "the scene moved");
+    assert_eq!(
+        draw_surface(g, &roomy),
+        draw_surface(g, &grown),
+        "drawn the same"
+    );
+    // The new room takes a body.
+    let (third, _, _) = boxes_on_the_ground(0.6, &[0.2]);
+    let st = State::new(&third);
+    assert!(roomy.append(&g.device, &g.queue, &third, &st).unwrap());
+    assert!(grown.append(&g.device, &g.queue, &third, &st).unwrap());
+    let a = run_gpu(g, &mut roomy, &ground, 20);
+    let b = run_gpu(g, &mut grown, &ground, 20);
+    assert!(
+        max_dist(&a, &b) == 0.0,
+        "with the appended body: {} m",
+        max_dist(&a, &b)
+    );
+}
+
 /// A retired body (`GpuWorld::retire`, what the plugin does on a despawn) leaves every
 /// other body's motion exactly as it was, sleeps for good, and its particles are parked
 /// far away; a world with hierarchy levels refuses (the caller rebuilds).

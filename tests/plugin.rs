@@ -1281,4 +1281,51 @@ fn despawning_or_spawning_a_body_does_not_rebuild_the_world() {
         step(&app, bodies[0]).unwrap() >= now + 20,
         "the others go on"
     );
+    // More at once than the room holds: it grows on the GPU, still no rebuild.
+    let room = gpu_world_capacity(&app);
+    let used = app
+        .sub_app(RenderApp)
+        .world()
+        .resource::<TissueGpu>()
+        .world()
+        .map_or(0, |w| w.ranges.len() as u32);
+    let more: Vec<Entity> = (0..room + 1 - used)
+        .map(|i| {
+            let x = 2.0 + 0.5 * i as f32;
+            let (b, pinned) = body_of(TissueMaterial::ShapeMatching { stiffness: 0.5 });
+            let e = spawn_body(&mut app, Vec3::new(x, 0.3, 0.0), b, Some(pinned));
+            app.world_mut()
+                .entity_mut(e)
+                .insert(ReadbackParticles { continuous: true });
+            e
+        })
+        .collect();
+    assert!(
+        until(&mut app, 300, |app| more
+            .iter()
+            .all(|&e| step(app, e).is_some())),
+        "the bodies spawned past the room did not step"
+    );
+    let gpu = app.sub_app(RenderApp).world().resource::<TissueGpu>();
+    let world = gpu.world().expect("world");
+    assert_eq!(
+        gpu.rebuilds(),
+        rebuilds,
+        "the world was rebuilt past its room"
+    );
+    assert_eq!(world.ranges.len() as u32, room + 1);
+    assert!(
+        world.capacity().bodies > room,
+        "the room grew ({} bodies, was {room})",
+        world.capacity().bodies
+    );
+}
+
+/// Bodies the render graph's world has room for.
+fn gpu_world_capacity(app: &App) -> u32 {
+    app.sub_app(RenderApp)
+        .world()
+        .resource::<TissueGpu>()
+        .world()
+        .map_or(0, |w| w.capacity().bodies)
 }

@@ -395,10 +395,10 @@ const ROOM: f32 = 1.5;
 /// ([`GpuWorld::retire`]), replaces a rebuilt one's model where it has as many
 /// particles (a new material or stiffness: [`GpuWorld::replace_body`], keeping its
 /// pose unless it was reset) or else retires it and appends it anew, and appends the new
-/// ones ([`GpuWorld::append`]); every other body keeps its state. Returns false (the
-/// caller rebuilds, which compacts and makes room) where the new ones do not fit in its
-/// room or retired bodies would then hold more than a quarter of its particles. A new
-/// body too big for the adapter is reported and left out, as in a rebuild.
+/// ones ([`GpuWorld::append_or_grow`]: into the room, grown on the GPU where it is too
+/// small); every other body keeps its state. Returns false (the caller rebuilds, which
+/// compacts) where retired bodies would then hold more than a quarter of its particles.
+/// A new body too big for the adapter is reported and left out, as in a rebuild.
 fn edit_in_place(
     gpu: &mut TissueGpu,
     ex: &ExtractedTissue,
@@ -410,6 +410,8 @@ fn edit_in_place(
     let TissueGpu {
         world: Some(world),
         world_keys,
+        kernels: Some(Ok(kernels)),
+        slab_groups,
         ..
     } = gpu
     else {
@@ -458,17 +460,16 @@ fn edit_in_place(
             }
         }
     }
-    let room = world.capacity();
-    let used = world.used();
-    let fits = |u: u32, more: usize, cap: u32| u as usize + more <= cap as usize;
-    if !fits(used.particles, model.particle_count(), room.particles)
-        || !fits(used.bodies, model.bodies.len(), room.bodies)
-    {
-        return false;
-    }
     if !added.is_empty() {
+        // Into the room; where it is too small the room grows on the GPU first.
         let state = crate::core::solver::State::new(&model);
-        match world.append(device, queue, &model, &state) {
+        let room = world.capacity();
+        let appended = world.append_or_grow(device, queue, kernels, &model, &state, ROOM);
+        if world.capacity() != room {
+            // New buffers: the slabs' bind groups are made again.
+            slab_groups.clear();
+        }
+        match appended {
             Ok(true) => world_keys.extend(added),
             Ok(false) => return false,
             Err(e) => {

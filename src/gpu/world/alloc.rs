@@ -244,6 +244,8 @@ pub(super) struct StateSizes {
     pub(super) scan_len: u32,
     /// Hash buckets.
     pub(super) table: u32,
+    /// Entries of the shared scratch (`Regions::aux_len`).
+    pub(super) aux: u64,
 }
 
 /// A grab as the kernels read it: offset in the grasper's frame (m) and the grasper + 1
@@ -276,14 +278,32 @@ pub(super) struct StateBuffers {
 }
 
 impl StateBuffers {
-    pub(super) fn new(device: &RenderDevice, a: &StateArrays, z: &StateSizes) -> Self {
+    /// The buffers holding `a` (or zeroed, of the sizes `z` names, without it: their
+    /// contents are copied in afterwards).
+    pub(super) fn new(device: &RenderDevice, a: Option<&StateArrays>, z: &StateSizes) -> Self {
         let st = STORAGE;
         let p = z.particles;
+        let make = |label: &str, data: Option<&[u8]>, bytes: u64| match data {
+            Some(d) => init(device, label, d, st),
+            None => zeroed(device, label, bytes, st),
+        };
         Self {
-            x: init(device, "tissue x", bytemuck::cast_slice(&a.x), st),
-            v: init(device, "tissue v", bytemuck::cast_slice(&a.v), st),
-            aux: init(device, "tissue aux", bytemuck::cast_slice(&a.aux), st),
-            cstate: init(device, "tissue cstate", bytemuck::cast_slice(&a.cstate), st),
+            x: make(
+                "tissue x",
+                a.map(|a| bytemuck::cast_slice(&a.x)),
+                2 * z.total * 16,
+            ),
+            v: make("tissue v", a.map(|a| bytemuck::cast_slice(&a.v)), p * 16),
+            aux: make(
+                "tissue aux",
+                a.map(|a| bytemuck::cast_slice(&a.aux)),
+                z.aux * 16,
+            ),
+            cstate: make(
+                "tissue cstate",
+                a.map(|a| bytemuck::cast_slice(&a.cstate)),
+                z.total * size_of::<GpuClusterState>() as u64,
+            ),
             corr: zeroed(device, "tissue corr", z.total * CORR_BYTES, st),
             contacts: unknown_lists(device, "tissue contacts", p * z.contact_k.max(1) as u64, st),
             scan: zeroed(device, "tissue scan", z.scan_len as u64 * 4, st),
@@ -400,7 +420,55 @@ pub(super) struct ModelBuffers {
     pub(super) adj: Buffer,
 }
 
+/// Entries of group 2's arrays, for buffers made empty (their contents copied in).
+pub(super) struct ModelSizes {
+    /// Particles (level 0 and the rest of the levels).
+    pub(super) total: u64,
+    /// Level-0 particles (the pin region).
+    pub(super) particles: u64,
+    /// Cluster memberships (each of the two list regions).
+    pub(super) members: u64,
+    /// Bodies.
+    pub(super) bodies: u64,
+    /// Render vertices.
+    pub(super) vertices: u64,
+    /// Adjacency triangles.
+    pub(super) triangles: u64,
+}
+
 impl ModelBuffers {
+    /// Empty buffers of the sizes `z` names (no hierarchy tables).
+    pub(super) fn zeroed(device: &RenderDevice, z: &ModelSizes) -> Self {
+        let st = STORAGE;
+        Self {
+            rest: zeroed(device, "tissue rest", (z.total + z.particles) * 16, st),
+            pinfo: zeroed(device, "tissue pinfo", (z.total + 1) * 16, st),
+            lists: zeroed(device, "tissue lists", 2 * z.members * 4, st),
+            crest: zeroed(
+                device,
+                "tissue crest",
+                z.total * size_of::<GpuClusterRest>() as u64,
+                st,
+            ),
+            bodies: zeroed(
+                device,
+                "tissue bodies",
+                z.bodies * size_of::<GpuBody>() as u64,
+                st,
+            ),
+            hier: zeroed(device, "tissue hierarchy", 16, st),
+            vinf: zeroed(device, "tissue vinf", z.vertices * 16, st),
+            vwt: zeroed(device, "tissue vwt", z.vertices * 16, st),
+            vrest: zeroed(device, "tissue vrest", z.vertices * 16, st),
+            adj: zeroed(
+                device,
+                "tissue adj",
+                (z.vertices + 1 + 3 * z.triangles) * 4,
+                st,
+            ),
+        }
+    }
+
     /// The model's arrays and the hierarchy's tables `hier`.
     pub(super) fn new(device: &RenderDevice, a: &ModelArrays, hier: &[u32]) -> Self {
         let st = STORAGE;

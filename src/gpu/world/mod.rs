@@ -558,7 +558,7 @@ impl GpuWorld {
             frame: FrameBuffers::new(device, bcap),
             state: StateBuffers::new(
                 device,
-                &st,
+                Some(&st),
                 &StateSizes {
                     particles: pcap as u64,
                     total,
@@ -568,6 +568,7 @@ impl GpuWorld {
                     spare_stride,
                     scan_len,
                     table,
+                    aux: regions.aux_len as u64,
                 },
             ),
             model: ModelBuffers::new(device, &ma, &packed.hier),
@@ -587,7 +588,10 @@ impl GpuWorld {
             device,
             "tissue surface",
             vcap as u64 * 32,
-            BufferUsages::STORAGE | BufferUsages::VERTEX | BufferUsages::COPY_SRC,
+            BufferUsages::STORAGE
+                | BufferUsages::VERTEX
+                | BufferUsages::COPY_SRC
+                | BufferUsages::COPY_DST,
         );
         let binds = kernels
             .all()
@@ -939,6 +943,245 @@ impl GpuWorld {
         up.put(&b.model.adj, v0, bytemuck::cast_slice(&starts), 4);
         let corner_at = self.cap.vertices + 1 + 3 * at.triangles;
         up.put(&b.model.adj, corner_at, bytemuck::cast_slice(&corners), 4);
+    }
+
+    /// [`GpuWorld::append`], growing the room first where it is too small
+    /// ([`GpuWorld::grow`]: to `growth` times what the bodies then use, and at least one
+    /// more of the largest appended). `Ok(false)` where the world has hierarchy levels.
+    #[allow(clippy::too_many_arguments)]
+    pub fn append_or_grow(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        kernels: &Kernels,
+        model: &Model,
+        state: &State,
+        growth: f32,
+    ) -> Result<bool, TissueError> {
+        if self.append(device, queue, model, state)? {
+            return Ok(true);
+        }
+        if !self.coarse.is_empty() || !model.levels.is_empty() {
+            return Ok(false);
+        }
+        let packed = Packed::new(model, &self.settings);
+        let (more, largest) = packed_use(model, &packed);
+        let want = self.used.add(more).grown(growth, largest);
+        if !self.grow(device, queue, kernels, want)? {
+            return Ok(false);
+        }
+        self.append(device, queue, model, state)
+    }
+
+    /// Grows the world's room to at least `capacity` without making it again from the
+    /// models: new buffers, into which every body's state, model, neighbour lists and
+    /// draw arrays are copied on the GPU (one submission); the grid is made for the new
+    /// room at the next step's contact search. Every body moves on as before. Returns
+    /// `Ok(false)` for a world with hierarchy levels (it has no room), and an error
+    /// where the adapter cannot bind that much.
+    pub fn grow(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        kernels: &Kernels,
+        capacity: Capacity,
+    ) -> Result<bool, TissueError> {
+        if !self.coarse.is_empty() {
+            return Ok(false);
+        }
+        let cap = self.cap.max(capacity);
+        if cap == self.cap {
+            return Ok(true);
+        }
+        let (pcap, bcap, vcap) = (cap.particles, cap.bodies, cap.vertices);
+        let p64 = pcap as u64;
+        let limits = device.limits();
+        let counts = [p64, p64, vcap as u64, 2 * cap.members as u64, bcap as u64];
+        check_counts(&limits, counts, &self.settings)?;
+        let contact_k = contact_k(&self.settings, pcap);
+        let spare_stride = self.knn_k.max(contact_k) + SPARE_EXTRA;
+        let (cell, knn_cell, table) = grid_params(pcap as usize, self.max_spacing);
+        let mut levels = Vec::new();
+        let mut off = 0u32;
+        for c in scan_levels(table + 1) {
+            levels.push((off, c));
+            off += c;
+        }
+        let scan_len = off + 1;
+        let regions = Regions::new(pcap, pcap, pcap, bcap);
+        let b = Buffers {
+            frame: FrameBuffers::new(device, bcap),
+            state: StateBuffers::new(
+                device,
+                None,
+                &StateSizes {
+                    particles: p64,
+                    total: p64,
+                    bodies: bcap as u64,
+                    contact_k,
+                    knn_k: self.knn_k,
+                    spare_stride,
+                    scan_len,
+                    table,
+                    aux: regions.aux_len as u64,
+                },
+            ),
+            model: ModelBuffers::zeroed(
+                device,
+                &ModelSizes {
+                    total: p64,
+                    particles: p64,
+                    members: cap.members as u64,
+                    bodies: bcap as u64,
+                    vertices: vcap as u64,
+                    triangles: cap.triangles as u64,
+                },
+            ),
+        };
+        let surface = zeroed(
+            device,
+            "tissue surface",
+            vcap as u64 * 32,
+            BufferUsages::STORAGE
+                | BufferUsages::VERTEX
+                | BufferUsages::COPY_SRC
+                | BufferUsages::COPY_DST,
+        );
+        // Everything the bodies hold, old place to new (scratch is remade by the steps).
+        let (n, nb, nv) = (
+            self.n as u64,
+            self.ranges.len() as u64,
+            self.n_vertices as u64,
+        );
+        let (u, o, r) = (self.used, self.regions, regions);
+        let (os, ns, om, nm) = (&self.b.state, &b.state, &self.b.model, &b.model);
+        let mut copies: Vec<(&Buffer, u64, &Buffer, u64, u64)> = vec![
+            (&os.x, 0, &ns.x, 0, n * 16),
+            (
+                &os.x,
+                o.p_base as u64 * 16,
+                &ns.x,
+                r.p_base as u64 * 16,
+                n * 16,
+            ),
+            (&os.v, 0, &ns.v, 0, n * 16),
+            (
+                &os.cstate,
+                0,
+                &ns.cstate,
+                0,
+                n * size_of::<GpuClusterState>() as u64,
+            ),
+            (
+                &os.aux,
+                o.grab_base as u64 * 16,
+                &ns.aux,
+                r.grab_base as u64 * 16,
+                n * 16,
+            ),
+            (&os.knn_out, 0, &ns.knn_out, 0, n * self.knn_k as u64 * 4),
+            (&os.status, 0, &ns.status, 0, nb * 4),
+            (&om.rest, 0, &nm.rest, 0, n * 16),
+            (
+                &om.rest,
+                o.pin_base as u64 * 16,
+                &nm.rest,
+                r.pin_base as u64 * 16,
+                self.pins as u64 * 16,
+            ),
+            (&om.pinfo, 0, &nm.pinfo, 0, (n + 1) * 16),
+            (&om.lists, 0, &nm.lists, 0, u.members as u64 * 4),
+            (
+                &om.lists,
+                self.cap.members as u64 * 4,
+                &nm.lists,
+                cap.members as u64 * 4,
+                u.members as u64 * 4,
+            ),
+            (
+                &om.crest,
+                0,
+                &nm.crest,
+                0,
+                n * size_of::<GpuClusterRest>() as u64,
+            ),
+            (
+                &om.bodies,
+                0,
+                &nm.bodies,
+                0,
+                nb * size_of::<GpuBody>() as u64,
+            ),
+            (&om.vinf, 0, &nm.vinf, 0, nv * 16),
+            (&om.vwt, 0, &nm.vwt, 0, nv * 16),
+            (&om.vrest, 0, &nm.vrest, 0, nv * 16),
+            (&om.adj, 0, &nm.adj, 0, (nv + 1) * 4),
+            (
+                &om.adj,
+                (self.cap.vertices as u64 + 1) * 4,
+                &nm.adj,
+                (vcap as u64 + 1) * 4,
+                3 * u.triangles as u64 * 4,
+            ),
+            (&self.surface, 0, &surface, 0, nv * 32),
+        ];
+        // Contact lists keep their stride only where K is the same (else they start
+        // cold).
+        let same_k = contact_k == self.contact_k;
+        if same_k {
+            copies.push((&os.contacts, 0, &ns.contacts, 0, n * contact_k as u64 * 4));
+        }
+        let mut enc = device.create_command_encoder(&Default::default());
+        for (from, at, to, to_at, bytes) in copies {
+            if bytes > 0 {
+                enc.copy_buffer_to_buffer(from, at, to, to_at, bytes);
+            }
+        }
+        queue.submit([enc.finish()]);
+        let p = &mut self.params;
+        p.p_base = r.p_base;
+        p.pin_base = r.pin_base;
+        p.coldp_base = r.coldp_base;
+        p.grab_base = r.grab_base;
+        p.bounds_base = r.bounds_base;
+        p.sorted_base = r.sorted_base;
+        p.inv_offset = cap.members;
+        p.body_cap = bcap;
+        p.vertex_cap = vcap;
+        p.grid_cell = cell;
+        p.knn_cell = knn_cell;
+        p.grid_table = table;
+        p.contact_k = contact_k;
+        p.spare_stride = spare_stride;
+        let contacts_on = self.settings.particle_contacts && self.ranges.len() > 1 && contact_k > 0;
+        p.contacts = contacts_on as u32;
+        let recs = scan_records(&levels, scan_len, cell, knn_cell);
+        let lrecs = range_records(
+            self.n,
+            contacts_on,
+            &self.coarse,
+            self.records_base,
+            self.block_records,
+        );
+        let records = DispatchBuffers::new(device, &recs, &lrecs);
+        self.binds = kernels
+            .all()
+            .iter()
+            .map(|k| KernelBind::new(device, k, &b, &records.scan, &records.ranges))
+            .collect();
+        self.b = b;
+        self.surface = surface;
+        self.records = records;
+        self.regions = regions;
+        self.levels = levels;
+        self.scan_len = scan_len;
+        self.cap = cap;
+        self.contacts_on = contacts_on;
+        self.contact_k = contact_k;
+        self.contacts_warm &= same_k;
+        // The grid is made for the new room at the next search.
+        self.refresh_contacts = self.contacts_on;
+        Ok(true)
     }
 
     /// Grid cells for a lattice spacing of `spacing` where it is larger than the grid was
