@@ -444,22 +444,12 @@ fn edit_in_place(
         .collect();
     // Check the new bodies before changing anything (no room: rebuild).
     let solver = ex.settings.to_core();
-    let limits = device.limits();
+    let fitting = that_fit(new, device, &solver, sender);
     let mut model = Model::new();
-    let mut added = Vec::new();
-    for b in new {
-        match GpuWorld::check_limits(&limits, &b.model, &solver) {
-            Ok(()) => {
-                model.append(&b.model);
-                added.push((b.entity, b.generation));
-            }
-            Err(e) => {
-                let _ = sender
-                    .0
-                    .send(ReadbackResult::Error(b.entity, e.to_string()));
-            }
-        }
+    for b in &fitting {
+        model.append(&b.model);
     }
+    let added: Vec<(Entity, u64)> = fitting.iter().map(|b| (b.entity, b.generation)).collect();
     if !added.is_empty() {
         // Into the room; where it is too small the room grows on the GPU first.
         let state = crate::core::solver::State::new(&model);
@@ -509,6 +499,31 @@ fn edit_in_place(
     true
 }
 
+/// The `bodies` the adapter can hold on their own; each other one is reported (and left
+/// out).
+fn that_fit<'a>(
+    bodies: impl IntoIterator<Item = &'a ExtractedBody>,
+    device: &RenderDevice,
+    solver: &crate::core::solver::SolverSettings,
+    sender: &ReadbackSender,
+) -> Vec<&'a ExtractedBody> {
+    let limits = device.limits();
+    bodies
+        .into_iter()
+        .filter(
+            |b| match GpuWorld::check_limits(&limits, &b.model, solver) {
+                Ok(()) => true,
+                Err(e) => {
+                    let _ = sender
+                        .0
+                        .send(ReadbackResult::Error(b.entity, e.to_string()));
+                    false
+                }
+            },
+        )
+        .collect()
+}
+
 fn rebuild(
     gpu: &mut TissueGpu,
     ex: &ExtractedTissue,
@@ -527,18 +542,7 @@ fn rebuild(
     }
     // A body too big for the adapter on its own is reported and left out.
     let solver = ex.settings.to_core();
-    let limits = device.limits();
-    let mut fits = Vec::new();
-    for b in &ex.bodies {
-        match GpuWorld::check_limits(&limits, &b.model, &solver) {
-            Ok(()) => fits.push(b),
-            Err(e) => {
-                let _ = sender
-                    .0
-                    .send(ReadbackResult::Error(b.entity, e.to_string()));
-            }
-        }
-    }
+    let fits = that_fit(ex.bodies.iter(), device, &solver, sender);
     let mut model = Model::new();
     for b in &fits {
         model.append(&b.model);

@@ -604,6 +604,20 @@ impl Regions {
             aux_len: sorted_base + n,
         }
     }
+
+    /// Writes the region bases, and the room they are laid out for (`cap`: the inverse
+    /// lists' start, the per-body and per-vertex layouts), into `p`.
+    pub(super) fn write_bases(&self, p: &mut GpuParams, cap: Capacity) {
+        p.p_base = self.p_base;
+        p.pin_base = self.pin_base;
+        p.coldp_base = self.coldp_base;
+        p.grab_base = self.grab_base;
+        p.bounds_base = self.bounds_base;
+        p.sorted_base = self.sorted_base;
+        p.inv_offset = cap.members;
+        p.body_cap = cap.bodies;
+        p.vertex_cap = cap.vertices;
+    }
 }
 
 /// `vec4` entries per body in the bounds region: min and max, the broad phase's flag,

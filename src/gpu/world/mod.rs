@@ -100,6 +100,18 @@ struct BodySlot {
     pins: u32,
 }
 
+impl BodySlot {
+    /// The body's particle and render-vertex ranges.
+    fn range(&self) -> BodyRange {
+        BodyRange {
+            first: self.start.particles,
+            count: self.size.particles,
+            vfirst: self.start.vertices,
+            vcount: self.size.vertices,
+        }
+    }
+}
+
 /// The slots of the bodies of `model` packed as `packed`, numbered on from `at` (pins
 /// from `pins`).
 fn body_slots(model: &Model, packed: &Packed, at: Capacity, pins: u32) -> Vec<BodySlot> {
@@ -246,6 +258,31 @@ pub const MAX_SKIN_RUNS: usize = 64;
 /// `list` with `by` added to every entry.
 fn shift_by(list: &[u32], by: u32) -> Vec<u32> {
     list.iter().map(|i| i + by).collect()
+}
+
+/// Shape matching's stiffness k of a body, `None` for a hyperelastic one.
+fn shape_stiffness(m: &crate::core::model::Material) -> Option<f32> {
+    match *m {
+        crate::core::model::Material::ShapeMatching { stiffness } => Some(stiffness),
+        _ => None,
+    }
+}
+
+/// The prefix sum's levels (first element, elements) over a grid of `table` buckets,
+/// and the scan's length.
+fn scan_layout(table: u32) -> (Vec<(u32, u32)>, u32) {
+    let mut levels = Vec::new();
+    let mut off = 0u32;
+    for c in scan_levels(table + 1) {
+        levels.push((off, c));
+        off += c;
+    }
+    (levels, off + 1)
+}
+
+/// Whether particle contacts run: asked for, more than one body, and room for candidates.
+fn contacts_run(settings: &SolverSettings, bodies: usize, contact_k: u32) -> bool {
+    settings.particle_contacts && bodies > 1 && contact_k > 0
 }
 
 /// Contact candidates kept per particle in a world with room for `particles`.
@@ -540,17 +577,10 @@ impl GpuWorld {
         );
         let nv = packed.vertex_count() as u32;
         let contact_k = contact_k(&settings, pcap);
-        let contacts_on = settings.particle_contacts && model.bodies.len() > 1 && contact_k > 0;
+        let contacts_on = contacts_run(&settings, model.bodies.len(), contact_k);
         let spare_stride = knn_k.max(contact_k) + SPARE_EXTRA;
         let (cell, knn_cell, table) = grid_params(pcap as usize, packed.max_spacing);
-        let level_counts = scan_levels(table + 1);
-        let mut levels = Vec::new();
-        let mut off = 0u32;
-        for &c in &level_counts {
-            levels.push((off, c));
-            off += c;
-        }
-        let scan_len = off + 1;
+        let (levels, scan_len) = scan_layout(table);
         let regions = Regions::new(pcap, total as u32, total as u32, bcap);
         let st = StateArrays::new(model, &packed, state, pcap, total, &regions);
         let ma = ModelArrays::new(&packed, state, cap, total, gpu_bodies);
@@ -598,21 +628,11 @@ impl GpuWorld {
             .iter()
             .map(|k| KernelBind::new(device, k, &b, &records.scan, &records.ranges))
             .collect();
-        let ranges = model
-            .bodies
-            .iter()
-            .enumerate()
-            .map(|(i, body)| BodyRange {
-                first: body.first,
-                count: body.count,
-                vfirst: packed.vfirst[i],
-                vcount: body.skin.rest_vertices.len() as u32,
-            })
-            .collect();
+        let slots = body_slots(model, &packed, Capacity::default(), 0);
+        let ranges = slots.iter().map(BodySlot::range).collect();
         let mut params = GpuParams {
             n,
             contacts: contacts_on as u32,
-            inv_offset: cap.members,
             contact_k,
             n_vertices: nv,
             grid_cell: cell,
@@ -623,16 +643,9 @@ impl GpuWorld {
             knn_cell,
             spare_stride,
             contact_reach: crate::core::knn::contact_reach_bound(packed.max_radius),
-            p_base: regions.p_base,
-            pin_base: regions.pin_base,
-            coldp_base: regions.coldp_base,
-            grab_base: regions.grab_base,
-            bounds_base: regions.bounds_base,
-            sorted_base: regions.sorted_base,
-            body_cap: bcap,
-            vertex_cap: vcap,
             ..Default::default()
         };
+        regions.write_bases(&mut params, cap);
         step_params(&mut params, &settings);
         Ok(Self {
             settings,
@@ -665,12 +678,9 @@ impl GpuWorld {
             stiffness: model
                 .bodies
                 .iter()
-                .map(|b| match b.material {
-                    crate::core::model::Material::ShapeMatching { stiffness } => Some(stiffness),
-                    _ => None,
-                })
+                .map(|b| shape_stiffness(&b.material))
                 .collect(),
-            slots: body_slots(model, &packed, Capacity::default(), 0),
+            slots,
             cap,
             used,
             pins: model.pinned.len() as u32,
@@ -784,41 +794,30 @@ impl GpuWorld {
         }
         self.widen_grid(queue, packed.max_spacing);
         let at = self.used;
-        let (n0, v0) = (at.particles, at.vertices);
         let mut up = Uploads::default();
         self.write_bodies(&mut up, &packed, at, self.pins, Some(state), true);
         up.submit(device, queue);
-        self.slots.extend(body_slots(model, &packed, at, self.pins));
+        let slots = body_slots(model, &packed, at, self.pins);
+        self.ranges.extend(slots.iter().map(BodySlot::range));
+        self.slots.extend(slots);
         // The world's own records of the bodies.
         for (i, body) in model.bodies.iter().enumerate() {
-            self.ranges.push(BodyRange {
-                first: body.first + n0,
-                count: body.count,
-                vfirst: packed.vfirst[i] + v0,
-                vcount: body.skin.rest_vertices.len() as u32,
-            });
             self.body_fits
                 .push(self.has_body_kernel && body_fits(&packed.bodies[i]));
             self.asleep.push(false);
             self.retired.push(false);
-            self.stiffness.push(match body.material {
-                crate::core::model::Material::ShapeMatching { stiffness } => Some(stiffness),
-                _ => None,
-            });
+            self.stiffness.push(shape_stiffness(&body.material));
         }
         self.used = at.add(more);
         self.pins += model.pinned.len() as u32;
         self.n = self.used.particles;
         self.n_vertices = self.used.vertices;
-        self.contacts_on =
-            self.settings.particle_contacts && self.ranges.len() > 1 && self.contact_k > 0;
+        self.contacts_on = contacts_run(&self.settings, self.ranges.len(), self.contact_k);
         let p = &mut self.params;
         p.n = self.n;
         p.n_bodies = self.ranges.len() as u32;
         p.n_vertices = self.n_vertices;
         p.contacts = self.contacts_on as u32;
-        p.max_radius = p.max_radius.max(packed.max_radius);
-        p.contact_reach = crate::core::knn::contact_reach_bound(p.max_radius);
         let lrecs = range_records(
             self.n,
             self.contacts_on,
@@ -827,6 +826,7 @@ impl GpuWorld {
             self.block_records,
         );
         queue.write_buffer(&self.records.ranges, 0, bytemuck::cast_slice(&lrecs));
+        self.widen_reach(packed.max_radius);
         self.refresh_contacts = self.contacts_on;
         Ok(true)
     }
@@ -1001,13 +1001,7 @@ impl GpuWorld {
         let contact_k = contact_k(&self.settings, pcap);
         let spare_stride = self.knn_k.max(contact_k) + SPARE_EXTRA;
         let (cell, knn_cell, table) = grid_params(pcap as usize, self.max_spacing);
-        let mut levels = Vec::new();
-        let mut off = 0u32;
-        for c in scan_levels(table + 1) {
-            levels.push((off, c));
-            off += c;
-        }
-        let scan_len = off + 1;
+        let (levels, scan_len) = scan_layout(table);
         let regions = Regions::new(pcap, pcap, pcap, bcap);
         let b = Buffers {
             frame: FrameBuffers::new(device, bcap),
@@ -1139,21 +1133,13 @@ impl GpuWorld {
         }
         queue.submit([enc.finish()]);
         let p = &mut self.params;
-        p.p_base = r.p_base;
-        p.pin_base = r.pin_base;
-        p.coldp_base = r.coldp_base;
-        p.grab_base = r.grab_base;
-        p.bounds_base = r.bounds_base;
-        p.sorted_base = r.sorted_base;
-        p.inv_offset = cap.members;
-        p.body_cap = bcap;
-        p.vertex_cap = vcap;
+        r.write_bases(p, cap);
         p.grid_cell = cell;
         p.knn_cell = knn_cell;
         p.grid_table = table;
         p.contact_k = contact_k;
         p.spare_stride = spare_stride;
-        let contacts_on = self.settings.particle_contacts && self.ranges.len() > 1 && contact_k > 0;
+        let contacts_on = contacts_run(&self.settings, self.ranges.len(), contact_k);
         p.contacts = contacts_on as u32;
         let recs = scan_records(&levels, scan_len, cell, knn_cell);
         let lrecs = range_records(
@@ -1182,6 +1168,14 @@ impl GpuWorld {
         // The grid is made for the new room at the next search.
         self.refresh_contacts = self.contacts_on;
         Ok(true)
+    }
+
+    /// The contact search's reach for a particle radius of `radius` where it is larger
+    /// than the world's largest (the broad phase's bound follows it).
+    fn widen_reach(&mut self, radius: f32) {
+        let p = &mut self.params;
+        p.max_radius = p.max_radius.max(radius);
+        p.contact_reach = crate::core::knn::contact_reach_bound(p.max_radius);
     }
 
     /// Grid cells for a lattice spacing of `spacing` where it is larger than the grid was
@@ -1246,12 +1240,8 @@ impl GpuWorld {
         up.submit(device, queue);
         let b = &model.bodies[0];
         self.body_fits[body] = self.has_body_kernel && body_fits(&packed.bodies[0]);
-        self.stiffness[body] = match b.material {
-            crate::core::model::Material::ShapeMatching { stiffness } => Some(stiffness),
-            _ => None,
-        };
-        self.params.max_radius = self.params.max_radius.max(packed.max_radius);
-        self.params.contact_reach = crate::core::knn::contact_reach_bound(self.params.max_radius);
+        self.stiffness[body] = shape_stiffness(&b.material);
+        self.widen_reach(packed.max_radius);
         Ok(true)
     }
 
@@ -1523,7 +1513,7 @@ impl GpuWorld {
     }
 
     /// What the dispatch plan needs of the world.
-    fn shape(&self) -> plan::Shape {
+    fn shape(&self) -> plan::Shape<'_> {
         plan::Shape {
             n: self.n,
             bodies: self.ranges.len() as u32,
@@ -1532,8 +1522,8 @@ impl GpuWorld {
             contact_k: self.contact_k,
             body_kernel: self.has_body_kernel && self.body_kernel(),
             all_in_body: self.body_fits.iter().all(|f| *f),
-            coarse: self.coarse.clone(),
-            scan_levels: self.levels.clone(),
+            coarse: &self.coarse,
+            scan_levels: &self.levels,
             scan_len: self.scan_len,
             grid_table: self.params.grid_table,
             iteration_records: self.iteration_records,

@@ -143,7 +143,7 @@ pub struct Dispatch {
 
 /// What the plan needs of a world.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Shape {
+pub struct Shape<'a> {
     /// Level-0 particles.
     pub n: u32,
     /// Bodies.
@@ -159,9 +159,9 @@ pub struct Shape {
     /// `body.wgsl` solves every body.
     pub all_in_body: bool,
     /// The hierarchy's coarse levels.
-    pub coarse: Vec<PackedLevel>,
+    pub coarse: &'a [PackedLevel],
     /// The prefix sum's levels (first element, elements).
-    pub scan_levels: Vec<(u32, u32)>,
+    pub scan_levels: &'a [(u32, u32)],
     /// Elements of the prefix sum.
     pub scan_len: u32,
     /// Hash buckets of the grid.
@@ -451,7 +451,7 @@ mod tests {
     use super::*;
     use crate::core::solver::Method;
 
-    fn shape(n: u32, bodies: u32) -> Shape {
+    fn shape(n: u32, bodies: u32) -> Shape<'static> {
         Shape {
             n,
             bodies,
@@ -460,8 +460,9 @@ mod tests {
             contact_k: 8,
             body_kernel: false,
             all_in_body: false,
-            coarse: Vec::new(),
-            scan_levels: vec![(0, 2 * n), (2 * n, 2 * n / SCAN_BLOCK + 1)],
+            coarse: &[],
+            // (Leaked: a test's few bytes, so that the shape can borrow them.)
+            scan_levels: Vec::leak(vec![(0, 2 * n), (2 * n, 2 * n / SCAN_BLOCK + 1)]),
             scan_len: 2 * n + 2 * n / SCAN_BLOCK + 2,
             grid_table: 2 * n,
             iteration_records: 1,
@@ -616,9 +617,10 @@ mod tests {
             tr_first: 0,
             tr_count: count,
         };
+        let levels = [lv(40_000, 5_000), lv(45_000, 700)];
         let sh = Shape {
             colliders: 3,
-            coarse: vec![lv(40_000, 5_000), lv(45_000, 700)],
+            coarse: &levels,
             iteration_records: 7,
             ..shape(40_000, 1)
         };
