@@ -1174,6 +1174,76 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     }
 }
 
+/// A GPU lattice made from its bodies' own levels, each built from a model of that body
+/// alone and joined (`LatticeMultigrid::from_bodies`, what the plugin does when a body
+/// comes or goes), steps to the bit as one that coarsens the whole model itself: a
+/// clamped bar beside a free box, falling for 10 steps. A hierarchy of another model
+/// is refused, naming the mismatch.
+#[test]
+fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
+    let Some(g) = gpu() else {
+        return;
+    };
+    let kernels = LatticeKernels::new(&g.device).unwrap();
+    let bodies = [
+        lattice_bar(0.0075),
+        lattice_box_at(Vec3::splat(0.02), Vec3::new(0.0, 0.2, 0.0)),
+    ];
+    let mut model = Model::new();
+    for b in &bodies {
+        model.append(b);
+    }
+    let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
+    let joined =
+        || LatticeMultigrid::from_bodies(&parts.iter().collect::<Vec<_>>(), MIN_NODES, MAX_LEVELS);
+    assert!(joined().levels.len() >= 2);
+    let s = lattice_settings();
+    let start = State::new(&model);
+    let run = |world: &GpuLattice| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &kernels, 10, None);
+        g.queue.submit([enc.finish()]);
+        let mut state = start.clone();
+        world.download(&g.device, &g.queue, &mut state);
+        state.x
+    };
+    let whole = GpuLattice::new(&g.device, &kernels, &model, &start, &s).unwrap();
+    let from_parts = GpuLattice::with_levels(
+        &g.device,
+        &kernels,
+        &model,
+        joined(),
+        &start,
+        &s,
+        LatticeOptions::default(),
+    )
+    .unwrap();
+    let (a, b) = (run(&whole), run(&from_parts));
+    assert!(max_dist(&a, &model.rest) > 1e-3, "the bodies fell");
+    assert!(
+        a == b,
+        "joined levels step differently: {} m",
+        max_dist(&a, &b)
+    );
+    let other = LatticeMultigrid::from_bodies(&[&parts[0]], MIN_NODES, MAX_LEVELS);
+    let err = GpuLattice::with_levels(
+        &g.device,
+        &kernels,
+        &model,
+        other,
+        &start,
+        &s,
+        LatticeOptions::default(),
+    )
+    .err()
+    .expect("another model's levels refused")
+    .to_string();
+    assert!(err.contains("levels"), "{err}");
+}
+
 /// A lattice box of half extents `half` (8 mm spacing, E = 20 kPa, ν = 0.3) centred at
 /// height `y`.
 fn lattice_box(half: Vec3, y: f32) -> Model {

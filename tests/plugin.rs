@@ -1321,6 +1321,79 @@ fn despawning_or_spawning_a_body_does_not_rebuild_the_world() {
     );
 }
 
+/// Lattice bodies step from the main world, batched into one `GpuLattice`. A body
+/// coming or going rebuilds that batch, but from each body's own multigrid levels, made
+/// when the body was built: nobody's levels are coarsened again
+/// (`CpuWorld::coarsened_bodies` stays 0). The bodies already there keep their pose
+/// through it and step on, on the GPU, and the new one steps with them.
+#[test]
+fn a_lattice_body_coming_or_going_does_not_coarsen_the_others() {
+    let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
+    if !gpu_available() {
+        return;
+    }
+    let mut app = app(WgpuSettings::default());
+    let (body, pinned) = common::lattice_body();
+    let a = spawn_on_main_world_path(&mut app, Vec3::ZERO, body.clone(), Some(pinned.clone()));
+    let b = spawn_on_main_world_path(
+        &mut app,
+        Vec3::new(0.5, 0.0, 0.0),
+        body.clone(),
+        Some(pinned.clone()),
+    );
+    step_frames(&mut app, 10);
+    fn cpu(app: &App) -> &bevy_tissue::plugin::cpu::CpuWorld {
+        app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>()
+    }
+    let pose = |app: &App, e: Entity| {
+        let range = app
+            .world()
+            .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
+            .expect("a main-world body")
+            .particles
+            .clone();
+        cpu(app).state().expect("a state").x[range].to_vec()
+    };
+    let rebuilds = cpu(&app).rebuilds();
+    let sagged = pose(&app, a);
+    let step = cpu(&app).state().unwrap().step;
+    // A third body, spawned while the clock is paused: the batch is rebuilt, A's pose
+    // carried over exactly.
+    let c = spawn_on_main_world_path(
+        &mut app,
+        Vec3::new(1.0, 0.0, 0.0),
+        body.clone(),
+        Some(pinned.clone()),
+    );
+    assert!(cpu(&app).rebuilds() > rebuilds, "the batch was not rebuilt");
+    assert_eq!(cpu(&app).coarsened_bodies(), 0, "levels coarsened again");
+    assert_eq!(pose(&app, a), sagged, "the first body lost its pose");
+    step_frames(&mut app, 10);
+    assert!(cpu(&app).stepped_on_gpu(), "the batch stepped on the CPU");
+    assert!(cpu(&app).state().unwrap().step >= step + 10);
+    // The new body sags from its pins like the first did in its first 10 steps.
+    let c_now = pose(&app, c);
+    let sag = |x: &[Vec3]| x.iter().map(|p| -p.y).fold(f32::MIN, f32::max);
+    assert!(
+        (sag(&c_now) - sag(&sagged)).abs() <= 0.05 * sag(&sagged).abs() + 1e-4,
+        "the new body: {} m down, the first after as many steps: {} m",
+        sag(&c_now),
+        sag(&sagged)
+    );
+    // A body going: the rest are rebuilt from their own levels, keep their pose and go on.
+    let held = pose(&app, a);
+    app.world_mut().entity_mut(b).despawn();
+    for _ in 0..5 {
+        app.update();
+    }
+    assert_eq!(cpu(&app).model().bodies.len(), 2);
+    assert_eq!(cpu(&app).coarsened_bodies(), 0, "levels coarsened again");
+    assert_eq!(pose(&app, a), held, "the first body lost its pose");
+    step_frames(&mut app, 5);
+    assert!(cpu(&app).stepped_on_gpu());
+    assert!(pose(&app, c).iter().all(|p| p.is_finite()));
+}
+
 /// Bodies the render graph's world has room for.
 fn gpu_world_capacity(app: &App) -> u32 {
     app.sub_app(RenderApp)

@@ -22,7 +22,7 @@ use glam::{IVec3, Mat3, Quat, Vec3};
 use std::collections::HashMap;
 
 /// One level of the lattice hierarchy (level 0 is the model's own elements).
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct MgLevel {
     /// Node (particle) count of the level.
     pub nodes: usize,
@@ -173,114 +173,228 @@ pub struct LatticeMultigrid {
     pub chebyshev: Vec<[f32; 2]>,
 }
 
-impl LatticeMultigrid {
-    /// Builds the hierarchy of every lattice body of `model`, coarsening until a level
-    /// has at most `min_nodes` nodes per body or stops shrinking (at most `max_levels`).
-    pub fn new(model: &Model, min_nodes: usize, max_levels: usize) -> Self {
-        let mut unit = Vec::new();
-        let mut material = Vec::new();
-        for b in &model.bodies {
-            match (b.discretisation, b.material) {
-                (
-                    Discretisation::Lattice,
-                    Material::Hyperelastic {
-                        youngs_modulus,
-                        poisson_ratio,
-                    },
-                ) => {
-                    let mat = Hyperelastic::new(youngs_modulus, poisson_ratio);
-                    let k = cube_stiffness(mat.mu as f64, mat.lambda as f64);
-                    unit.push(Some(k.iter().map(|&v| v as f32).collect()));
-                    material.push(Some((mat, HexModes::of(&mat))));
-                }
-                _ => {
-                    unit.push(None);
-                    material.push(None);
-                }
+/// Most levels a hierarchy has.
+pub const MAX_LEVELS: usize = 8;
+/// A hierarchy is coarsened while its bodies have more than this many nodes each (on
+/// average) on its coarsest level.
+pub const MIN_NODES: usize = 64;
+
+/// One body's lattice hierarchy, built on its own: the part of a [`LatticeMultigrid`]
+/// that depends on that body alone. [`LatticeMultigrid::from_bodies`] joins such parts
+/// into the hierarchy of a model of those bodies (the same hierarchy as
+/// [`LatticeMultigrid::new`] builds for it), so that a body coming, going or changing
+/// costs its own part, not every body's.
+///
+/// ```
+/// use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model};
+/// use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+/// use bevy_tissue::core::{procedural, sampling::Resolution};
+/// let desc = BodyDesc {
+///     resolution: Resolution::Particles(300),
+///     material: Material::Hyperelastic { youngs_modulus: 20e3, poisson_ratio: 0.45 },
+///     discretisation: Discretisation::Lattice,
+///     ..Default::default()
+/// };
+/// let mut one = Model::new();
+/// one.add_body(&procedural::cuboid(glam::Vec3::splat(0.05), 1), &desc).unwrap();
+/// // Built once per body (on a worker thread, say) ...
+/// let part = BodyLevels::new(&one, 0);
+/// // ... and joined for any model of such bodies.
+/// let mut two = Model::new();
+/// two.append(&one);
+/// two.append(&one);
+/// let joined = LatticeMultigrid::from_bodies(&[&part, &part], MIN_NODES, MAX_LEVELS);
+/// let whole = LatticeMultigrid::new(&two, MIN_NODES, MAX_LEVELS);
+/// assert_eq!(joined.levels.len(), whole.levels.len());
+/// assert_eq!(joined.levels[0].nodes, two.particle_count());
+/// ```
+#[derive(Debug, Clone, Default)]
+pub struct BodyLevels {
+    /// The body's levels, finest first, coarsened [`MAX_LEVELS`] deep (a body without
+    /// lattice elements has only its finest level, every node held). Element bodies are
+    /// 0 and indices are the body's own.
+    pub levels: Vec<MgLevel>,
+    /// The unit-cube stiffness of the body's material (24 × 24, N/m), if a hyperelastic
+    /// lattice body.
+    pub unit: Option<Vec<f32>>,
+    /// `unit` as 3 × 3 blocks (`8 a + b`).
+    pub unit_blocks: Option<Vec<Mat3>>,
+    /// The material's Lamé parameters and hourglass modes.
+    pub material: Option<(Hyperelastic, HexModes)>,
+}
+
+impl BodyLevels {
+    /// The hierarchy of body `body` of `model`.
+    pub fn new(model: &Model, body: usize) -> Self {
+        let elements = model.element_body.partition_point(|&b| (b as usize) < body)
+            ..model
+                .element_body
+                .partition_point(|&b| (b as usize) <= body);
+        Self::of_range(model, body, elements)
+    }
+
+    /// [`BodyLevels::new`] with the body's element range known.
+    fn of_range(model: &Model, body: usize, erange: std::ops::Range<usize>) -> Self {
+        let info = &model.bodies[body];
+        let (unit, unit_blocks, material) = match (info.discretisation, info.material) {
+            (
+                Discretisation::Lattice,
+                Material::Hyperelastic {
+                    youngs_modulus,
+                    poisson_ratio,
+                },
+            ) => {
+                let mat = Hyperelastic::new(youngs_modulus, poisson_ratio);
+                let k: Vec<f32> = cube_stiffness(mat.mu as f64, mat.lambda as f64)
+                    .iter()
+                    .map(|&v| v as f32)
+                    .collect();
+                let blocks = to_blocks(&k);
+                (Some(k), Some(blocks), Some((mat, HexModes::of(&mat))))
             }
-        }
-        let n = model.particle_count();
-        let mut fixed = vec![true; n];
-        for (i, f) in fixed.iter_mut().enumerate() {
-            *f = model.elements_of(i).is_empty();
-        }
-        for &p in &model.pinned {
-            fixed[p as usize] = true;
-        }
-        let fine = MgLevel {
-            nodes: n,
-            elements: model.elements.clone(),
-            body: model.element_body.clone(),
-            scale: model
-                .element_rest
+            _ => (None, None, None),
+        };
+        let range = info.range();
+        let (p0, e0) = (range.start, erange.start);
+        let pinned: std::collections::HashSet<u32> = model
+            .pinned
+            .iter()
+            .copied()
+            .filter(|&p| range.contains(&(p as usize)))
+            .collect();
+        let mut fine = MgLevel {
+            nodes: range.len(),
+            elements: model.elements[erange.clone()]
+                .iter()
+                .map(|el| el.map(|j| j - p0 as u32))
+                .collect(),
+            body: vec![0; erange.len()],
+            scale: model.element_rest[erange.clone()]
                 .iter()
                 .map(|r| r.hourglass_scale())
                 .collect(),
-            inv_start: (0..=n)
-                .map(|i| model.inv_element_start.get(i).copied().unwrap_or(0))
-                .collect(),
-            inv: model.inv_elements.clone(),
-            mass: model.mass.clone(),
-            fixed,
+            inv_start: vec![0],
+            mass: model.mass[range.clone()].to_vec(),
             ..Default::default()
         };
-        // Integer lattice coordinates of level 0's nodes, per body.
-        let mut coords = vec![IVec3::ZERO; n];
-        for b in &model.bodies {
-            if b.discretisation != Discretisation::Lattice {
-                continue;
-            }
-            let r = b.range();
-            let lo = model.rest[r.clone()]
+        for i in range.clone() {
+            let own = model.elements_of(i);
+            fine.inv
+                .extend(own.iter().map(|&ec| ec - ((e0 as u32) << 3)));
+            fine.inv_start.push(fine.inv.len() as u32);
+            fine.fixed
+                .push(own.is_empty() || pinned.contains(&(i as u32)));
+        }
+        // Integer lattice coordinates of the nodes.
+        let mut coords = vec![IVec3::ZERO; range.len()];
+        if info.discretisation == Discretisation::Lattice {
+            let lo = model.rest[range.clone()]
                 .iter()
                 .fold(Vec3::splat(f32::MAX), |a, p| a.min(*p));
-            for i in r {
-                coords[i] = ((model.rest[i] - lo) / b.spacing).round().as_ivec3();
+            for (c, p) in coords.iter_mut().zip(&model.rest[range.clone()]) {
+                *c = ((*p - lo) / info.spacing).round().as_ivec3();
             }
         }
+        (fine.order, fine.colour_start) = colour_order(&coords);
         let mut levels = vec![fine];
-        (levels[0].order, levels[0].colour_start) = colour_order(&coords);
-        let mut cell_origin: Vec<IVec3> = model
+        let mut cell_origin: Vec<IVec3> = levels[0]
             .elements
             .iter()
             .map(|e| coords[e[0] as usize])
             .collect();
-        while levels.len() < max_levels {
-            let per_body = levels.last().map_or(0, |l| l.nodes) / model.bodies.len().max(1);
-            if per_body <= min_nodes {
-                break;
-            }
-            let Some((coarse, origins, coarse_coords)) = coarsen(
+        let units = [unit.clone()];
+        while levels.len() < MAX_LEVELS {
+            let Some((mut coarse, origins, coarse_coords)) = coarsen(
                 levels.last_mut().expect("a level"),
                 &cell_origin,
                 &coords,
-                &unit,
+                &units,
             ) else {
                 break;
             };
-            let shrunk = coarse.nodes * 2 < levels.last().map_or(0, |l| l.nodes);
-            let mut coarse = coarse;
             (coarse.order, coarse.colour_start) = colour_order(&coarse_coords);
             levels.push(coarse);
             cell_origin = origins;
             coords = coarse_coords;
-            if !shrunk {
-                break;
-            }
         }
         for lv in &mut levels {
             lv.blocks = to_blocks(&lv.stiffness);
         }
-        let unit_blocks = unit.iter().map(|k| k.as_deref().map(to_blocks)).collect();
-        let mut mg = Self {
+        Self {
             levels,
             unit,
             unit_blocks,
             material,
+        }
+    }
+}
+
+impl LatticeMultigrid {
+    /// Builds the hierarchy of every lattice body of `model`, coarsening until a level
+    /// has at most `min_nodes` nodes per body or stops shrinking (at most `max_levels`,
+    /// itself at most [`MAX_LEVELS`]): each body's [`BodyLevels`], joined.
+    pub fn new(model: &Model, min_nodes: usize, max_levels: usize) -> Self {
+        let mut ranges = vec![0..0; model.bodies.len()];
+        let mut e = 0;
+        for (b, r) in ranges.iter_mut().enumerate() {
+            let start = e;
+            while e < model.element_body.len() && model.element_body[e] as usize == b {
+                e += 1;
+            }
+            *r = start..e;
+        }
+        let parts: Vec<BodyLevels> = super::par::map(ranges.len(), 0, |b| {
+            BodyLevels::of_range(model, b, ranges[b].clone())
+        });
+        let parts: Vec<&BodyLevels> = parts.iter().collect();
+        Self::from_bodies(&parts, min_nodes, max_levels)
+    }
+
+    /// The hierarchy of a model made of `parts`' bodies in that order (each part built
+    /// by [`BodyLevels::new`] from a model with that body): their levels joined, as deep
+    /// as [`LatticeMultigrid::new`] would make it (coarsening while the bodies have more
+    /// than `min_nodes` nodes each on average, and the level shrinks by half, at most
+    /// `max_levels` deep).
+    pub fn from_bodies(parts: &[&BodyLevels], min_nodes: usize, max_levels: usize) -> Self {
+        fn at(p: &BodyLevels, l: usize) -> Option<&MgLevel> {
+            p.levels.get(l)
+        }
+        let nodes_at = |l: usize| -> usize {
+            parts
+                .iter()
+                .map(|p| at(p, l).map_or(0, |lv| lv.nodes))
+                .sum()
+        };
+        let max_levels = max_levels.min(MAX_LEVELS);
+        let mut depth = 1;
+        while depth < max_levels {
+            let last = nodes_at(depth - 1);
+            if last / parts.len().max(1) <= min_nodes {
+                break;
+            }
+            let coarser = parts
+                .iter()
+                .any(|p| at(p, depth - 1).is_some_and(|lv| !lv.elements.is_empty()));
+            if !coarser {
+                break;
+            }
+            depth += 1;
+            if nodes_at(depth - 1) * 2 >= last {
+                break;
+            }
+        }
+        let levels = (0..depth)
+            .map(|l| join_level(parts, l, l + 1 < depth))
+            .collect();
+        let mut mg = Self {
+            levels,
+            unit: parts.iter().map(|p| p.unit.clone()).collect(),
+            unit_blocks: parts.iter().map(|p| p.unit_blocks.clone()).collect(),
+            material: parts.iter().map(|p| p.material.clone()).collect(),
             smoother: Smoother::default(),
             chebyshev: Vec::new(),
         };
-        mg.chebyshev = (0..mg.levels.len())
+        mg.chebyshev = (0..depth)
             .map(|l| {
                 let b = CHEBYSHEV_MARGIN * mg.lambda_max(l).max(1.0);
                 let a = b / CHEBYSHEV_RATIO;
@@ -382,6 +496,78 @@ impl LatticeMultigrid {
         }
         y
     }
+}
+
+/// Level `l` of the hierarchy of `parts`' bodies: their levels `l` one after another
+/// (indices shifted past the bodies before, element bodies numbered by part), colours
+/// in the order of [`MgLevel::order`]; with `links`, the prolongation to the next level
+/// and the child lists of its elements (the coarsest level has neither).
+fn join_level(parts: &[&BodyLevels], l: usize, links: bool) -> MgLevel {
+    let mut out = MgLevel {
+        inv_start: vec![0],
+        ..Default::default()
+    };
+    if links {
+        out.prolong_start.push(0);
+        out.child_start.push(0);
+    }
+    let mut bases = Vec::with_capacity(parts.len());
+    // Nodes of the parts before, on the next level.
+    let mut coarse_base = 0u32;
+    for (b, part) in parts.iter().enumerate() {
+        let Some(lv) = part.levels.get(l) else {
+            bases.push(out.nodes as u32);
+            continue;
+        };
+        let (n0, e0) = (out.nodes as u32, out.elements.len() as u32);
+        bases.push(n0);
+        out.nodes += lv.nodes;
+        out.elements
+            .extend(lv.elements.iter().map(|el| el.map(|j| j + n0)));
+        out.body
+            .extend(std::iter::repeat_n(b as u32, lv.elements.len()));
+        out.scale.extend_from_slice(&lv.scale);
+        out.stiffness.extend_from_slice(&lv.stiffness);
+        out.blocks.extend_from_slice(&lv.blocks);
+        out.mass.extend_from_slice(&lv.mass);
+        out.fixed.extend_from_slice(&lv.fixed);
+        let i0 = out.inv.len() as u32;
+        out.inv
+            .extend(lv.inv.iter().map(|&ec| (((ec >> 3) + e0) << 3) | (ec & 7)));
+        out.inv_start
+            .extend(lv.inv_start[1..].iter().map(|&s| s + i0));
+        if links {
+            if lv.prolong_start.is_empty() {
+                // A body without elements: no coarse nodes for its nodes.
+                let at = out.prolong_node.len() as u32;
+                out.prolong_start.extend(std::iter::repeat_n(at, lv.nodes));
+            } else {
+                let p0 = out.prolong_node.len() as u32;
+                out.prolong_start
+                    .extend(lv.prolong_start[1..].iter().map(|&s| s + p0));
+                out.prolong_node
+                    .extend(lv.prolong_node.iter().map(|&k| k + coarse_base));
+                out.prolong_weight.extend_from_slice(&lv.prolong_weight);
+            }
+            if !lv.child_start.is_empty() {
+                let c0 = out.child.len() as u32;
+                out.child_start
+                    .extend(lv.child_start[1..].iter().map(|&s| s + c0));
+                out.child.extend(lv.child.iter().map(|&e| e + e0));
+            }
+            coarse_base += part.levels.get(l + 1).map_or(0, |c| c.nodes as u32);
+        }
+    }
+    for k in 0..COLOURS {
+        for (part, &n0) in parts.iter().zip(&bases) {
+            if let Some(lv) = part.levels.get(l) {
+                let (a, b) = (lv.colour_start[k] as usize, lv.colour_start[k + 1] as usize);
+                out.order.extend(lv.order[a..b].iter().map(|&j| j + n0));
+            }
+        }
+        out.colour_start[k + 1] = out.order.len() as u32;
+    }
+    out
 }
 
 /// Row-major 24 × 24 stiffness matrices (one after another) as 3 × 3 blocks, 64 per
@@ -1068,6 +1254,187 @@ mod tests {
                     "spacing {spacing}, h {h}: residual after 6 cycles {r6}"
                 );
             }
+        }
+    }
+
+    /// Four bodies built alone: a pinned lattice box, a cluster body (no elements: only
+    /// held nodes on the finest level), a lattice liver and a lattice body of one cell.
+    fn separate_bodies() -> Vec<Model> {
+        let hyper = |e: f32| Material::Hyperelastic {
+            youngs_modulus: e,
+            poisson_ratio: 0.45,
+        };
+        let lattice = |particles: u32, e: f32, at: Vec3, pins: Vec<PinRegion>| BodyDesc {
+            resolution: Resolution::Particles(particles),
+            material: hyper(e),
+            discretisation: Discretisation::Lattice,
+            translation: at,
+            pins,
+            ..Default::default()
+        };
+        let one = |mesh: &crate::core::mesh::TriMesh, desc: &BodyDesc| {
+            let mut m = Model::new();
+            m.add_body(mesh, desc).unwrap();
+            m
+        };
+        vec![
+            one(
+                &procedural::cuboid(Vec3::new(0.11, 0.05, 0.07), 1),
+                &lattice(
+                    600,
+                    2e4,
+                    Vec3::ZERO,
+                    vec![PinRegion::HalfSpace {
+                        point: Vec3::new(-0.08, 0.0, 0.0),
+                        normal: -Vec3::X,
+                    }],
+                ),
+            ),
+            one(
+                &procedural::cuboid(Vec3::splat(0.05), 1),
+                &BodyDesc {
+                    resolution: Resolution::Particles(200),
+                    material: Material::ShapeMatching { stiffness: 0.8 },
+                    discretisation: Discretisation::Clusters,
+                    translation: Vec3::X,
+                    ..Default::default()
+                },
+            ),
+            one(&procedural::liver(3), &lattice(3000, 5e3, Vec3::Y, vec![])),
+            one(
+                &procedural::cuboid(Vec3::splat(0.02), 1),
+                &lattice(8, 1e5, Vec3::Z, vec![]),
+            ),
+        ]
+    }
+
+    /// Levels built per body, each from a model of that body alone, and joined, are the
+    /// levels built for the model of all of them: the hierarchy does not depend on which
+    /// bodies were built together.
+    #[test]
+    fn levels_joined_from_bodies_are_the_whole_models() {
+        let bodies = separate_bodies();
+        let mut whole = Model::new();
+        for b in &bodies {
+            whole.append(b);
+        }
+        let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
+        let refs: Vec<&BodyLevels> = parts.iter().collect();
+        let joined = LatticeMultigrid::from_bodies(&refs, MIN_NODES, MAX_LEVELS);
+        let built = LatticeMultigrid::new(&whole, MIN_NODES, MAX_LEVELS);
+        assert!(built.levels.len() >= 2, "{} levels", built.levels.len());
+        assert_eq!(joined.levels.len(), built.levels.len());
+        for (l, (a, b)) in joined.levels.iter().zip(&built.levels).enumerate() {
+            assert!(a == b, "level {l} differs");
+        }
+        assert_eq!(joined.unit, built.unit);
+        assert_eq!(joined.chebyshev, built.chebyshev);
+        // The same bodies in another order: each body's levels are found, shifted, in
+        // the other order's hierarchy.
+        let flipped = LatticeMultigrid::from_bodies(
+            &[&parts[2], &parts[0], &parts[3], &parts[1]],
+            MIN_NODES,
+            MAX_LEVELS,
+        );
+        let n0 = bodies[2].particle_count();
+        let e0 = bodies[2].elements.len() as u32;
+        let a = &flipped.levels[0];
+        let own = &parts[0].levels[0];
+        for (e, el) in own.elements.iter().enumerate() {
+            assert_eq!(a.elements[e0 as usize + e], el.map(|j| j + n0 as u32));
+        }
+        assert_eq!(&a.mass[n0..n0 + own.nodes], &own.mass[..]);
+    }
+
+    /// The joined hierarchy is consistent level by level: each node's element list names
+    /// elements that have it at that corner; an element's corners are nodes of its own
+    /// body; each colour is a set of nodes no two of which share an element, and the
+    /// colours together are every node once; prolongation weights of a node inside a
+    /// body's lattice sum to 1 over coarse nodes of its own body; every element has
+    /// exactly one coarse parent, of its own body.
+    #[test]
+    fn joined_levels_are_consistent() {
+        let bodies = separate_bodies();
+        let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
+        let refs: Vec<&BodyLevels> = parts.iter().collect();
+        let mg = LatticeMultigrid::from_bodies(&refs, MIN_NODES, MAX_LEVELS);
+        // Each node's body, from the elements (u32::MAX: no element).
+        let node_body = |lv: &MgLevel| {
+            let mut nb = vec![u32::MAX; lv.nodes];
+            for (el, &b) in lv.elements.iter().zip(&lv.body) {
+                for &j in el {
+                    assert!(nb[j as usize] == u32::MAX || nb[j as usize] == b);
+                    nb[j as usize] = b;
+                }
+            }
+            nb
+        };
+        for (l, lv) in mg.levels.iter().enumerate() {
+            let nb = node_body(lv);
+            for j in 0..lv.nodes {
+                let list = &lv.inv[lv.inv_start[j] as usize..lv.inv_start[j + 1] as usize];
+                for &ec in list {
+                    assert_eq!(lv.elements[(ec >> 3) as usize][(ec & 7) as usize], j as u32);
+                }
+            }
+            let corners: usize = lv.elements.len() * CORNERS;
+            assert_eq!(lv.inv.len(), corners, "level {l}: corner lists");
+            let mut seen = vec![false; lv.nodes];
+            for c in 0..COLOURS {
+                let colour =
+                    &lv.order[lv.colour_start[c] as usize..lv.colour_start[c + 1] as usize];
+                let mut touched = std::collections::HashSet::new();
+                for &j in colour {
+                    assert!(!std::mem::replace(&mut seen[j as usize], true));
+                    let list = &lv.inv
+                        [lv.inv_start[j as usize] as usize..lv.inv_start[j as usize + 1] as usize];
+                    for &ec in list {
+                        assert!(
+                            touched.insert(ec >> 3),
+                            "level {l}: colour {c} shares an element"
+                        );
+                    }
+                }
+            }
+            assert!(
+                seen.iter().all(|&s| s),
+                "level {l}: a node without a colour"
+            );
+            let Some(coarse) = mg.levels.get(l + 1) else {
+                assert!(lv.prolong_start.is_empty() && lv.child_start.is_empty());
+                continue;
+            };
+            let cb = node_body(coarse);
+            for (j, &body) in nb.iter().enumerate() {
+                let r = lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize;
+                if body == u32::MAX {
+                    assert!(r.is_empty());
+                    continue;
+                }
+                let sum: f32 = lv.prolong_weight[r.clone()].iter().sum();
+                assert!(
+                    (sum - 1.0).abs() < 1e-5,
+                    "level {l}, node {j}: weights sum to {sum}"
+                );
+                for &k in &lv.prolong_node[r] {
+                    assert_eq!(
+                        cb[k as usize], body,
+                        "level {l}: prolongation across bodies"
+                    );
+                }
+            }
+            let mut parent = vec![u32::MAX; lv.elements.len()];
+            for c in 0..coarse.elements.len() {
+                for &e in &lv.child[lv.child_start[c] as usize..lv.child_start[c + 1] as usize] {
+                    assert_eq!(parent[e as usize], u32::MAX, "level {l}: two parents");
+                    parent[e as usize] = c as u32;
+                    assert_eq!(lv.body[e as usize], coarse.body[c]);
+                }
+            }
+            assert!(
+                parent.iter().all(|&p| p != u32::MAX),
+                "level {l}: an orphan"
+            );
         }
     }
 }

@@ -83,3 +83,34 @@ where
         }
     });
 }
+
+/// `f(0), f(1), …, f(count − 1)` on up to `threads` threads (0 = all cores), in
+/// contiguous runs of indices, returned in index order. For a few large items (unlike
+/// [`for_chunks_mut`], which keeps small slices on one thread).
+pub fn map<T: Send, F>(count: usize, threads: usize, f: F) -> Vec<T>
+where
+    F: Fn(usize) -> T + Sync,
+{
+    let threads = if threads == 0 {
+        default_threads()
+    } else {
+        threads
+    }
+    .min(count.max(1));
+    if threads <= 1 {
+        return (0..count).map(f).collect();
+    }
+    let per = count.div_ceil(threads);
+    std::thread::scope(|s| {
+        let f = &f;
+        let runs: Vec<_> = (0..count)
+            .step_by(per)
+            .map(|first| {
+                s.spawn(move || (first..(first + per).min(count)).map(f).collect::<Vec<T>>())
+            })
+            .collect();
+        runs.into_iter()
+            .flat_map(|r| r.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+            .collect()
+    })
+}

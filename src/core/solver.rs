@@ -1117,7 +1117,11 @@ impl Solver {
                 || mg.levels[0].elements.len() != model.elements.len()
         });
         if stale {
-            self.mg = Some(Box::new(LatticeMultigrid::new(model, 64, 8)));
+            self.mg = Some(Box::new(LatticeMultigrid::new(
+                model,
+                super::multigrid::MIN_NODES,
+                super::multigrid::MAX_LEVELS,
+            )));
         }
         if let Some(mg) = self.mg.as_mut() {
             mg.smoother = self.settings.smoother;

@@ -18,7 +18,9 @@ use super::kernels::lattice::{Kernel, LatticeKernels, MAX_COLLIDERS, SLOTS, WORK
 use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
-use crate::core::multigrid::{COLOURS, LatticeMultigrid, Smoother};
+use crate::core::multigrid::{
+    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother,
+};
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntry, BindingResource, Buffer, BufferBinding, BufferUsages,
@@ -606,6 +608,23 @@ impl GpuLattice {
         settings: &SolverSettings,
         options: LatticeOptions,
     ) -> Result<Self, TissueError> {
+        let mg = LatticeMultigrid::new(model, MIN_NODES, MG_LEVELS);
+        Self::with_levels(device, kernels, model, mg, state, settings, options)
+    }
+
+    /// [`GpuLattice::new_with`] from the model's hierarchy made already (say by
+    /// [`LatticeMultigrid::from_bodies`] from hierarchies of its bodies kept from before,
+    /// so that a body coming or going does not coarsen every body again). The hierarchy
+    /// must be the model's: an error names a mismatch in nodes, elements or bodies.
+    pub fn with_levels(
+        device: &RenderDevice,
+        kernels: &LatticeKernels,
+        model: &Model,
+        mut mg: LatticeMultigrid,
+        state: &State,
+        settings: &SolverSettings,
+        options: LatticeOptions,
+    ) -> Result<Self, TissueError> {
         settings.validate()?;
         if model.elements.is_empty() {
             return Err(TissueError::InvalidParameter {
@@ -633,7 +652,22 @@ impl GpuLattice {
                 expected: "a State made for this model",
             });
         }
-        let mut mg = LatticeMultigrid::new(model, 64, 8);
+        let fine = mg.levels.first();
+        if fine.is_none_or(|f| {
+            f.nodes != model.particle_count() || f.elements.len() != model.elements.len()
+        }) || mg.unit.len() != model.bodies.len()
+        {
+            return Err(TissueError::InvalidParameter {
+                name: "levels",
+                value: format!(
+                    "{} nodes, {} elements, {} bodies",
+                    fine.map_or(0, |f| f.nodes),
+                    fine.map_or(0, |f| f.elements.len()),
+                    mg.unit.len()
+                ),
+                expected: "the hierarchy of this model (LatticeMultigrid::new or from_bodies)",
+            });
+        }
         mg.smoother = settings.smoother;
         let packed = pack(model, &mg, settings, options);
         let limit = device.limits().max_storage_buffer_binding_size;

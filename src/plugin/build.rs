@@ -4,7 +4,8 @@
 use super::components::*;
 use crate::core::TissueError;
 use crate::core::mesh::TriMesh;
-use crate::core::model::{BodyDesc, Model};
+use crate::core::model::{BodyDesc, Discretisation, Model};
+use crate::core::multigrid::BodyLevels;
 use bevy::asset::RenderAssetUsages;
 use bevy::mesh::{Indices, PrimitiveTopology, VertexAttributeValues};
 use bevy::prelude::*;
@@ -17,7 +18,7 @@ pub struct SourceMesh(pub Handle<Mesh>);
 
 /// A build in flight.
 #[derive(Component)]
-pub struct BuildTask(Task<Result<Model, TissueError>>);
+pub struct BuildTask(Task<Result<(Model, Option<BodyLevels>), TissueError>>);
 
 /// A built body, ready for the GPU: its one-body model (world frame at build time), the
 /// entity's draw mesh, and a generation that changes with every rebuild.
@@ -25,6 +26,9 @@ pub struct BuildTask(Task<Result<Model, TissueError>>);
 pub struct BuiltBody {
     /// The model (one body).
     pub model: Arc<Model>,
+    /// A lattice body's multigrid levels, built with the model (the world joins its
+    /// bodies' levels instead of coarsening every body again when one changes).
+    pub levels: Option<Arc<BodyLevels>>,
     /// Counts rebuilds (the render world re-uploads when it changes).
     pub generation: u64,
     /// The draw mesh the GPU writes (the entity's `Mesh3d`).
@@ -213,7 +217,9 @@ pub fn start_builds(
             let tri = tri?;
             let mut model = Model::new();
             model.add_body(&tri, &desc)?;
-            Ok(model)
+            let levels = (desc.discretisation == Discretisation::Lattice)
+                .then(|| BodyLevels::new(&model, 0));
+            Ok((model, levels))
         });
         if source.is_none() {
             commands.entity(entity).insert(SourceMesh(handle));
@@ -251,7 +257,7 @@ pub fn finish_builds(
         };
         commands.entity(entity).remove::<BuildTask>();
         match result {
-            Ok(model) => {
+            Ok((model, levels)) => {
                 let Some(src) = meshes.get(&source.0) else {
                     continue;
                 };
@@ -281,6 +287,7 @@ pub fn finish_builds(
                     Mesh3d(draw.clone()),
                     BuiltBody {
                         model: Arc::new(model),
+                        levels: levels.map(Arc::new),
                         generation: built.map_or(0, |b| b.generation + 1),
                         draw_mesh: draw,
                         reset: false,

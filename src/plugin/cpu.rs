@@ -25,15 +25,17 @@ use crate::core::TissueError;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::model::Model;
 use crate::core::model::{Discretisation, Material};
+use crate::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
 use crate::core::skin::{skin_normals, skin_positions};
 use crate::core::solver::{Control, Solver, SolverSettings, State};
 use crate::gpu::kernels::lattice::{LatticeKernels, MAX_COLLIDERS};
-use crate::gpu::lattice::GpuLattice;
+use crate::gpu::lattice::{GpuLattice, LatticeOptions};
 use bevy::camera::primitives::Aabb;
 use bevy::mesh::VertexAttributeValues;
 use bevy::prelude::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use std::ops::Range;
+use std::sync::Arc;
 
 /// Whether a built body steps on the CPU: every body under [`TissueBackend::Cpu`], and
 /// lattice bodies (hexahedral elements) under [`TissueBackend::Auto`].
@@ -75,6 +77,11 @@ pub struct CpuWorld {
     /// Times the batched model was rebuilt (bodies came, went or changed, or settings
     /// changed what the solver precomputes).
     rebuilds: u64,
+    /// The lattice bodies' multigrid levels, joined from each body's own since the last
+    /// rebuild, for the next GPU world.
+    levels: Option<LatticeMultigrid>,
+    /// Bodies whose levels this world had to coarsen itself (they came without them).
+    coarsened: u64,
 }
 
 /// The CPU world's lattice bodies on the GPU.
@@ -109,6 +116,14 @@ impl CpuWorld {
     /// divergence speed change in place.
     pub fn rebuilds(&self) -> u64 {
         self.rebuilds
+    }
+
+    /// How many bodies' multigrid levels this world has coarsened itself. A lattice body
+    /// brings its levels from its build ([`BuiltBody::levels`]), and a rebuild joins
+    /// them, so bodies coming, going or changing do not coarsen the others again: this
+    /// stays 0 unless a body came without them.
+    pub fn coarsened_bodies(&self) -> u64 {
+        self.coarsened
     }
 
     /// Takes `settings` in place where they differ from the current ones only in
@@ -179,6 +194,20 @@ impl CpuWorld {
             state.step = old.step;
         }
         self.solver = Some(Solver::new(&model, settings.clone())?);
+        // The GPU world's hierarchy: the bodies' own levels, joined.
+        self.levels = gpu_can_step(&model).then(|| {
+            let own: Vec<Arc<BodyLevels>> = bodies
+                .iter()
+                .map(|(_, b)| {
+                    b.levels.clone().unwrap_or_else(|| {
+                        self.coarsened += 1;
+                        Arc::new(BodyLevels::new(&b.model, 0))
+                    })
+                })
+                .collect();
+            let parts: Vec<&BodyLevels> = own.iter().map(Arc::as_ref).collect();
+            LatticeMultigrid::from_bodies(&parts, MIN_NODES, MAX_LEVELS)
+        });
         self.settings = Some(settings);
         self.keys = bodies.iter().map(|(e, b)| (*e, b.generation)).collect();
         self.model = model;
@@ -228,7 +257,19 @@ impl CpuWorld {
         }
         let g = self.gpu.as_mut()?;
         if g.world.is_none() {
-            match GpuLattice::new(device, &g.kernels, &self.model, state, settings) {
+            let made = match self.levels.take() {
+                Some(mg) => GpuLattice::with_levels(
+                    device,
+                    &g.kernels,
+                    &self.model,
+                    mg,
+                    state,
+                    settings,
+                    LatticeOptions::default(),
+                ),
+                None => GpuLattice::new(device, &g.kernels, &self.model, state, settings),
+            };
+            match made {
                 Ok(w) => {
                     g.world = Some(w);
                     g.synced = true;
