@@ -1322,76 +1322,113 @@ fn despawning_or_spawning_a_body_does_not_rebuild_the_world() {
 }
 
 /// Lattice bodies step from the main world, batched into one `GpuLattice`. A body
-/// coming or going rebuilds that batch, but from each body's own multigrid levels, made
-/// when the body was built: nobody's levels are coarsened again
-/// (`CpuWorld::coarsened_bodies` stays 0). The bodies already there keep their pose
-/// through it and step on, on the GPU, and the new one steps with them.
+/// coming rebuilds that batch, but from each body's own multigrid levels, made when the
+/// body was built: nobody's levels are coarsened again (`CpuWorld::coarsened_bodies`
+/// stays 0). A body going is retired in place: held still, far out of reach, with no
+/// rebuild, until retired bodies would hold more than a quarter of the particles (then
+/// the batch is made again without them). Through all of it the bodies already there
+/// keep their pose and step on, on the GPU, and a new one steps with them.
 #[test]
-fn a_lattice_body_coming_or_going_does_not_coarsen_the_others() {
+fn lattice_bodies_come_and_go_without_coarsening_or_rebuilding_the_others() {
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
     if !gpu_available() {
         return;
     }
     let mut app = app(WgpuSettings::default());
     let (body, pinned) = common::lattice_body();
-    let a = spawn_on_main_world_path(&mut app, Vec3::ZERO, body.clone(), Some(pinned.clone()));
-    let b = spawn_on_main_world_path(
-        &mut app,
-        Vec3::new(0.5, 0.0, 0.0),
-        body.clone(),
-        Some(pinned.clone()),
-    );
+    let spawn = |app: &mut App, x: f32| {
+        spawn_on_main_world_path(
+            app,
+            Vec3::new(x, 0.0, 0.0),
+            body.clone(),
+            Some(pinned.clone()),
+        )
+    };
+    let a = spawn(&mut app, 0.0);
+    let b = spawn(&mut app, 0.5);
     step_frames(&mut app, 10);
     fn cpu(app: &App) -> &bevy_tissue::plugin::cpu::CpuWorld {
         app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>()
     }
-    let pose = |app: &App, e: Entity| {
-        let range = app
-            .world()
+    let marker = |app: &App, e: Entity| {
+        app.world()
             .get::<bevy_tissue::plugin::cpu::CpuBody>(e)
             .expect("a main-world body")
-            .particles
-            .clone();
+            .clone()
+    };
+    let pose = |app: &App, e: Entity| {
+        let range = marker(app, e).particles;
         cpu(app).state().expect("a state").x[range].to_vec()
     };
     let rebuilds = cpu(&app).rebuilds();
     let sagged = pose(&app, a);
     let step = cpu(&app).state().unwrap().step;
-    // A third body, spawned while the clock is paused: the batch is rebuilt, A's pose
-    // carried over exactly.
-    let c = spawn_on_main_world_path(
-        &mut app,
-        Vec3::new(1.0, 0.0, 0.0),
-        body.clone(),
-        Some(pinned.clone()),
-    );
+    // Three more bodies, spawned while the clock is paused: the batch is rebuilt, A's
+    // pose carried over exactly.
+    let c = spawn(&mut app, 1.0);
+    let more = [spawn(&mut app, 1.5), spawn(&mut app, 2.0)];
     assert!(cpu(&app).rebuilds() > rebuilds, "the batch was not rebuilt");
     assert_eq!(cpu(&app).coarsened_bodies(), 0, "levels coarsened again");
     assert_eq!(pose(&app, a), sagged, "the first body lost its pose");
     step_frames(&mut app, 10);
     assert!(cpu(&app).stepped_on_gpu(), "the batch stepped on the CPU");
     assert!(cpu(&app).state().unwrap().step >= step + 10);
-    // The new body sags from its pins like the first did in its first 10 steps.
-    let c_now = pose(&app, c);
+    // The new body sags from its pins as the first did in its first 10 steps.
     let sag = |x: &[Vec3]| x.iter().map(|p| -p.y).fold(f32::MIN, f32::max);
+    let c_now = pose(&app, c);
     assert!(
         (sag(&c_now) - sag(&sagged)).abs() <= 0.05 * sag(&sagged).abs() + 1e-4,
         "the new body: {} m down, the first after as many steps: {} m",
         sag(&c_now),
         sag(&sagged)
     );
-    // A body going: the rest are rebuilt from their own levels, keep their pose and go on.
-    let held = pose(&app, a);
+    // B goes (a fifth of the particles): retired in place, no rebuild, the others keep
+    // their places in the batch and their pose.
+    let rebuilds = cpu(&app).rebuilds();
+    let b_index = marker(&app, b).index;
+    let b_range = marker(&app, b).particles;
+    let (a_marker, a_held) = (marker(&app, a), pose(&app, a));
     app.world_mut().entity_mut(b).despawn();
-    for _ in 0..5 {
+    for _ in 0..3 {
         app.update();
     }
-    assert_eq!(cpu(&app).model().bodies.len(), 2);
+    assert_eq!(cpu(&app).rebuilds(), rebuilds, "rebuilt for a despawn");
+    assert!(cpu(&app).is_retired(b_index));
+    assert_eq!(marker(&app, a), a_marker);
+    assert_eq!(pose(&app, a), a_held, "the first body lost its pose");
+    let held = cpu(&app).state().unwrap().x[b_range.clone()].to_vec();
+    let deep = held.iter().map(|p| p.y).fold(f32::MIN, f32::max);
+    assert!(deep < -900.0, "the retired body is out of reach: {deep} m");
+    let (c_before, step) = (pose(&app, c), cpu(&app).state().unwrap().step);
+    step_frames(&mut app, 10);
+    assert!(cpu(&app).stepped_on_gpu());
+    assert!(cpu(&app).state().unwrap().step >= step + 10);
+    assert_eq!(
+        cpu(&app).state().unwrap().x[b_range].to_vec(),
+        held,
+        "the retired body moved"
+    );
+    let moved = pose(&app, c)
+        .iter()
+        .zip(&c_before)
+        .map(|(p, q)| p.distance(*q))
+        .fold(0.0f32, f32::max);
+    assert!(moved > 1e-6, "the others stopped: moved {moved} m");
+    // Another goes: retired bodies would hold two fifths, so the batch is made again
+    // without them (from the bodies' own levels), the rest keeping their pose.
+    let c_held = pose(&app, c);
+    app.world_mut().entity_mut(more[0]).despawn();
+    for _ in 0..3 {
+        app.update();
+    }
+    assert_eq!(cpu(&app).rebuilds(), rebuilds + 1, "not compacted");
+    assert_eq!(cpu(&app).model().bodies.len(), 3);
+    assert!((0..3).all(|i| !cpu(&app).is_retired(i)));
     assert_eq!(cpu(&app).coarsened_bodies(), 0, "levels coarsened again");
-    assert_eq!(pose(&app, a), held, "the first body lost its pose");
+    assert_eq!(pose(&app, c), c_held, "a body lost its pose");
     step_frames(&mut app, 5);
     assert!(cpu(&app).stepped_on_gpu());
-    assert!(pose(&app, c).iter().all(|p| p.is_finite()));
+    assert!(pose(&app, more[1]).iter().all(|p| p.is_finite()));
 }
 
 /// Bodies the render graph's world has room for.

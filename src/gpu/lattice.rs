@@ -574,6 +574,8 @@ pub struct GpuLattice {
     colliders: usize,
     /// Entries each particle-contact list can hold (0: no particle contacts).
     pair_capacity: usize,
+    /// Per node of every level: mass, held, reach, body.
+    nodes: Buffer,
     _keep: Vec<Buffer>,
 }
 
@@ -852,7 +854,8 @@ impl GpuLattice {
             red,
             colliders: 0,
             pair_capacity,
-            _keep: vec![ef, vecs, nblk, elems, kmat, topo, nodes, mats, passes],
+            nodes,
+            _keep: vec![ef, vecs, nblk, elems, kmat, topo, mats, passes],
         })
     }
 
@@ -1104,6 +1107,45 @@ impl GpuLattice {
             queue.write_buffer(&self.ccol, at, bytemuck::cast_slice(&rev));
         }
         Ok(())
+    }
+
+    /// Holds particles `range` of `model` still at `at` (one position each, m) from now
+    /// on: they are put there at rest, pinned there and left out of every correction, so
+    /// that they neither move nor move anything (what a despawned body becomes until the
+    /// world is made again without it, placed out of everyone's reach). A range outside
+    /// the model, or `at` of another length, changes nothing.
+    pub fn hold(
+        &self,
+        queue: &RenderQueue,
+        model: &Model,
+        range: std::ops::Range<usize>,
+        at: &[Vec3],
+    ) {
+        let n = self.n as usize;
+        if range.end > n || range.end > model.particle_count() || at.len() != range.len() {
+            return;
+        }
+        let put = |region: usize, values: Vec<[f32; 4]>| {
+            let offset = ((region * n + range.start) * 16) as u64;
+            queue.write_buffer(&self.pos, offset, bytemuck::cast_slice(&values));
+        };
+        put(0, at.iter().map(|p| vec4(*p)).collect());
+        put(1, at.iter().map(|p| vec4(*p)).collect());
+        put(3, vec![[0.0; 4]; range.len()]);
+        put(4, at.iter().map(|p| p.extend(1.0).to_array()).collect());
+        let nodes: Vec<[f32; 4]> = range
+            .clone()
+            .map(|j| {
+                let body = model.particle_body[j];
+                let reach = 0.5 * model.bodies[body as usize].spacing;
+                [model.mass[j], 1.0, reach, body as f32]
+            })
+            .collect();
+        queue.write_buffer(
+            &self.nodes,
+            (range.start * 16) as u64,
+            bytemuck::cast_slice(&nodes),
+        );
     }
 
     /// Writes `state`'s positions, velocities, pin targets, element rotations and grasps

@@ -37,6 +37,10 @@ use bevy::render::renderer::{RenderDevice, RenderQueue};
 use std::ops::Range;
 use std::sync::Arc;
 
+/// How far below its rest shape a retired body is held, m: out of any scene's reach,
+/// near enough for `f32` to keep its shape (about 0.1 mm of rounding).
+pub const RETIRED_DEPTH: f32 = 1000.0;
+
 /// Whether a built body steps on the CPU: every body under [`TissueBackend::Cpu`], and
 /// lattice bodies (hexahedral elements) under [`TissueBackend::Auto`].
 pub fn runs_on_cpu(model: &Model, settings: &TissueSettings) -> bool {
@@ -58,6 +62,9 @@ pub struct CpuBody {
 pub struct CpuWorld {
     /// (entity, [`BuiltBody::generation`]) of each body, in the model's order.
     keys: Vec<(Entity, u64)>,
+    /// Per body of the model: gone from the scene and held out of the way on the GPU
+    /// until the next rebuild ([`CpuWorld::is_retired`]).
+    retired: Vec<bool>,
     model: Model,
     state: Option<State>,
     solver: Option<Solver>,
@@ -153,9 +160,86 @@ impl CpuWorld {
         self.state.as_ref()
     }
 
-    /// The entities of the CPU bodies, in the model's body order.
+    /// The entities of the CPU bodies, in the model's body order (retired ones
+    /// included: see [`CpuWorld::is_retired`]).
     pub fn entities(&self) -> impl Iterator<Item = Entity> + '_ {
         self.keys.iter().map(|k| k.0)
+    }
+
+    /// Whether body `index` of the model is retired: it left the scene while the batch
+    /// stepped on the GPU, and instead of a rebuild it was held still, out of everyone's
+    /// reach, until the batch is made again (when retired bodies hold a quarter of its
+    /// particles, or for any other change).
+    pub fn is_retired(&self, index: usize) -> bool {
+        self.retired.get(index).copied().unwrap_or(false)
+    }
+
+    /// The batch's bodies still in the scene, in the model's order.
+    fn live_keys(&self) -> Vec<(Entity, u64)> {
+        self.keys
+            .iter()
+            .zip(&self.retired)
+            .filter(|(_, r)| !**r)
+            .map(|(k, _)| *k)
+            .collect()
+    }
+
+    /// The model index of `entity`'s body (not retired).
+    fn index_of(&self, entity: Entity) -> Option<usize> {
+        (0..self.keys.len()).find(|&i| self.keys[i].0 == entity && !self.retired[i])
+    }
+
+    /// Retires the bodies of the batch that `keys` (the scene's bodies, in the model's
+    /// order) no longer has, without a rebuild: possible where the batch steps on the
+    /// GPU, holds the latest state, nothing else changed, and retired bodies would hold
+    /// at most a quarter of its particles. Each is held still on the GPU
+    /// ([`GpuLattice::hold`]) at its rest shape [`RETIRED_DEPTH`] below where it was
+    /// built, so that it neither moves nor touches anything. False (nothing changed) where a
+    /// rebuild is needed.
+    fn retire_missing(&mut self, keys: &[(Entity, u64)], queue: &RenderQueue) -> bool {
+        let live = self.live_keys();
+        let mut next = keys.iter().peekable();
+        let mut gone = Vec::new();
+        for (i, k) in self.keys.iter().enumerate() {
+            if self.retired[i] {
+                continue;
+            }
+            if next.peek() == Some(&k) {
+                next.next();
+            } else {
+                gone.push(i);
+            }
+        }
+        if next.peek().is_some() || gone.is_empty() || gone.len() == live.len() {
+            return false;
+        }
+        let Some(g) = self.gpu.as_ref() else {
+            return false;
+        };
+        let (Some(world), Some(state)) = (g.world.as_ref(), self.state.as_mut()) else {
+            return false;
+        };
+        if !g.synced {
+            return false;
+        }
+        let held: usize = (0..self.keys.len())
+            .filter(|&i| self.retired[i] || gone.contains(&i))
+            .map(|i| self.ranges[i].0.len())
+            .sum();
+        if 4 * held > self.model.particle_count() {
+            return false;
+        }
+        for &b in &gone {
+            let p = self.ranges[b].0.clone();
+            let below = Vec3::new(0.0, -RETIRED_DEPTH, 0.0);
+            for i in p.clone() {
+                state.x[i] = self.model.rest[i] + below;
+                state.v[i] = Vec3::ZERO;
+            }
+            world.hold(queue, &self.model, p.clone(), &state.x[p]);
+            self.retired[b] = true;
+        }
+        true
     }
 
     /// Rebuilds the batched model for `bodies` (entity order), keeping the state of the
@@ -177,7 +261,7 @@ impl CpuWorld {
         let mut state = State::new(&model);
         if let Some(old) = &self.state {
             for ((entity, b), (p, e)) in bodies.iter().zip(&ranges) {
-                let Some(k) = self.keys.iter().position(|k| k.0 == *entity) else {
+                let Some(k) = self.index_of(*entity) else {
                     continue;
                 };
                 let (op, oe) = &self.ranges[k];
@@ -210,6 +294,7 @@ impl CpuWorld {
         });
         self.settings = Some(settings);
         self.keys = bodies.iter().map(|(e, b)| (*e, b.generation)).collect();
+        self.retired = vec![false; self.keys.len()];
         self.model = model;
         self.state = Some(state);
         self.ranges = ranges;
@@ -290,6 +375,11 @@ impl CpuWorld {
         }
         if !g.synced {
             world.upload(queue, &self.model, state);
+            // The upload pins only the model's pins: the retired bodies are held again.
+            for (b, _) in self.retired.iter().enumerate().filter(|(_, r)| **r) {
+                let p = self.ranges[b].0.clone();
+                world.hold(queue, &self.model, p.clone(), &state.x[p]);
+            }
             g.synced = true;
             g.lists = false;
         }
@@ -418,11 +508,19 @@ pub fn step_cpu_bodies(
     let keys: Vec<(Entity, u64)> = cpu.iter().map(|(e, b)| (*e, b.generation)).collect();
     // Whether the particles may differ from what the meshes show (a rebuild or a step).
     let mut dirty = clock.steps_this_frame > 0;
+    let live = world.live_keys();
     let in_place =
-        keys == world.keys && world.settings.as_ref() != Some(&core) && world.apply_forces(&core);
-    if !in_place && (keys != world.keys || world.settings.as_ref() != Some(&core)) {
+        keys == live && world.settings.as_ref() != Some(&core) && world.apply_forces(&core);
+    if !in_place && (keys != live || world.settings.as_ref() != Some(&core)) {
         dirty = true;
-        if let Err(e) = world.rebuild(&cpu, core) {
+        // Bodies gone while nothing else changed are retired in place where the batch
+        // steps on the GPU; anything else makes the batch again.
+        let retired = world.settings.as_ref() == Some(&core)
+            && render
+                .1
+                .as_ref()
+                .is_some_and(|queue| world.retire_missing(&keys, queue));
+        if !retired && let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();
             warn!("bevy_tissue: the CPU bodies cannot be simulated: {error}");
             for (entity, _) in &cpu {
@@ -434,15 +532,9 @@ pub fn step_cpu_bodies(
             *world = CpuWorld::default();
             return;
         }
-        for (i, (entity, _)) in cpu.iter().enumerate() {
-            let marker = CpuBody {
-                index: i,
-                particles: world.ranges[i].0.clone(),
-            };
-            if bodies.get(*entity).ok().and_then(|b| b.3) != Some(&marker) {
-                commands.entity(*entity).insert(marker);
-            }
-        }
+        mark_bodies(&mut commands, &world, &cpu, |e| {
+            bodies.get(e).ok().and_then(|b| b.3.cloned())
+        });
     }
     if cpu.is_empty() {
         return;
@@ -491,6 +583,19 @@ pub fn step_cpu_bodies(
         Some(Ok(f)) => force = f,
         Some(Err(e)) => diverged = Some(e),
         None => {
+            // Retired bodies are held only on the GPU: the CPU steps a batch without them.
+            if clock.steps_this_frame > 0
+                && w.retired.contains(&true)
+                && let Some(settings) = w.settings.clone()
+            {
+                if w.rebuild(&cpu, settings).is_err() {
+                    return;
+                }
+                dirty = true;
+                mark_bodies(&mut commands, w, &cpu, |e| {
+                    bodies.get(e).ok().and_then(|b| b.3.cloned())
+                });
+            }
             let (Some(solver), Some(state)) = (w.solver.as_mut(), w.state.as_mut()) else {
                 return;
             };
@@ -545,8 +650,11 @@ pub fn step_cpu_bodies(
     } else {
         Vec::new()
     };
-    for (i, (entity, built)) in cpu.iter().enumerate() {
+    for (entity, built) in &cpu {
         let Ok((_, _, to_world, _, readback)) = bodies.get(*entity) else {
+            continue;
+        };
+        let Some(i) = w.index_of(*entity) else {
             continue;
         };
         let p = w.ranges[i].0.clone();
@@ -579,6 +687,28 @@ pub fn step_cpu_bodies(
             let m = Vec3::splat(3.0 * spacing);
             let (l, h) = transform_box(&to_world.affine().inverse(), lo - m, hi + m);
             commands.entity(*entity).insert(Aabb::from_min_max(l, h));
+        }
+    }
+}
+
+/// Gives each of `cpu`'s bodies its [`CpuBody`] marker (its index and particles in
+/// `world`), where `current` (its marker now) differs.
+fn mark_bodies(
+    commands: &mut Commands,
+    world: &CpuWorld,
+    cpu: &[(Entity, &BuiltBody)],
+    current: impl Fn(Entity) -> Option<CpuBody>,
+) {
+    for (entity, _) in cpu {
+        let Some(i) = world.index_of(*entity) else {
+            continue;
+        };
+        let marker = CpuBody {
+            index: i,
+            particles: world.ranges[i].0.clone(),
+        };
+        if current(*entity).as_ref() != Some(&marker) {
+            commands.entity(*entity).insert(marker);
         }
     }
 }
