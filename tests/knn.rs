@@ -204,3 +204,64 @@ fn contact_lists_with_the_broad_phase_equal_a_full_search() {
         "{with:?}"
     );
 }
+
+/// Contact candidates among some bodies only (`refresh_contacts_among`): a body left
+/// out has no candidates and is nobody's, even where it overlaps the others, and the
+/// others' lists are those of a model without it; parked 1 km away it does not change
+/// them either (the search grid is made from the searched particles alone).
+#[test]
+fn contact_lists_among_active_bodies_leave_the_others_out() {
+    use bevy_tissue::core::model::{BodyDesc, Model};
+    use bevy_tissue::core::procedural;
+    use bevy_tissue::core::sampling::Resolution;
+    use bevy_tissue::core::solver::{Solver, SolverSettings, State};
+    let sphere = procedural::icosphere(0.03, 2);
+    let ball = |at: Vec3| {
+        let mut m = Model::new();
+        let desc = BodyDesc {
+            resolution: Resolution::Particles(250),
+            translation: at,
+            ..Default::default()
+        };
+        m.add_body(&sphere, &desc).unwrap();
+        m
+    };
+    // Two touching balls, and a third overlapping both (left out).
+    let (a, b, c) = (
+        ball(Vec3::ZERO),
+        ball(Vec3::new(0.058, 0.0, 0.0)),
+        ball(Vec3::new(0.03, 0.01, 0.0)),
+    );
+    let mut two = Model::new();
+    two.append(&a);
+    two.append(&b);
+    let mut three = two.clone();
+    three.append(&c);
+    let lists = |model: &Model, x: &[Vec3], active: &[bool]| {
+        let mut solver = Solver::new(model, SolverSettings::default()).unwrap();
+        solver.refresh_contacts_among(model, x, active);
+        let (start, list) = solver.contact_lists();
+        (start.to_vec(), list.to_vec())
+    };
+    let (s2, l2) = lists(&two, &State::new(&two).x, &[]);
+    assert!(!l2.is_empty(), "the two balls touch");
+    let n2 = two.particle_count();
+    let mut x = State::new(&three).x;
+    for far in [false, true] {
+        if far {
+            for p in &mut x[n2..] {
+                p.y -= 1000.0;
+            }
+        }
+        let (s3, l3) = lists(&three, &x, &[true, true, false]);
+        assert_eq!(&s3[..=n2], &s2[..], "far {far}");
+        assert!(
+            s3[n2..].iter().all(|&s| s == s3[n2]),
+            "the third has candidates"
+        );
+        assert_eq!(l3, l2, "far {far}");
+    }
+    // All active: the overlapping third body is everyone's candidate.
+    let (_, l_all) = lists(&three, &State::new(&three).x, &[]);
+    assert!(l_all.iter().any(|&j| j as usize >= n2));
+}

@@ -916,6 +916,14 @@ impl Solver {
     /// elastic model: with Jacobi, same-body contacts fighting the cluster corrections
     /// were measured to blow up on impact.)
     pub fn refresh_contacts(&mut self, model: &Model, x: &[Vec3]) {
+        self.refresh_contacts_among(model, x, &[]);
+    }
+
+    /// [`Solver::refresh_contacts`] among the bodies `active` marks (per body; missing
+    /// entries count as active): the others get no candidates and are nobody's
+    /// candidate, and their positions do not shape the search grid (a body parked far
+    /// away costs nothing).
+    pub fn refresh_contacts_among(&mut self, model: &Model, x: &[Vec3], active: &[bool]) {
         let n = x.len();
         let k = (self.settings.contact_neighbours as usize).min(n.saturating_sub(1));
         self.contact_start.clear();
@@ -925,13 +933,28 @@ impl Solver {
             self.contact_start.resize(n + 1, 0);
             return;
         }
+        let is_active = |b: u32| active.get(b as usize).copied().unwrap_or(true);
+        // The searched particles (all, or those of active bodies) and their positions.
+        let subset: Option<Vec<u32>> = (!active.iter().all(|&a| a)).then(|| {
+            (0..n as u32)
+                .filter(|&i| is_active(model.particle_body[i as usize]))
+                .collect()
+        });
+        let points: Vec<Vec3> = match &subset {
+            Some(ids) => ids.iter().map(|&i| x[i as usize]).collect(),
+            None => Vec::new(),
+        };
+        let index = |j: u32| subset.as_ref().map_or(j, |ids| ids[j as usize]);
         // Per particle: the k nearest particles of other bodies within twice the contact
         // distance (candidates for the next `knn_every` steps).
-        let grid = super::knn::Grid::build(x, 2.0);
+        let grid = super::knn::Grid::build(if subset.is_some() { &points } else { x }, 2.0);
         let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
         // Broad phase: a body near no other searches nothing (its lists stay empty).
         let boxes = super::knn::body_boxes(x, model.bodies.iter().map(|b| (b.first, b.count)));
-        let near = super::knn::near_bodies(&boxes, super::knn::contact_reach_bound(max_r));
+        let mut near = super::knn::near_bodies(&boxes, super::knn::contact_reach_bound(max_r));
+        for (b, nb) in near.iter_mut().enumerate() {
+            *nb &= is_active(b as u32);
+        }
         let mut lists = vec![u32::MAX; n * k];
         par::for_chunks_mut(&mut lists, k, self.settings.threads, |start, chunk| {
             let mut buf = Vec::with_capacity(k + 1);
@@ -946,11 +969,11 @@ impl Solver {
                     x[i],
                     k,
                     reach,
-                    |j| model.particle_body[j as usize] != bi,
+                    |j| model.particle_body[index(j) as usize] != bi,
                     &mut buf,
                 );
                 for (o, &(_, j)) in row.iter_mut().zip(&buf) {
-                    *o = j;
+                    *o = index(j);
                 }
             }
         });

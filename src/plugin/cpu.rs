@@ -394,7 +394,9 @@ impl CpuWorld {
             && due
             && let Some(solver) = self.solver.as_mut()
         {
-            solver.refresh_contacts(&self.model, &state.x);
+            // Retired bodies are parked far away: out of the search.
+            let active: Vec<bool> = self.retired.iter().map(|r| !r).collect();
+            solver.refresh_contacts_among(&self.model, &state.x, &active);
             let (start, list) = solver.contact_lists();
             if let Err(e) = world.set_contacts(queue, start, list) {
                 return Some(Err(e));
