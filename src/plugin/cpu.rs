@@ -34,6 +34,7 @@ use bevy::camera::primitives::Aabb;
 use bevy::mesh::VertexAttributeValues;
 use bevy::prelude::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
+use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, futures_lite::future};
 use std::ops::Range;
 use std::sync::Arc;
 
@@ -89,6 +90,11 @@ pub struct CpuWorld {
     levels: Option<LatticeMultigrid>,
     /// Bodies whose levels this world had to coarsen itself (they came without them).
     coarsened: u64,
+    /// A batch being made on a worker thread for these bodies (the current one steps
+    /// meanwhile).
+    pending: Option<PendingBatch>,
+    /// Rebuilds made on a worker thread.
+    off_thread: u64,
 }
 
 /// The CPU world's lattice bodies on the GPU.
@@ -123,6 +129,13 @@ impl CpuWorld {
     /// divergence speed change in place.
     pub fn rebuilds(&self) -> u64 {
         self.rebuilds
+    }
+
+    /// How many of the [`CpuWorld::rebuilds`] were made on a worker thread while the
+    /// batch before them stepped on (bodies new or rebuilt while the batch steps on the
+    /// GPU; the bodies join it when it is ready, some frames later).
+    pub fn rebuilds_off_thread(&self) -> u64 {
+        self.off_thread
     }
 
     /// How many bodies' multigrid levels this world has coarsened itself. A lattice body
@@ -189,28 +202,22 @@ impl CpuWorld {
         (0..self.keys.len()).find(|&i| self.keys[i].0 == entity && !self.retired[i])
     }
 
-    /// Retires the bodies of the batch that `keys` (the scene's bodies, in the model's
-    /// order) no longer has, without a rebuild: possible where the batch steps on the
-    /// GPU, holds the latest state, nothing else changed, and retired bodies would hold
-    /// at most a quarter of its particles. Each is held still on the GPU
+    /// Retires the bodies of the batch whose entities `keys` (the scene's bodies) no
+    /// longer has, without a rebuild: possible where the batch steps on the GPU, holds
+    /// the latest state, and retired bodies would hold at most a quarter of its
+    /// particles and not all of its bodies. Each is held still on the GPU
     /// ([`GpuLattice::hold`]) at its rest shape [`RETIRED_DEPTH`] below where it was
-    /// built, so that it neither moves nor touches anything. False (nothing changed) where a
-    /// rebuild is needed.
-    fn retire_missing(&mut self, keys: &[(Entity, u64)], queue: &RenderQueue) -> bool {
+    /// built, so that it neither moves nor touches anything. True where nothing had to
+    /// go; false (nothing changed) where a rebuild is needed.
+    fn retire_gone(&mut self, keys: &[(Entity, u64)], queue: &RenderQueue) -> bool {
         let live = self.live_keys();
-        let mut next = keys.iter().peekable();
-        let mut gone = Vec::new();
-        for (i, k) in self.keys.iter().enumerate() {
-            if self.retired[i] {
-                continue;
-            }
-            if next.peek() == Some(&k) {
-                next.next();
-            } else {
-                gone.push(i);
-            }
+        let gone: Vec<usize> = (0..self.keys.len())
+            .filter(|&i| !self.retired[i] && !keys.iter().any(|k| k.0 == self.keys[i].0))
+            .collect();
+        if gone.is_empty() {
+            return true;
         }
-        if next.peek().is_some() || gone.is_empty() || gone.len() == live.len() {
+        if gone.len() == live.len() {
             return false;
         }
         let Some(g) = self.gpu.as_ref() else {
@@ -251,22 +258,72 @@ impl CpuWorld {
         bodies: &[(Entity, &BuiltBody)],
         settings: SolverSettings,
     ) -> Result<(), TissueError> {
-        let mut model = Model::new();
-        let mut ranges = Vec::with_capacity(bodies.len());
-        for (_, b) in bodies {
-            let (p0, e0) = (model.particle_count(), model.elements.len());
-            model.append(&b.model);
-            ranges.push((p0..model.particle_count(), e0..model.elements.len()));
+        self.pending = None;
+        let batch = make_batch(batch_inputs(bodies), settings)?;
+        self.install(batch);
+        Ok(())
+    }
+
+    /// Makes the batch for `bodies` on a worker thread while the current one steps on,
+    /// where the current one steps on the GPU; installs it, the bodies already there
+    /// carrying their latest pose over, on the first call after it is ready. False where
+    /// a rebuild is needed instead (no GPU batch yet, or a different set of bodies
+    /// finished first and was dropped: the caller rebuilds or calls again).
+    fn rebuild_soon(&mut self, bodies: &[(Entity, &BuiltBody)], settings: &SolverSettings) -> bool {
+        let keys: Vec<(Entity, u64)> = bodies.iter().map(|(e, b)| (*e, b.generation)).collect();
+        let live = self
+            .gpu
+            .as_ref()
+            .is_some_and(|g| g.world.is_some() && g.synced);
+        if !live || self.settings.as_ref() != Some(settings) {
+            return false;
         }
+        if self.pending.as_ref().is_none_or(|p| p.0 != keys) {
+            let inputs = batch_inputs(bodies);
+            let settings = settings.clone();
+            let task =
+                AsyncComputeTaskPool::get().spawn(async move { make_batch(inputs, settings) });
+            self.pending = Some((keys, task));
+        }
+        let Some((_, task)) = self.pending.as_mut() else {
+            return true;
+        };
+        match block_on(future::poll_once(task)) {
+            None => true,
+            Some(Ok(batch)) => {
+                self.pending = None;
+                self.install(batch);
+                self.off_thread += 1;
+                true
+            }
+            Some(Err(_)) => {
+                self.pending = None;
+                false
+            }
+        }
+    }
+
+    /// Takes `batch` as the world's bodies, their state carried over from the current
+    /// batch where they are the same particles.
+    fn install(&mut self, batch: Batch) {
+        let Batch {
+            bodies,
+            model,
+            ranges,
+            solver,
+            levels,
+            coarsened,
+            settings,
+        } = batch;
         let mut state = State::new(&model);
         if let Some(old) = &self.state {
-            for ((entity, b), (p, e)) in bodies.iter().zip(&ranges) {
-                let Some(k) = self.index_of(*entity) else {
+            for (&(entity, generation, reset), (p, e)) in bodies.iter().zip(&ranges) {
+                let Some(k) = self.index_of(entity) else {
                     continue;
                 };
                 let (op, oe) = &self.ranges[k];
-                let same = self.keys[k].1 == b.generation
-                    || (!b.reset && op.len() == p.len() && oe.len() == e.len());
+                let same = self.keys[k].1 == generation
+                    || (!reset && op.len() == p.len() && oe.len() == e.len());
                 if !same {
                     continue;
                 }
@@ -277,23 +334,11 @@ impl CpuWorld {
             }
             state.step = old.step;
         }
-        self.solver = Some(Solver::new(&model, settings.clone())?);
-        // The GPU world's hierarchy: the bodies' own levels, joined.
-        self.levels = gpu_can_step(&model).then(|| {
-            let own: Vec<Arc<BodyLevels>> = bodies
-                .iter()
-                .map(|(_, b)| {
-                    b.levels.clone().unwrap_or_else(|| {
-                        self.coarsened += 1;
-                        Arc::new(BodyLevels::new(&b.model, 0))
-                    })
-                })
-                .collect();
-            let parts: Vec<&BodyLevels> = own.iter().map(Arc::as_ref).collect();
-            LatticeMultigrid::from_bodies(&parts, MIN_NODES, MAX_LEVELS)
-        });
+        self.solver = Some(solver);
+        self.levels = levels;
+        self.coarsened += coarsened;
         self.settings = Some(settings);
-        self.keys = bodies.iter().map(|(e, b)| (*e, b.generation)).collect();
+        self.keys = bodies.iter().map(|&(e, g, _)| (e, g)).collect();
         self.retired = vec![false; self.keys.len()];
         self.model = model;
         self.state = Some(state);
@@ -303,7 +348,6 @@ impl CpuWorld {
         if let Some(g) = self.gpu.as_mut() {
             g.world = None;
         }
-        Ok(())
     }
 
     /// Steps `steps` times on the GPU: `Some` with the colliders' forces, or the error
@@ -453,6 +497,71 @@ impl CpuWorld {
     }
 }
 
+/// What making a batch takes from each body: entity, generation, whether it starts at
+/// rest, its model and its multigrid levels.
+type BatchInput = (Entity, u64, bool, Arc<Model>, Option<Arc<BodyLevels>>);
+
+/// A batch in the making: the bodies it is for, and the task making it.
+type PendingBatch = (Vec<(Entity, u64)>, Task<Result<Batch, TissueError>>);
+
+/// A batch of bodies made ready to step (off the main thread where it can be).
+struct Batch {
+    /// Per body: entity, generation, whether it starts at rest.
+    bodies: Vec<(Entity, u64, bool)>,
+    model: Model,
+    /// Particle range and element range of each body.
+    ranges: Vec<(Range<usize>, Range<usize>)>,
+    solver: Solver,
+    /// The lattice bodies' joined multigrid levels, where the GPU can step them all.
+    levels: Option<LatticeMultigrid>,
+    /// Bodies whose levels had to be coarsened here (they came without them).
+    coarsened: u64,
+    settings: SolverSettings,
+}
+
+fn batch_inputs(bodies: &[(Entity, &BuiltBody)]) -> Vec<BatchInput> {
+    bodies
+        .iter()
+        .map(|(e, b)| (*e, b.generation, b.reset, b.model.clone(), b.levels.clone()))
+        .collect()
+}
+
+/// The batched model of `bodies` (in that order), its solver and, where the GPU can
+/// step every body, the bodies' own multigrid levels joined.
+fn make_batch(bodies: Vec<BatchInput>, settings: SolverSettings) -> Result<Batch, TissueError> {
+    let mut model = Model::new();
+    let mut ranges = Vec::with_capacity(bodies.len());
+    for (_, _, _, m, _) in &bodies {
+        let (p0, e0) = (model.particle_count(), model.elements.len());
+        model.append(m);
+        ranges.push((p0..model.particle_count(), e0..model.elements.len()));
+    }
+    let solver = Solver::new(&model, settings.clone())?;
+    let mut coarsened = 0;
+    let levels = gpu_can_step(&model).then(|| {
+        let own: Vec<Arc<BodyLevels>> = bodies
+            .iter()
+            .map(|(_, _, _, m, levels)| {
+                levels.clone().unwrap_or_else(|| {
+                    coarsened += 1;
+                    Arc::new(BodyLevels::new(m, 0))
+                })
+            })
+            .collect();
+        let parts: Vec<&BodyLevels> = own.iter().map(Arc::as_ref).collect();
+        LatticeMultigrid::from_bodies(&parts, MIN_NODES, MAX_LEVELS)
+    });
+    Ok(Batch {
+        bodies: bodies.iter().map(|b| (b.0, b.1, b.2)).collect(),
+        model,
+        ranges,
+        solver,
+        levels,
+        coarsened,
+        settings,
+    })
+}
+
 /// The scene's colliders as the core sees them, in spawn order (the same list the GPU
 /// path builds), with their entities and velocities from their motion over the last
 /// frame (`dt`, s); closed graspers capture (the CPU world latches them itself).
@@ -515,14 +624,17 @@ pub fn step_cpu_bodies(
         keys == live && world.settings.as_ref() != Some(&core) && world.apply_forces(&core);
     if !in_place && (keys != live || world.settings.as_ref() != Some(&core)) {
         dirty = true;
-        // Bodies gone while nothing else changed are retired in place where the batch
-        // steps on the GPU; anything else makes the batch again.
-        let retired = world.settings.as_ref() == Some(&core)
+        // Bodies gone are retired in place, and bodies new or rebuilt made into a batch
+        // on a worker thread, where the batch steps on the GPU and the settings are the
+        // same; anything else makes the batch again now.
+        let same = world.settings.as_ref() == Some(&core);
+        let retired = same
             && render
                 .1
                 .as_ref()
-                .is_some_and(|queue| world.retire_missing(&keys, queue));
-        if !retired && let Err(e) = world.rebuild(&cpu, core) {
+                .is_some_and(|queue| world.retire_gone(&keys, queue));
+        let now = !retired || (keys != world.live_keys() && !world.rebuild_soon(&cpu, &core));
+        if now && let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();
             warn!("bevy_tissue: the CPU bodies cannot be simulated: {error}");
             for (entity, _) in &cpu {
