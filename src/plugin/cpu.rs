@@ -15,6 +15,14 @@
 //! CPU's solver takes over where the GPU path is not possible (it cannot be set up, more
 //! than [`crate::gpu::kernels::lattice::MAX_COLLIDERS`] colliders).
 //!
+//! Bodies coming and going: each lattice body brings its multigrid levels from its build
+//! ([`BuiltBody::levels`]) and a new batch joins them. While the batch steps on the
+//! GPU, a body gone is retired in place ([`CpuWorld::is_retired`]: held still, out of
+//! reach, until retired bodies hold a quarter of the particles), and a batch with new
+//! or rebuilt bodies is made on a worker thread while the old one steps on; they join
+//! when it is ready. Anything else (a settings change beyond gravity and damping, the
+//! CPU path) makes the batch again at once.
+//!
 //! Not done on this path (yet): sleeping, and [`ColliderForce`] while some bodies are
 //! stepped by the render graph (it is written when every built body is in this world).
 
