@@ -1143,7 +1143,6 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             LatticeOptions {
                 fold_nodes: fold,
                 first_candidates: first,
-                ..Default::default()
             },
         )
         .unwrap();
@@ -1243,80 +1242,6 @@ fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
     .expect("another model's levels refused")
     .to_string();
     assert!(err.contains("levels"), "{err}");
-}
-
-/// A GPU lattice refilled with another batch (`GpuLattice::refill`: its buffers, made
-/// with room, and its bind groups kept) steps to the bit as one made for that batch: a
-/// box alone, refilled with the clamped bar beside it, 10 steps. Without the room, the
-/// refill is refused and the lattice steps on as it was.
-#[test]
-fn a_refilled_lattice_steps_as_one_made_for_its_batch() {
-    use bevy_tissue::core::multigrid::{LatticeMultigrid, MAX_LEVELS, MIN_NODES};
-    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
-    use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
-    let Some(g) = gpu() else {
-        return;
-    };
-    let kernels = LatticeKernels::new(&g.device).unwrap();
-    let boxed = lattice_box_at(Vec3::splat(0.02), Vec3::new(0.0, 0.2, 0.0));
-    let mut both = lattice_bar(0.0075);
-    both.append(&boxed);
-    let s = lattice_settings();
-    let levels = |m: &Model| LatticeMultigrid::new(m, MIN_NODES, MAX_LEVELS);
-    let run = |world: &GpuLattice, start: &State| {
-        let mut enc = g.device.create_command_encoder(&Default::default());
-        world.record(&mut enc, &kernels, 10, None);
-        g.queue.submit([enc.finish()]);
-        let mut state = start.clone();
-        world.download(&g.device, &g.queue, &mut state);
-        state.x
-    };
-    let roomy = LatticeOptions {
-        room: 8.0,
-        ..Default::default()
-    };
-    let small = State::new(&boxed);
-    let mut refilled = GpuLattice::with_levels(
-        &g.device,
-        &kernels,
-        &boxed,
-        levels(&boxed),
-        &small,
-        &s,
-        roomy,
-    )
-    .unwrap();
-    let alone = run(&refilled, &small);
-    let start = State::new(&both);
-    assert!(
-        refilled
-            .refill(&g.queue, &both, levels(&both), &start, &s, roomy)
-            .unwrap(),
-        "the batch fits the room"
-    );
-    let made = GpuLattice::new(&g.device, &kernels, &both, &start, &s).unwrap();
-    let (a, b) = (run(&refilled, &start), run(&made, &start));
-    assert!(max_dist(&b, &both.rest) > 1e-3, "the bodies fell");
-    assert!(a == b, "refilled and made differ by {} m", max_dist(&a, &b));
-    // Without room: refused, and the lattice keeps its batch.
-    let mut tight = GpuLattice::new(&g.device, &kernels, &boxed, &small, &s).unwrap();
-    assert!(
-        !tight
-            .refill(
-                &g.queue,
-                &both,
-                levels(&both),
-                &start,
-                &s,
-                LatticeOptions::default()
-            )
-            .unwrap()
-    );
-    assert_eq!(
-        run(&tight, &small),
-        alone,
-        "the refused refill changed the lattice"
-    );
 }
 
 /// A lattice box of half extents `half` (8 mm spacing, E = 20 kPa, ν = 0.3) centred at

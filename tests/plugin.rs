@@ -1441,12 +1441,6 @@ fn lattice_bodies_come_and_go_without_coarsening_or_rebuilding_the_others() {
     step_frames(&mut app, 5);
     assert!(cpu(&app).stepped_on_gpu());
     assert!(pose(&app, more[1]).iter().all(|p| p.is_finite()));
-    // The smaller batch was written into the buffers of the one before (made with room).
-    assert_eq!(
-        cpu(&app).gpu_refills(),
-        1,
-        "the compacted batch made new buffers"
-    );
 }
 
 /// Bodies the render graph's world has room for.

@@ -127,9 +127,8 @@ pub struct Shape {
 /// on the folded path.
 pub const FOLD_NODES: u32 = 1024;
 
-/// How [`GpuLattice`] schedules its work and sizes its buffers (the answer is the same
-/// either way).
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// How [`GpuLattice`] schedules its work (the answer is the same either way).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LatticeOptions {
     /// The V-cycle runs in one workgroup from the first level at which at most this
     /// many nodes remain (0: never; every level's smoothing then dispatches per colour
@@ -138,9 +137,6 @@ pub struct LatticeOptions {
     /// Line-search candidates (of 13) tried in the first energy pass; the rest in a
     /// second pass only when none of these lowers the energy. Default 4.
     pub first_candidates: u32,
-    /// Each buffer is made this many times the size the model needs (at least 1), so
-    /// that a larger batch can be written into it ([`GpuLattice::refill`]). Default 1.
-    pub room: f32,
 }
 
 impl Default for LatticeOptions {
@@ -148,7 +144,6 @@ impl Default for LatticeOptions {
         Self {
             fold_nodes: FOLD_NODES,
             first_candidates: 4,
-            room: 1.0,
         }
     }
 }
@@ -551,162 +546,6 @@ pub fn newton_count(settings: &SolverSettings) -> u32 {
     }
 }
 
-/// The lattice's buffers: name (as the kernels' binding table names them) and whether
-/// it is a storage buffer (bound whole, held to the binding limit).
-const BUFFERS: [(&str, bool); 16] = [
-    ("pos", true),
-    ("rot", true),
-    ("ef", true),
-    ("vecs", true),
-    ("nblk", true),
-    ("red", true),
-    ("elems", true),
-    ("kmat", true),
-    ("topo", true),
-    ("nodes", true),
-    ("mats", true),
-    ("ccol", true),
-    ("args", true),
-    ("cols", false),
-    ("params", false),
-    ("pc", false),
-];
-
-/// Every buffer's initial contents for `model` in `state` (in [`BUFFERS`] order), and
-/// the plan that steps it.
-struct Contents {
-    bytes: Vec<Vec<u8>>,
-    dispatches: Vec<Dispatch>,
-    pass_index: Vec<u32>,
-    force_out: u32,
-    pair_capacity: usize,
-    h: f32,
-}
-
-fn contents(
-    model: &Model,
-    mg: &LatticeMultigrid,
-    state: &State,
-    settings: &SolverSettings,
-    options: LatticeOptions,
-) -> Contents {
-    let packed = pack(model, mg, settings, options);
-    let n = model.particle_count();
-    let nt = packed.params.n_total as usize;
-    let bytes = |v: &[[f32; 4]]| bytemuck::cast_slice::<[f32; 4], u8>(v).to_vec();
-    let mut rots: Vec<[f32; 4]> = state.element_rot.iter().map(|q| q.to_array()).collect();
-    rots.resize(
-        packed.params.lv[packed.params.levels as usize - 1][3] as usize,
-        [0.0, 0.0, 0.0, 1.0],
-    );
-    let mut ccol = ccol_regions(state);
-    let pair_capacity = pair_capacity(model, settings);
-    if pair_capacity > 0 {
-        // Region 4 (every node's list ranges, empty) and the lists (both of them, four
-        // u32 a vec4).
-        ccol.resize(5 * n + (2 * pair_capacity).div_ceil(4), [0.0; 4]);
-    }
-    let dispatches = plan(&packed.shape, newton_count(settings));
-    let mut records: Vec<PassRecord> = Vec::new();
-    let mut pass_index = Vec::with_capacity(dispatches.len());
-    for d in &dispatches {
-        let i = match records.iter().position(|r| *r == d.pass) {
-            Some(i) => i,
-            None => {
-                records.push(d.pass);
-                records.len() - 1
-            }
-        };
-        pass_index.push(i as u32);
-    }
-    let mut passes = vec![0u8; records.len().max(1) * PASS_STRIDE as usize];
-    for (i, r) in records.iter().enumerate() {
-        let at = i * PASS_STRIDE as usize;
-        passes[at..at + 16].copy_from_slice(bytemuck::bytes_of(r));
-    }
-    let bytes = vec![
-        bytes(&pos_regions(model, state)),
-        bytes(&rots),
-        vec![0u8; model.elements.len() * 8 * 16],
-        vec![0u8; nt * 4 * 16],
-        vec![0u8; nt * 6 * 16],
-        vec![0u8; red_floats(packed.params.misc) * 4],
-        bytemuck::cast_slice(&packed.elems).to_vec(),
-        bytes(&packed.kmat),
-        bytemuck::cast_slice(&packed.topo).to_vec(),
-        bytes(&packed.nodes),
-        bytes(&packed.mats),
-        bytes(&ccol),
-        bytemuck::cast_slice(&[0u32, 1, 1, 0]).to_vec(),
-        vec![0u8; MAX_COLLIDERS * std::mem::size_of::<GpuCollider>()],
-        bytemuck::bytes_of(&packed.params).to_vec(),
-        passes,
-    ];
-    Contents {
-        bytes,
-        dispatches,
-        pass_index,
-        force_out: packed.params.misc[3],
-        pair_capacity,
-        h: packed.params.h,
-    }
-}
-
-/// What [`GpuLattice::with_levels`] and [`GpuLattice::refill`] refuse: invalid settings,
-/// a model without lattice elements or with a body the GPU lattice does not step, a
-/// state or a hierarchy of another model.
-fn check_inputs(
-    model: &Model,
-    mg: &LatticeMultigrid,
-    state: &State,
-    settings: &SolverSettings,
-) -> Result<(), TissueError> {
-    let n = model.particle_count();
-    settings.validate()?;
-    if model.elements.is_empty() {
-        return Err(TissueError::InvalidParameter {
-            name: "model",
-            value: "no lattice elements".into(),
-            expected: "at least one body with Discretisation::Lattice",
-        });
-    }
-    for b in &model.bodies {
-        if b.discretisation != Discretisation::Lattice
-            || !matches!(b.material, Material::Hyperelastic { .. })
-        {
-            return Err(TissueError::InvalidParameter {
-                name: "model",
-                value: "a body that is not a hyperelastic lattice".into(),
-                expected: "only hyperelastic lattice bodies on the GPU lattice solver",
-            });
-        }
-    }
-    if state.x.len() != n || state.element_rot.len() != model.elements.len() {
-        return Err(TissueError::InvalidParameter {
-            name: "state",
-            value: format!("{} particles", state.x.len()),
-            expected: "a State made for this model",
-        });
-    }
-    let fine = mg.levels.first();
-    if fine.is_none_or(|f| {
-        f.nodes != model.particle_count() || f.elements.len() != model.elements.len()
-    }) || mg.unit.len() != model.bodies.len()
-    {
-        return Err(TissueError::InvalidParameter {
-            name: "levels",
-            value: format!(
-                "{} nodes, {} elements, {} bodies",
-                fine.map_or(0, |f| f.nodes),
-                fine.map_or(0, |f| f.elements.len()),
-                mg.unit.len()
-            ),
-            expected: "the hierarchy of this model (LatticeMultigrid::new or from_bodies)",
-        });
-    }
-    Ok(())
-}
-
 /// Lattice bodies stepped by Newton–multigrid on the GPU.
 pub struct GpuLattice {
     n: u32,
@@ -737,9 +576,7 @@ pub struct GpuLattice {
     pair_capacity: usize,
     /// Per node of every level: mass, held, reach, body.
     nodes: Buffer,
-    /// Every buffer, in [`BUFFERS`] order, and its size in bytes.
-    all: Vec<Buffer>,
-    capacity: Vec<u64>,
+    _keep: Vec<Buffer>,
 }
 
 impl GpuLattice {
@@ -790,49 +627,190 @@ impl GpuLattice {
         settings: &SolverSettings,
         options: LatticeOptions,
     ) -> Result<Self, TissueError> {
-        check_inputs(model, &mg, state, settings)?;
-        mg.smoother = settings.smoother;
-        let contents = contents(model, &mg, state, settings, options);
-        let limit = device.limits().max_storage_buffer_binding_size;
-        let mut all = Vec::with_capacity(BUFFERS.len());
-        let mut capacity = Vec::with_capacity(BUFFERS.len());
-        for ((label, storage), bytes) in BUFFERS.iter().zip(&contents.bytes) {
-            let len = bytes.len().max(16) as u64;
-            if *storage && len > limit {
-                return Err(TissueError::GpuUnsupported {
-                    what: "bytes per storage buffer binding",
-                    needed: len,
-                    limit,
+        settings.validate()?;
+        if model.elements.is_empty() {
+            return Err(TissueError::InvalidParameter {
+                name: "model",
+                value: "no lattice elements".into(),
+                expected: "at least one body with Discretisation::Lattice",
+            });
+        }
+        for b in &model.bodies {
+            if b.discretisation != Discretisation::Lattice
+                || !matches!(b.material, Material::Hyperelastic { .. })
+            {
+                return Err(TissueError::InvalidParameter {
+                    name: "model",
+                    value: "a body that is not a hyperelastic lattice".into(),
+                    expected: "only hyperelastic lattice bodies on the GPU lattice solver",
                 });
             }
-            // Room for a larger batch where the size follows the model (and it fits).
-            let roomy = ((len as f64 * options.room.max(1.0) as f64) as u64).div_ceil(16) * 16;
-            let size = if *storage && roomy > limit {
-                len
-            } else {
-                roomy
-            };
-            let usage = match *label {
-                "args" => BufferUsages::STORAGE | BufferUsages::INDIRECT | BufferUsages::COPY_DST,
-                "cols" | "params" | "pc" => BufferUsages::UNIFORM | BufferUsages::COPY_DST,
-                _ => BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC,
-            };
-            let mut data = Vec::with_capacity(size as usize);
-            data.extend_from_slice(bytes);
-            data.resize(size as usize, 0);
-            let buffer = device.create_buffer_with_data(
-                &bevy::render::render_resource::BufferInitDescriptor {
-                    label: Some(label),
-                    contents: &data,
-                    usage,
-                },
-            );
-            all.push(buffer);
-            capacity.push(size);
         }
+        let n = model.particle_count();
+        if state.x.len() != n || state.element_rot.len() != model.elements.len() {
+            return Err(TissueError::InvalidParameter {
+                name: "state",
+                value: format!("{} particles", state.x.len()),
+                expected: "a State made for this model",
+            });
+        }
+        let fine = mg.levels.first();
+        if fine.is_none_or(|f| {
+            f.nodes != model.particle_count() || f.elements.len() != model.elements.len()
+        }) || mg.unit.len() != model.bodies.len()
+        {
+            return Err(TissueError::InvalidParameter {
+                name: "levels",
+                value: format!(
+                    "{} nodes, {} elements, {} bodies",
+                    fine.map_or(0, |f| f.nodes),
+                    fine.map_or(0, |f| f.elements.len()),
+                    mg.unit.len()
+                ),
+                expected: "the hierarchy of this model (LatticeMultigrid::new or from_bodies)",
+            });
+        }
+        mg.smoother = settings.smoother;
+        let packed = pack(model, &mg, settings, options);
+        let limit = device.limits().max_storage_buffer_binding_size;
+        let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
+        let make =
+            |label: &str, bytes: &[u8], usage: BufferUsages| -> Result<Buffer, TissueError> {
+                if bytes.len() as u64 > limit {
+                    return Err(TissueError::GpuUnsupported {
+                        what: "bytes per storage buffer binding",
+                        needed: bytes.len() as u64,
+                        limit,
+                    });
+                }
+                let mut data = bytes.to_vec();
+                data.resize(data.len().max(16), 0);
+                Ok(device.create_buffer_with_data(
+                    &bevy::render::render_resource::BufferInitDescriptor {
+                        label: Some(label),
+                        contents: &data,
+                        usage,
+                    },
+                ))
+            };
+        let nt = packed.params.n_total as usize;
+        let pos = make(
+            "tissue lattice pos",
+            bytemuck::cast_slice(&pos_regions(model, state)),
+            st,
+        )?;
+        let mut rots: Vec<[f32; 4]> = state.element_rot.iter().map(|q| q.to_array()).collect();
+        rots.resize(
+            packed.params.lv[packed.params.levels as usize - 1][3] as usize,
+            [0.0, 0.0, 0.0, 1.0],
+        );
+        let rot = make("tissue lattice rot", bytemuck::cast_slice(&rots), st)?;
+        let ef = make(
+            "tissue lattice forces",
+            &vec![0u8; model.elements.len() * 8 * 16],
+            st,
+        )?;
+        let vecs = make("tissue lattice vectors", &vec![0u8; nt * 4 * 16], st)?;
+        let nblk = make("tissue lattice blocks", &vec![0u8; nt * 6 * 16], st)?;
+        let red = make(
+            "tissue lattice reductions",
+            &vec![0u8; red_floats(packed.params.misc) * 4],
+            st,
+        )?;
+        let elems = make(
+            "tissue lattice elements",
+            bytemuck::cast_slice(&packed.elems),
+            st,
+        )?;
+        let kmat = make(
+            "tissue lattice stiffness",
+            bytemuck::cast_slice(&packed.kmat),
+            st,
+        )?;
+        let topo = make(
+            "tissue lattice topology",
+            bytemuck::cast_slice(&packed.topo),
+            st,
+        )?;
+        let nodes = make(
+            "tissue lattice nodes",
+            bytemuck::cast_slice(&packed.nodes),
+            st,
+        )?;
+        let mats = make(
+            "tissue lattice materials",
+            bytemuck::cast_slice(&packed.mats),
+            st,
+        )?;
+        let mut ccol_init = ccol_regions(state);
+        let pair_capacity = pair_capacity(model, settings);
+        if pair_capacity > 0 {
+            // Region 4 (every node's list ranges, empty) and the lists (both of them,
+            // four u32 a vec4).
+            ccol_init.resize(5 * n + (2 * pair_capacity).div_ceil(4), [0.0; 4]);
+        }
+        let ccol = make(
+            "tissue lattice collider state",
+            bytemuck::cast_slice(&ccol_init),
+            st,
+        )?;
+        let args = make(
+            "tissue lattice indirect",
+            bytemuck::cast_slice(&[0u32, 1, 1, 0]),
+            BufferUsages::STORAGE | BufferUsages::INDIRECT | BufferUsages::COPY_DST,
+        )?;
+        let cols = make(
+            "tissue lattice colliders",
+            &vec![0u8; MAX_COLLIDERS * std::mem::size_of::<GpuCollider>()],
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        )?;
+        let params = make(
+            "tissue lattice params",
+            bytemuck::bytes_of(&packed.params),
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        )?;
+        let dispatches = plan(&packed.shape, newton_count(settings));
+        let mut records: Vec<PassRecord> = Vec::new();
+        let mut pass_index = Vec::with_capacity(dispatches.len());
+        for d in &dispatches {
+            let i = match records.iter().position(|r| *r == d.pass) {
+                Some(i) => i,
+                None => {
+                    records.push(d.pass);
+                    records.len() - 1
+                }
+            };
+            pass_index.push(i as u32);
+        }
+        let mut pass_bytes = vec![0u8; records.len().max(1) * PASS_STRIDE as usize];
+        for (i, r) in records.iter().enumerate() {
+            let at = i * PASS_STRIDE as usize;
+            pass_bytes[at..at + 16].copy_from_slice(bytemuck::bytes_of(r));
+        }
+        let passes = make(
+            "tissue lattice passes",
+            &pass_bytes,
+            BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        )?;
         let by_name = |name: &str| -> &Buffer {
-            let i = BUFFERS.iter().position(|b| b.0 == name).unwrap_or(0);
-            &all[i]
+            match name {
+                "params" => &params,
+                "pc" => &passes,
+                "cols" => &cols,
+                "ccol" => &ccol,
+                "args" => &args,
+                "pos" => &pos,
+                "rot" => &rot,
+                "ef" => &ef,
+                "vecs" => &vecs,
+                "nblk" => &nblk,
+                "red" => &red,
+                "elems" => &elems,
+                "kmat" => &kmat,
+                "topo" => &topo,
+                "nodes" => &nodes,
+                _ => &mats,
+            }
         };
         let mut bind_groups = Vec::new();
         for (entry, (_, layout)) in super::kernels::lattice::ENTRIES
@@ -858,72 +836,27 @@ impl GpuLattice {
             }
             bind_groups.push(device.create_bind_group(entry.name, layout, &entries));
         }
-        let get = |name: &str| by_name(name).clone();
         Ok(Self {
-            n: model.particle_count() as u32,
+            n: n as u32,
             ne: model.elements.len() as u32,
             substeps: settings.substeps,
-            h: contents.h,
-            dispatches: contents.dispatches,
-            pass_index: contents.pass_index,
+            h: packed.params.h,
+            dispatches,
+            pass_index,
             groups: bind_groups,
-            pos: get("pos"),
-            rot: get("rot"),
-            params: get("params"),
-            cols: get("cols"),
-            ccol: get("ccol"),
-            args: get("args"),
-            force_out: contents.force_out,
-            red: get("red"),
+            pos,
+            rot,
+            params,
+            cols,
+            ccol,
+            args,
+            force_out: packed.params.misc[3],
+            red,
             colliders: 0,
-            pair_capacity: contents.pair_capacity,
-            nodes: get("nodes"),
-            capacity,
-            all,
+            pair_capacity,
+            nodes,
+            _keep: vec![ef, vecs, nblk, elems, kmat, topo, mats, passes],
         })
-    }
-
-    /// Writes a new batch, `model` in `state` with its hierarchy `mg` (as for
-    /// [`GpuLattice::with_levels`]), into this lattice's buffers, keeping them and their
-    /// bind groups: what making a lattice for it would do, without making buffers, where
-    /// each buffer has room for it (see [`LatticeOptions::room`]). `Ok(false)`, nothing
-    /// changed, where one has not; errors as `with_levels`'s. The colliders and contact
-    /// lists are to be set again.
-    pub fn refill(
-        &mut self,
-        queue: &RenderQueue,
-        model: &Model,
-        mut mg: LatticeMultigrid,
-        state: &State,
-        settings: &SolverSettings,
-        options: LatticeOptions,
-    ) -> Result<bool, TissueError> {
-        check_inputs(model, &mg, state, settings)?;
-        mg.smoother = settings.smoother;
-        let contents = contents(model, &mg, state, settings, options);
-        let fits = contents
-            .bytes
-            .iter()
-            .zip(&self.capacity)
-            .all(|(bytes, &cap)| bytes.len() as u64 <= cap);
-        if !fits {
-            return Ok(false);
-        }
-        for (buffer, bytes) in self.all.iter().zip(&contents.bytes) {
-            if !bytes.is_empty() {
-                queue.write_buffer(buffer, 0, bytes);
-            }
-        }
-        self.n = model.particle_count() as u32;
-        self.ne = model.elements.len() as u32;
-        self.substeps = settings.substeps;
-        self.h = contents.h;
-        self.dispatches = contents.dispatches;
-        self.pass_index = contents.pass_index;
-        self.force_out = contents.force_out;
-        self.colliders = 0;
-        self.pair_capacity = contents.pair_capacity;
-        Ok(true)
     }
 
     /// Sets gravity (m/s²) and velocity damping (1/s) for the steps recorded from now on,

@@ -46,10 +46,6 @@ use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, futures_lite::future};
 use std::ops::Range;
 use std::sync::Arc;
 
-/// A lattice batch's GPU buffers are made this many times the size it needs, so that the
-/// batches after it (bodies coming) can be written into them.
-pub const BATCH_ROOM: f32 = 1.5;
-
 /// How far below its rest shape a retired body is held, m: out of any scene's reach,
 /// near enough for `f32` to keep its shape (about 0.1 mm of rounding).
 pub const RETIRED_DEPTH: f32 = 1000.0;
@@ -107,11 +103,6 @@ pub struct CpuWorld {
     pending: Option<PendingBatch>,
     /// Rebuilds made on a worker thread.
     off_thread: u64,
-    /// The last batch's GPU world, whose buffers the next batch is written into where it
-    /// fits.
-    spent: Option<GpuLattice>,
-    /// Batches written into the last one's buffers.
-    refills: u64,
 }
 
 /// The CPU world's lattice bodies on the GPU.
@@ -153,13 +144,6 @@ impl CpuWorld {
     /// GPU; the bodies join it when it is ready, some frames later).
     pub fn rebuilds_off_thread(&self) -> u64 {
         self.off_thread
-    }
-
-    /// How many of the [`CpuWorld::rebuilds`] wrote the new batch into the GPU buffers of
-    /// the one before (made with half as much room again as it needed) instead of
-    /// making new ones.
-    pub fn gpu_refills(&self) -> u64 {
-        self.refills
     }
 
     /// How many bodies' multigrid levels this world has coarsened itself. A lattice body
@@ -369,8 +353,8 @@ impl CpuWorld {
         self.ranges = ranges;
         self.gpu_failed = false;
         self.rebuilds += 1;
-        if let Some(world) = self.gpu.as_mut().and_then(|g| g.world.take()) {
-            self.spent = Some(world);
+        if let Some(g) = self.gpu.as_mut() {
+            g.world = None;
         }
     }
 
@@ -409,37 +393,19 @@ impl CpuWorld {
             }
         }
         let g = self.gpu.as_mut()?;
-        // A new batch goes into the last one's buffers where it fits (no buffers or bind
-        // groups made), else into a world made for it, with room to grow.
-        let options = LatticeOptions {
-            room: BATCH_ROOM,
-            ..Default::default()
-        };
-        if let (Some(old), Some(mg)) = (self.spent.take(), self.levels.as_ref()) {
-            let mut old = old;
-            if let Ok(true) = old.refill(queue, &self.model, mg.clone(), state, settings, options) {
-                self.levels = None;
-                g.world = Some(old);
-                g.synced = true;
-                g.lists = false;
-                g.forces_dirty = false;
-                self.refills += 1;
-            }
-        }
         if g.world.is_none() {
-            let mg = self
-                .levels
-                .take()
-                .unwrap_or_else(|| LatticeMultigrid::new(&self.model, MIN_NODES, MAX_LEVELS));
-            let made = GpuLattice::with_levels(
-                device,
-                &g.kernels,
-                &self.model,
-                mg,
-                state,
-                settings,
-                options,
-            );
+            let made = match self.levels.take() {
+                Some(mg) => GpuLattice::with_levels(
+                    device,
+                    &g.kernels,
+                    &self.model,
+                    mg,
+                    state,
+                    settings,
+                    LatticeOptions::default(),
+                ),
+                None => GpuLattice::new(device, &g.kernels, &self.model, state, settings),
+            };
             match made {
                 Ok(w) => {
                     g.world = Some(w);
