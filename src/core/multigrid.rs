@@ -226,15 +226,11 @@ pub struct BodyLevels {
 impl BodyLevels {
     /// The hierarchy of body `body` of `model`.
     pub fn new(model: &Model, body: usize) -> Self {
-        let elements = model.element_body.partition_point(|&b| (b as usize) < body)
+        // A model's elements are in body order.
+        let erange = model.element_body.partition_point(|&b| (b as usize) < body)
             ..model
                 .element_body
                 .partition_point(|&b| (b as usize) <= body);
-        Self::of_range(model, body, elements)
-    }
-
-    /// [`BodyLevels::new`] with the body's element range known.
-    fn of_range(model: &Model, body: usize, erange: std::ops::Range<usize>) -> Self {
         let info = &model.bodies[body];
         let (unit, unit_blocks, material) = match (info.discretisation, info.material) {
             (
@@ -334,18 +330,8 @@ impl LatticeMultigrid {
     /// has at most `min_nodes` nodes per body or stops shrinking (at most `max_levels`,
     /// itself at most [`MAX_LEVELS`]): each body's [`BodyLevels`], joined.
     pub fn new(model: &Model, min_nodes: usize, max_levels: usize) -> Self {
-        let mut ranges = vec![0..0; model.bodies.len()];
-        let mut e = 0;
-        for (b, r) in ranges.iter_mut().enumerate() {
-            let start = e;
-            while e < model.element_body.len() && model.element_body[e] as usize == b {
-                e += 1;
-            }
-            *r = start..e;
-        }
-        let parts: Vec<BodyLevels> = super::par::map(ranges.len(), 0, |b| {
-            BodyLevels::of_range(model, b, ranges[b].clone())
-        });
+        let parts: Vec<BodyLevels> =
+            super::par::map(model.bodies.len(), 0, |b| BodyLevels::new(model, b));
         let parts: Vec<&BodyLevels> = parts.iter().collect();
         Self::from_bodies(&parts, min_nodes, max_levels)
     }
@@ -356,13 +342,10 @@ impl LatticeMultigrid {
     /// than `min_nodes` nodes each on average, and the level shrinks by half, at most
     /// `max_levels` deep).
     pub fn from_bodies(parts: &[&BodyLevels], min_nodes: usize, max_levels: usize) -> Self {
-        fn at(p: &BodyLevels, l: usize) -> Option<&MgLevel> {
-            p.levels.get(l)
-        }
         let nodes_at = |l: usize| -> usize {
             parts
                 .iter()
-                .map(|p| at(p, l).map_or(0, |lv| lv.nodes))
+                .map(|p| p.levels.get(l).map_or(0, |lv| lv.nodes))
                 .sum()
         };
         let max_levels = max_levels.min(MAX_LEVELS);
@@ -372,9 +355,11 @@ impl LatticeMultigrid {
             if last / parts.len().max(1) <= min_nodes {
                 break;
             }
-            let coarser = parts
-                .iter()
-                .any(|p| at(p, depth - 1).is_some_and(|lv| !lv.elements.is_empty()));
+            let coarser = parts.iter().any(|p| {
+                p.levels
+                    .get(depth - 1)
+                    .is_some_and(|lv| !lv.elements.is_empty())
+            });
             if !coarser {
                 break;
             }

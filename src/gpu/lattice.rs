@@ -298,6 +298,14 @@ struct Packed {
     mats: Vec<[f32; 4]>,
 }
 
+/// The `nodes` record of particle `j` (a level-0 node): mass (kg), held, the trust
+/// region's reach (half its body's lattice spacing, m), body.
+fn particle_node(model: &Model, j: usize, held: bool) -> [f32; 4] {
+    let body = model.particle_body[j];
+    let reach = 0.5 * model.bodies[body as usize].spacing;
+    [model.mass[j], held as u32 as f32, reach, body as f32]
+}
+
 fn vec4(v: Vec3) -> [f32; 4] {
     v.extend(0.0).to_array()
 }
@@ -416,13 +424,11 @@ fn pack(
     let mut nodes = Vec::with_capacity(n_total as usize);
     for (l, lv) in levels.iter().enumerate() {
         for j in 0..lv.nodes {
-            let reach = if l == 0 {
-                0.5 * model.bodies[model.particle_body[j] as usize].spacing
+            nodes.push(if l == 0 {
+                particle_node(model, j, lv.fixed[j])
             } else {
-                0.0
-            };
-            let body = if l == 0 { model.particle_body[j] } else { 0 };
-            nodes.push([lv.mass[j], lv.fixed[j] as u32 as f32, reach, body as f32]);
+                [lv.mass[j], lv.fixed[j] as u32 as f32, 0.0, 0.0]
+            });
         }
     }
     let mut mats = Vec::new();
@@ -1135,11 +1141,7 @@ impl GpuLattice {
         put(4, at.iter().map(|p| p.extend(1.0).to_array()).collect());
         let nodes: Vec<[f32; 4]> = range
             .clone()
-            .map(|j| {
-                let body = model.particle_body[j];
-                let reach = 0.5 * model.bodies[body as usize].spacing;
-                [model.mass[j], 1.0, reach, body as f32]
-            })
+            .map(|j| particle_node(model, j, true))
             .collect();
         queue.write_buffer(
             &self.nodes,

@@ -43,6 +43,7 @@ use bevy::mesh::VertexAttributeValues;
 use bevy::prelude::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, futures_lite::future};
+use std::collections::HashMap;
 use std::ops::Range;
 use std::sync::Arc;
 
@@ -74,6 +75,8 @@ pub struct CpuWorld {
     /// Per body of the model: gone from the scene and held out of the way on the GPU
     /// until the next rebuild ([`CpuWorld::is_retired`]).
     retired: Vec<bool>,
+    /// The model index of each body not retired, by entity.
+    slots: HashMap<Entity, usize>,
     model: Model,
     state: Option<State>,
     solver: Option<Solver>,
@@ -195,19 +198,28 @@ impl CpuWorld {
         self.retired.get(index).copied().unwrap_or(false)
     }
 
-    /// The batch's bodies still in the scene, in the model's order.
-    fn live_keys(&self) -> Vec<(Entity, u64)> {
-        self.keys
-            .iter()
-            .zip(&self.retired)
-            .filter(|(_, r)| !**r)
-            .map(|(k, _)| *k)
-            .collect()
+    /// Whether the batch's bodies still in the scene are `keys`, in that order.
+    fn holds_exactly(&self, keys: &[(Entity, u64)]) -> bool {
+        keys.len() == self.slots.len()
+            && self
+                .keys
+                .iter()
+                .zip(&self.retired)
+                .filter(|(_, r)| !**r)
+                .map(|(k, _)| k)
+                .eq(keys)
     }
 
     /// The model index of `entity`'s body (not retired).
     fn index_of(&self, entity: Entity) -> Option<usize> {
-        (0..self.keys.len()).find(|&i| self.keys[i].0 == entity && !self.retired[i])
+        self.slots.get(&entity).copied()
+    }
+
+    /// Whether the batch steps on the GPU, which holds its latest state.
+    fn on_gpu_now(&self) -> bool {
+        self.gpu
+            .as_ref()
+            .is_some_and(|g| g.world.is_some() && g.synced)
     }
 
     /// Retires the bodies of the batch whose entities `keys` (the scene's bodies) no
@@ -218,25 +230,24 @@ impl CpuWorld {
     /// built, so that it neither moves nor touches anything. True where nothing had to
     /// go; false (nothing changed) where a rebuild is needed.
     fn retire_gone(&mut self, keys: &[(Entity, u64)], queue: &RenderQueue) -> bool {
-        let live = self.live_keys();
-        let gone: Vec<usize> = (0..self.keys.len())
-            .filter(|&i| !self.retired[i] && !keys.iter().any(|k| k.0 == self.keys[i].0))
+        let gone: Vec<usize> = self
+            .slots
+            .iter()
+            .filter(|(e, _)| !keys.iter().any(|k| k.0 == **e))
+            .map(|(_, &i)| i)
             .collect();
         if gone.is_empty() {
             return true;
         }
-        if gone.len() == live.len() {
+        if gone.len() == self.slots.len() || !self.on_gpu_now() {
             return false;
         }
-        let Some(g) = self.gpu.as_ref() else {
+        let (Some(world), Some(state)) = (
+            self.gpu.as_ref().and_then(|g| g.world.as_ref()),
+            self.state.as_mut(),
+        ) else {
             return false;
         };
-        let (Some(world), Some(state)) = (g.world.as_ref(), self.state.as_mut()) else {
-            return false;
-        };
-        if !g.synced {
-            return false;
-        }
         let held: usize = (0..self.keys.len())
             .filter(|&i| self.retired[i] || gone.contains(&i))
             .map(|i| self.ranges[i].0.len())
@@ -253,6 +264,7 @@ impl CpuWorld {
             }
             world.hold(queue, &self.model, p.clone(), &state.x[p]);
             self.retired[b] = true;
+            self.slots.remove(&self.keys[b].0);
         }
         true
     }
@@ -279,11 +291,7 @@ impl CpuWorld {
     /// finished first and was dropped: the caller rebuilds or calls again).
     fn rebuild_soon(&mut self, bodies: &[(Entity, &BuiltBody)], settings: &SolverSettings) -> bool {
         let keys: Vec<(Entity, u64)> = bodies.iter().map(|(e, b)| (*e, b.generation)).collect();
-        let live = self
-            .gpu
-            .as_ref()
-            .is_some_and(|g| g.world.is_some() && g.synced);
-        if !live || self.settings.as_ref() != Some(settings) {
+        if !self.on_gpu_now() || self.settings.as_ref() != Some(settings) {
             return false;
         }
         if self.pending.as_ref().is_none_or(|p| p.0 != keys) {
@@ -348,6 +356,12 @@ impl CpuWorld {
         self.settings = Some(settings);
         self.keys = bodies.iter().map(|&(e, g, _)| (e, g)).collect();
         self.retired = vec![false; self.keys.len()];
+        self.slots = self
+            .keys
+            .iter()
+            .enumerate()
+            .map(|(i, k)| (k.0, i))
+            .collect();
         self.model = model;
         self.state = Some(state);
         self.ranges = ranges;
@@ -627,10 +641,10 @@ pub fn step_cpu_bodies(
     let keys: Vec<(Entity, u64)> = cpu.iter().map(|(e, b)| (*e, b.generation)).collect();
     // Whether the particles may differ from what the meshes show (a rebuild or a step).
     let mut dirty = clock.steps_this_frame > 0;
-    let live = world.live_keys();
+    let same_bodies = world.holds_exactly(&keys);
     let in_place =
-        keys == live && world.settings.as_ref() != Some(&core) && world.apply_forces(&core);
-    if !in_place && (keys != live || world.settings.as_ref() != Some(&core)) {
+        same_bodies && world.settings.as_ref() != Some(&core) && world.apply_forces(&core);
+    if !in_place && (!same_bodies || world.settings.as_ref() != Some(&core)) {
         dirty = true;
         // Bodies gone are retired in place, and bodies new or rebuilt made into a batch
         // on a worker thread, where the batch steps on the GPU and the settings are the
@@ -641,7 +655,7 @@ pub fn step_cpu_bodies(
                 .1
                 .as_ref()
                 .is_some_and(|queue| world.retire_gone(&keys, queue));
-        let now = !retired || (keys != world.live_keys() && !world.rebuild_soon(&cpu, &core));
+        let now = !retired || (!world.holds_exactly(&keys) && !world.rebuild_soon(&cpu, &core));
         if now && let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();
             warn!("bevy_tissue: the CPU bodies cannot be simulated: {error}");
