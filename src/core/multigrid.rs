@@ -68,11 +68,6 @@ pub struct MgLevel {
     pub order: Vec<u32>,
     /// Where each colour starts in `order` (colour `c`: `colour_start[c]..colour_start[c + 1]`).
     pub colour_start: [u32; COLOURS + 1],
-    /// Of a hierarchy joined from bodies ([`LatticeMultigrid::from_bodies`]): where each
-    /// body's nodes start (body `b`: `body_start[b]..body_start[b + 1]`, empty where the
-    /// body has no such level). Within a colour of `order`, the bodies' nodes come in
-    /// body order. Empty on one body's own levels ([`BodyLevels`]).
-    pub body_start: Vec<u32>,
 }
 
 /// Gauss–Seidel colours of a hexahedral lattice (node coordinate parities).
@@ -548,8 +543,6 @@ fn join_level(parts: &[&BodyLevels], l: usize, links: bool) -> MgLevel {
             coarse_base += part.levels.get(l + 1).map_or(0, |c| c.nodes as u32);
         }
     }
-    out.body_start = bases.clone();
-    out.body_start.push(out.nodes as u32);
     for k in 0..COLOURS {
         for (part, &n0) in parts.iter().zip(&bases) {
             if let Some(lv) = part.levels.get(l) {

@@ -19,7 +19,7 @@ use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{
-    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, MgLevel, Smoother,
+    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother,
 };
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
@@ -110,18 +110,9 @@ pub struct Shape {
     /// Per level: where each colour starts in the concatenated colour order (absolute
     /// position in the topology buffer) and ends.
     pub colours: Vec<[u32; COLOURS + 1]>,
-    /// The level from which the rest of the V-cycle runs in workgroups of its own, if its
-    /// levels are small enough: the whole batch in one workgroup (one dispatch), or each
-    /// body in one ([`Shape::fold_bodies`]).
+    /// The level from which the rest of the V-cycle runs in one workgroup (one dispatch),
+    /// if its levels are small enough.
     pub fold: Option<usize>,
-    /// With [`Shape::fold`]: the bodies cycled apart, each by one workgroup (a few
-    /// dispatches, the coarse corrections' steps summed over the workgroups between
-    /// them); 0: the whole batch in one workgroup.
-    pub fold_bodies: u32,
-    /// Where the group table starts in the topology buffer: a record per level of the
-    /// whole batch, then of each body ([`GROUP_RECORD`] words each: its nodes, and each
-    /// colour's range in the colour order).
-    pub groups_base: u32,
     /// How each level is smoothed.
     pub smoother: Smoother,
     /// With particle contacts between bodies: their projection runs after every this
@@ -129,24 +120,19 @@ pub struct Shape {
     pub pairs: Option<u32>,
 }
 
-/// Most nodes the levels below [`Shape::fold`] may have together (in the whole batch, or
-/// in each body): one workgroup of 256 threads cycles through them.
+/// Most nodes the levels below [`Shape::fold`] may have together: one workgroup of 256
+/// threads cycles through them.
 /// The default, 1,024, was measured faster on the paper's liver than 4,096 (the
 /// one-workgroup cycle waits on one level's loads after another) and keeps small bodies
 /// on the folded path.
 pub const FOLD_NODES: u32 = 1024;
 
-/// Words of one group record (see [`Shape::groups_base`]): first and end node, then each
-/// of the 8 colours' first and end position in the colour order.
-pub const GROUP_RECORD: usize = 2 + 2 * COLOURS;
-
 /// How [`GpuLattice`] schedules its work (the answer is the same either way).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LatticeOptions {
     /// The V-cycle runs in one workgroup from the first level at which at most this
-    /// many nodes remain, or, with several bodies and sooner, in one workgroup per body
-    /// from the first level at which at most this many remain in each (0: never; every
-    /// level's smoothing then dispatches per colour and sweep). Default [`FOLD_NODES`].
+    /// many nodes remain (0: never; every level's smoothing then dispatches per colour
+    /// and sweep). Default [`FOLD_NODES`].
     pub fold_nodes: u32,
     /// Line-search candidates (of 13) tried in the first energy pass; the rest in a
     /// second pass only when none of these lowers the energy. Default 4.
@@ -273,22 +259,7 @@ fn sweeps(
 fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
     let (pre, post, coarsest) = SWEEPS;
     if shape.fold == Some(l) {
-        let base = shape.groups_base;
-        let bodies = shape.fold_bodies;
-        if bodies == 0 {
-            push(Kernel::CoarseCycle, base, 1, l as u32, 0, 1);
-            return;
-        }
-        // Each workgroup cycles its bodies; each coarse correction's step is summed over
-        // the workgroups (`pick`) before the level above takes it.
-        let base = base + (shape.levels.len() * GROUP_RECORD) as u32;
-        let g = bodies.min(MAX_PARTIALS);
-        push(Kernel::CoarseCycle, base, bodies, l as u32, 1, g);
-        for lc in (l..shape.levels.len() - 1).rev() {
-            push(Kernel::Pick, 0, g, lc as u32, 3, 1);
-            let mode = if lc > l { 2 } else { 3 };
-            push(Kernel::CoarseCycle, base, bodies, lc as u32, mode, g);
-        }
+        push(Kernel::CoarseCycle, 0, 0, l as u32, 0, 1);
         return;
     }
     if l + 1 == shape.levels.len() {
@@ -450,30 +421,6 @@ fn pack(
         }
     }
     topo[child_base as usize + coarse_elems] = topo.len() as u32;
-    // Group records: the whole batch's levels, then each body's (see `Shape::groups_base`).
-    let groups_base = topo.len() as u32;
-    for (l, c) in colours.iter().enumerate() {
-        topo.extend([node_off[l], node_off[l + 1]]);
-        for k in 0..COLOURS {
-            topo.extend([c[k], c[k + 1]]);
-        }
-    }
-    let bodies = body_count(levels);
-    for b in 0..bodies {
-        for (l, lv) in levels.iter().enumerate() {
-            let (from, to) = (lv.body_start[b], lv.body_start[b + 1]);
-            topo.extend([node_off[l] + from, node_off[l] + to]);
-            for k in 0..COLOURS {
-                let (a, z) = (lv.colour_start[k] as usize, lv.colour_start[k + 1] as usize);
-                // Within a colour the bodies' nodes come in body order.
-                let colour = &lv.order[a..z];
-                let at = colours[l][k] as usize;
-                let first = at + colour.partition_point(|&j| j < from);
-                let end = at + colour.partition_point(|&j| j < to);
-                topo.extend([first as u32, end as u32]);
-            }
-        }
-    }
     let mut nodes = Vec::with_capacity(n_total as usize);
     for (l, lv) in levels.iter().enumerate() {
         for j in 0..lv.nodes {
@@ -552,7 +499,6 @@ fn pack(
             0,
         ],
     };
-    let (fold, fold_bodies) = fold_level(levels, options.fold_nodes);
     let shape = Shape {
         levels: (0..nl)
             .map(|l| {
@@ -564,9 +510,7 @@ fn pack(
                 ]
             })
             .collect(),
-        fold,
-        fold_bodies,
-        groups_base,
+        fold: (0..nl).find(|&l| node_off[nl] - node_off[l] <= options.fold_nodes),
         colours,
         smoother: mg.smoother,
         pairs: pairs.then_some(settings.contact_every),
@@ -579,43 +523,6 @@ fn pack(
         topo,
         nodes,
         mats,
-    }
-}
-
-/// Bodies whose nodes every level records ([`crate::core::multigrid::MgLevel::body_start`]);
-/// 0 where a level does not.
-fn body_count(levels: &[MgLevel]) -> usize {
-    let bodies = levels[0].body_start.len().saturating_sub(1);
-    let recorded = levels.iter().all(|lv| {
-        lv.body_start.len() == bodies + 1 && lv.body_start.last() == Some(&(lv.nodes as u32))
-    });
-    if recorded { bodies } else { 0 }
-}
-
-/// Where the V-cycle folds into workgroups of its own (see [`LatticeOptions::fold_nodes`]):
-/// the level, and the bodies cycled apart (0: the whole batch in one workgroup).
-fn fold_level(levels: &[MgLevel], limit: u32) -> (Option<usize>, u32) {
-    if limit == 0 {
-        return (None, 0);
-    }
-    let nl = levels.len();
-    let remaining = |l: usize, b: Option<usize>| -> u32 {
-        levels[l..]
-            .iter()
-            .map(|lv| match b {
-                Some(b) => lv.body_start[b + 1] - lv.body_start[b],
-                None => lv.nodes as u32,
-            })
-            .sum()
-    };
-    let whole = (0..nl).find(|&l| remaining(l, None) <= limit);
-    let bodies = body_count(levels);
-    let apart = (bodies >= 2)
-        .then(|| (0..nl).find(|&l| (0..bodies).all(|b| remaining(l, Some(b)) <= limit)))
-        .flatten();
-    match (whole, apart) {
-        (w, Some(a)) if w.is_none_or(|w| a < w) => (Some(a), bodies as u32),
-        (w, _) => (w, 0),
     }
 }
 
@@ -653,8 +560,6 @@ pub struct GpuLattice {
     /// The substep, s.
     h: f32,
     dispatches: Vec<Dispatch>,
-    /// Where the V-cycle folds into workgroups of its own (see [`GpuLattice::fold`]).
-    fold: (Option<usize>, u32),
     pass_index: Vec<u32>,
     groups: Vec<BindGroup>,
     /// Positions, iterate, target, velocity and pin targets (5 regions of `n` vec4).
@@ -943,7 +848,6 @@ impl GpuLattice {
             substeps: settings.substeps,
             h: packed.params.h,
             dispatches,
-            fold: (packed.shape.fold, packed.shape.fold_bodies),
             pass_index,
             groups: bind_groups,
             pos,
@@ -971,14 +875,6 @@ impl GpuLattice {
             std::mem::offset_of!(Params, keep) as u64,
             bytemuck::bytes_of(&keep),
         );
-    }
-
-    /// Where the V-cycle runs in workgroups of its own ([`LatticeOptions::fold_nodes`]):
-    /// the level it folds at (none: every level dispatched per colour or sweep), and how
-    /// many bodies are cycled apart, one workgroup each (0: the whole batch in one
-    /// workgroup).
-    pub fn fold(&self) -> (Option<usize>, u32) {
-        self.fold
     }
 
     /// Dispatches of one time step.
@@ -1393,8 +1289,6 @@ mod tests {
                 [120, 121, 122, 123, 124, 125, 126, 127, 128],
             ],
             fold: None,
-            fold_bodies: 0,
-            groups_base: 1000,
             smoother: Smoother::GaussSeidel,
             pairs: None,
         }
@@ -1523,88 +1417,6 @@ mod tests {
             whole.iter().filter(|d| d.kernel == Kernel::Smooth).count(),
             0
         );
-    }
-
-    /// Folded per body, the V-cycle from the fold down is a dispatch of one workgroup per
-    /// body (at most as many as a reduction reads) for the down stroke, then per level
-    /// going up a `pick` of the coarse step (summed over those workgroups) and a dispatch
-    /// taking it; the records it reads are the bodies' (after the whole batch's). Level
-    /// 0's smoothing is then never dispatched by colour.
-    #[test]
-    fn a_plan_folded_per_body_sums_each_coarse_step_between_dispatches() {
-        for (bodies, groups) in [(3u32, 3u32), (5000, MAX_PARTIALS)] {
-            let s = Shape {
-                fold: Some(0),
-                fold_bodies: bodies,
-                ..shape()
-            };
-            let p = plan(&s, 1);
-            assert_eq!(p.iter().filter(|d| d.kernel == Kernel::Smooth).count(), 0);
-            let at = p
-                .iter()
-                .position(|d| d.kernel == Kernel::CoarseCycle)
-                .unwrap();
-            let cycle: Vec<(Kernel, u32, u32)> = p[at..at + 5]
-                .iter()
-                .map(|d| (d.kernel, d.pass.level, d.pass.mode))
-                .collect();
-            assert_eq!(
-                cycle,
-                [
-                    (Kernel::CoarseCycle, 0, 1),
-                    (Kernel::Pick, 1, 3),
-                    (Kernel::CoarseCycle, 1, 2),
-                    (Kernel::Pick, 0, 3),
-                    (Kernel::CoarseCycle, 0, 3),
-                ]
-            );
-            assert_eq!(p[at + 5].kernel, Kernel::Trust);
-            for d in &p[at..at + 5] {
-                if d.kernel == Kernel::CoarseCycle {
-                    let records = s.groups_base + 3 * GROUP_RECORD as u32;
-                    assert_eq!((d.pass.first, d.pass.count, d.groups), (records, bodies, groups));
-                } else {
-                    assert_eq!(d.pass.count, groups);
-                }
-            }
-        }
-        // Folded whole: one dispatch reading the whole batch's records.
-        let p = plan(
-            &Shape {
-                fold: Some(1),
-                ..shape()
-            },
-            1,
-        );
-        let d = p.iter().find(|d| d.kernel == Kernel::CoarseCycle).unwrap();
-        assert_eq!((d.pass.first, d.pass.count, d.pass.mode, d.groups), (1000, 1, 0, 1));
-    }
-
-    /// The fold level: the first at which the whole batch, or each of several bodies,
-    /// has at most the limit of nodes left; per body only where that comes sooner; never
-    /// with a limit of 0.
-    #[test]
-    fn the_fold_is_per_body_where_that_comes_sooner() {
-        // Two bodies: 600 + 500 nodes on level 0, 80 + 60 on level 1, 10 + 8 on level 2.
-        let level = |a: u32, b: u32| MgLevel {
-            nodes: (a + b) as usize,
-            body_start: vec![0, a, a + b],
-            ..Default::default()
-        };
-        let levels = [level(600, 500), level(80, 60), level(10, 8)];
-        assert_eq!(fold_level(&levels, 1024), (Some(0), 2));
-        assert_eq!(fold_level(&levels, 1300), (Some(0), 0));
-        assert_eq!(fold_level(&levels, 100), (Some(1), 2));
-        assert_eq!(fold_level(&levels, 160), (Some(1), 0));
-        assert_eq!(fold_level(&levels, 0), (None, 0));
-        // One body, or levels without body records: the whole batch only.
-        let one = [level(600, 0), level(80, 0)];
-        assert_eq!(fold_level(&one[..], 100), (Some(1), 0));
-        let unrecorded = [MgLevel {
-            nodes: 700,
-            ..Default::default()
-        }];
-        assert_eq!(fold_level(&unrecorded, 1024), (Some(0), 0));
     }
 
     /// The plan visits every level once per V-cycle, smooths each colour the configured

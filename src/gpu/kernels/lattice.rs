@@ -285,7 +285,7 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::CoarseCycle,
         name: "coarse_cycle",
         uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "red", "elems", "kmat", "topo", "nodes",
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
         ],
     },
     Entry {

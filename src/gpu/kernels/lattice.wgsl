@@ -864,33 +864,16 @@ fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 }
 
-// A group's ranges at one level, a record of the group table in `topo` (see
-// `GpuLattice`): its nodes [0, 1) and colour c's positions in the colour order
-// [2 + 2c, 3 + 2c). A group is the whole batch (one workgroup cycles every body) or one
-// body (each workgroup cycles its own bodies).
-const GROUP_RECORD: u32 = 18u;
-
-// Where group g's record of level l is, in the table at `base`.
-fn group_at(base: u32, g: u32, l: u32) -> u32 {
-    return base + (g * params.levels + l) * GROUP_RECORD;
+// Colour c of level l: its range in `topo` (absolute).
+fn colour_range(l: u32, c: u32) -> vec2<u32> {
+    let i = l * 9u + c;
+    return vec2<u32>(params.colours[i / 4u][i % 4u], params.colours[(i + 1u) / 4u][(i + 1u) % 4u]);
 }
 
 const CWG: u32 = 256u;
 var<workgroup> csum: array<vec2<f32>, 256>;
 
 var<workgroup> part: array<vec3<f32>, 256>;
-
-var<workgroup> grec: array<u32, 18>;
-
-// The record at topo[t], the same in every invocation (its ranges bound loops around
-// barriers).
-fn load_record(t: u32, lid: u32) -> array<u32, 18> {
-    workgroupBarrier();
-    if (lid < GROUP_RECORD) {
-        grec[lid] = topo[t + lid];
-    }
-    return workgroupUniformLoad(&grec);
-}
 
 // Part `slot` of (A x)_j split `split` ways (8: one of node j's elements; 64: one of its
 // elements' corner blocks), the mass and extra terms in part 0; 0 past its elements.
@@ -920,33 +903,32 @@ fn row_split(nodes: u32) -> u32 {
     return 1u;
 }
 
-// `count` sweeps of level l over the group whose record is at topo[t], by the workgroup:
-// Chebyshev where the level is so smoothed, else Gauss–Seidel by colour. A colour of few
-// nodes splits each node's row over 8 or 64 threads (summed in workgroup memory), so that
-// its latency is one element's or one block's loads rather than all of them.
-fn cycle_sweeps(t: u32, l: u32, count: u32, lid: u32) {
-    var r = load_record(t, lid);
+// `count` sweeps of level l by the workgroup: Chebyshev where the level is so smoothed,
+// else Gauss–Seidel by colour. A colour of few nodes splits
+// each node's row over 8 or 64 threads (summed in workgroup memory), so that its
+// latency is one element's or one block's loads rather than all of them.
+fn cycle_sweeps(l: u32, count: u32, lid: u32) {
     if (params.cheb[l].z > 0.5) {
-        chebyshev_sweeps(r[0], r[1], l, count, lid);
+        chebyshev_sweeps(l, count, lid);
         return;
     }
     var widest = 0u;
     for (var c = 0u; c < 8u; c = c + 1u) {
-        widest = max(widest, r[3u + 2u * c] - r[2u + 2u * c]);
+        let r = colour_range(l, c);
+        widest = max(widest, r.y - r.x);
     }
     let split = row_split(widest);
     let per = CWG / split;
     for (var s = 0u; s < count; s = s + 1u) {
         for (var c = 0u; c < 8u; c = c + 1u) {
-            let first = r[2u + 2u * c];
-            let end = r[3u + 2u * c];
+            let r = colour_range(l, c);
             if (split == 1u) {
-                for (var i = first + lid; i < end; i = i + CWG) {
+                for (var i = r.x + lid; i < r.y; i = i + CWG) {
                     smooth_node(topo[i]);
                 }
             } else {
-                for (var base = first; base < end; base = base + per) {
-                    smooth_split(base + lid / split, end, lid, split);
+                for (var base = r.x; base < r.y; base = base + per) {
+                    smooth_split(base + lid / split, r.y, lid, split);
                 }
             }
             storageBarrier();
@@ -1049,133 +1031,71 @@ fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
     }
 }
 
-// `count` Chebyshev sweeps of level l's nodes [first, end) by the workgroup, rows split
-// as `cycle_sweeps`.
-fn chebyshev_sweeps(first: u32, end: u32, l: u32, count: u32, lid: u32) {
-    let split = row_split(end - first);
+// `count` Chebyshev sweeps of level l by the workgroup, rows split as `cycle_sweeps`.
+fn chebyshev_sweeps(l: u32, count: u32, lid: u32) {
+    let lv = params.lv[l];
+    let split = row_split(lv.y - lv.x);
     let per = CWG / split;
     for (var k = 0u; k < count; k = k + 1u) {
         if (split == 1u) {
-            for (var j = first + lid; j < end; j = j + CWG) {
+            for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
                 chebyshev_node(j, apply_row(j, select(V_DELTA, V_PE, (k & 1u) == 1u)), l, k);
             }
         } else {
-            for (var base = first; base < end; base = base + per) {
-                chebyshev_split(base + lid / split, end, lid, split, l, k);
+            for (var base = lv.x; base < lv.y; base = base + per) {
+                chebyshev_split(base + lid / split, lv.y, lid, split, l, k);
             }
         }
         storageBarrier();
     }
 }
 
-// The down stroke of the V-cycle for one group (records in the table at `base`), from
-// level `top`: pre-smoothing, residual and restriction on each level, then the
-// coarsest level's sweeps.
-fn cycle_down(base: u32, g: u32, top: u32, lid: u32) {
+// The V-cycle from level pc.level down to the coarsest in one workgroup (the coarse
+// levels are small: one dispatch instead of one per colour and sweep). The same
+// operations in the same order as the dispatches it replaces.
+@compute @workgroup_size(256)
+fn coarse_cycle(@builtin(local_invocation_index) lid: u32) {
+    let top = pc.level;
     let last = params.levels - 1u;
     for (var l = top; l < last; l = l + 1u) {
-        let t = group_at(base, g, l);
-        cycle_sweeps(t, l, params.sweeps.x, lid);
-        for (var j = topo[t] + lid; j < topo[t + 1u]; j = j + CWG) {
+        cycle_sweeps(l, params.sweeps.x, lid);
+        let lv = params.lv[l];
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
             fine_residual_node(j);
         }
         storageBarrier();
-        let tc = group_at(base, g, l + 1u);
-        for (var j = topo[tc] + lid; j < topo[tc + 1u]; j = j + CWG) {
+        let cv = params.lv[l + 1u];
+        for (var j = cv.x + lid; j < cv.y; j = j + CWG) {
             restrict_node(j);
         }
         storageBarrier();
     }
-    cycle_sweeps(group_at(base, g, last), last, params.sweeps.z, lid);
-}
-
-// The coarse correction prolongated onto level l's nodes of one group; returns this
-// invocation's part of eᵀ r and eᵀ A e there.
-fn cycle_prolong(base: u32, g: u32, l: u32, lid: u32) -> vec2<f32> {
-    let t = group_at(base, g, l);
-    for (var j = topo[t] + lid; j < topo[t + 1u]; j = j + CWG) {
-        prolong_node(j);
-    }
-    storageBarrier();
-    var terms = vec2<f32>(0.0);
-    for (var j = topo[t] + lid; j < topo[t + 1u]; j = j + CWG) {
-        terms = terms + alpha_node(j);
-    }
-    return terms;
-}
-
-// The correction α e taken on level l's nodes of one group, then its post-smoothing.
-fn cycle_correct(base: u32, g: u32, l: u32, a: f32, lid: u32) {
-    let t = group_at(base, g, l);
-    for (var j = topo[t] + lid; j < topo[t + 1u]; j = j + CWG) {
-        correct_node(j, a);
-    }
-    storageBarrier();
-    cycle_sweeps(t, l, params.sweeps.y, lid);
-}
-
-// Sums `terms` over the workgroup into csum[0].
-fn workgroup_terms(terms: vec2<f32>, lid: u32) {
-    workgroupBarrier();
-    csum[lid] = terms;
-    for (var stride = CWG / 2u; stride > 0u; stride = stride / 2u) {
+    cycle_sweeps(last, params.sweeps.z, lid);
+    for (var l = last; l > top; l = l - 1u) {
+        let lv = params.lv[l - 1u];
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+            prolong_node(j);
+        }
+        storageBarrier();
+        var t = vec2<f32>(0.0);
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+            t = t + alpha_node(j);
+        }
+        csum[lid] = t;
+        for (var stride = CWG / 2u; stride > 0u; stride = stride / 2u) {
+            workgroupBarrier();
+            if (lid < stride) {
+                csum[lid] = csum[lid] + csum[lid + stride];
+            }
+        }
         workgroupBarrier();
-        if (lid < stride) {
-            csum[lid] = csum[lid] + csum[lid + stride];
+        let a = correction_step(csum[0]);
+        workgroupBarrier();
+        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
+            correct_node(j, a);
         }
-    }
-    workgroupBarrier();
-}
-
-// The V-cycle from level pc.level down to the coarsest, by groups of nodes cycled in
-// one workgroup (the coarse levels are small: one dispatch, or a few, instead of one
-// per colour and sweep). The groups are pc.count records of the table at pc.first.
-// The same operations in the same order as the dispatches they replace.
-// mode 0: one group (the whole batch), the whole cycle, each coarse correction's step
-// summed in the workgroup.
-// The bodies' groups, a few workgroups each cycling its own bodies, a mode a dispatch
-// with the steps summed over the workgroups by `pick` between them:
-// mode 1: the down stroke from level pc.level, then the prolongation onto the
-// second-coarsest level and its step's partial sums;
-// mode 2: the correction and post-smoothing of level pc.level, then the prolongation
-// onto the level above and its step's partial sums;
-// mode 3: the correction and post-smoothing of level pc.level only (the top).
-@compute @workgroup_size(256)
-fn coarse_cycle(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>,
-                @builtin(num_workgroups) nwg: vec3<u32>) {
-    let base = pc.first;
-    let last = params.levels - 1u;
-    if (pc.mode == 0u) {
-        let top = pc.level;
-        cycle_down(base, 0u, top, lid);
-        for (var l = last; l > top; l = l - 1u) {
-            workgroup_terms(cycle_prolong(base, 0u, l - 1u, lid), lid);
-            let a = correction_step(csum[0]);
-            cycle_correct(base, 0u, l - 1u, a, lid);
-        }
-        return;
-    }
-    let l = pc.level;
-    var terms = vec2<f32>(0.0);
-    for (var g = wg.x; g < pc.count; g = g + nwg.x) {
-        if (pc.mode == 1u) {
-            cycle_down(base, g, l, lid);
-            if (l < last) {
-                terms = terms + cycle_prolong(base, g, last - 1u, lid);
-            }
-        } else {
-            cycle_correct(base, g, l, red[S_MG_ALPHA + l], lid);
-            if (pc.mode == 2u) {
-                terms = terms + cycle_prolong(base, g, l - 1u, lid);
-            }
-        }
-    }
-    if (pc.mode != 3u) {
-        workgroup_terms(terms, lid);
-        if (lid == 0u) {
-            red[RED_BASE + wg.x * RED_STRIDE] = csum[0].x;
-            red[RED_BASE + wg.x * RED_STRIDE + 1u] = csum[0].y;
-        }
+        storageBarrier();
+        cycle_sweeps(l - 1u, params.sweeps.y, lid);
     }
 }
 
