@@ -50,7 +50,7 @@ use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{ElementSolver, Method, Solver, SolverSettings, State};
 use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
-use bevy_tissue::gpu::lattice::{FOLD_NODES, GpuLattice, LatticeOptions};
+use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
 use bevy_tissue::gpu::profile::GpuProfiler;
 use bevy_tissue::gpu::world::read_buffer;
 use bevy_tissue::gpu::{PassRecorder, device_with};
@@ -460,7 +460,7 @@ fn main() {
             a.num("--bodies", 1000u32),
             a.flag("--profile"),
             &smoothers,
-            &a.list("--fold", &[FOLD_NODES]),
+            &a.list("--fold", &[LatticeOptions::default().fold_nodes]),
         );
     }
     if !a.flag("--no-accuracy") {

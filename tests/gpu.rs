@@ -1444,7 +1444,8 @@ fn lattice_colliders_match_the_cpu() {
 /// another box that rests on the ground. The pairs push as penalties inside the Newton
 /// iterations and are projected apart after each. The GPU must agree with the CPU to
 /// rounding until the boxes touch, and afterwards as well as the CPU agrees with itself
-/// started 0.1 µm away; the upper box must come to rest on the lower one, not in it.
+/// started 0.1 µm away (over the run); the upper box must come to rest on the lower one,
+/// not in it.
 #[test]
 fn lattice_bodies_in_contact_match_the_cpu() {
     let Some(g) = gpu() else {
@@ -1487,6 +1488,8 @@ fn lattice_bodies_in_contact_match_the_cpu() {
     };
     let mut touched = None;
     let mut own_centre = 0.0f32;
+    // The step of the largest GPU − CPU difference of the centres after contact, and it.
+    let mut worst = (0u32, 0.0f32);
     for step in 0..40u32 {
         let c = run.step(g, &control);
         let [cpu, gpu] = [&run.cpu.1.x, &run.gpu.1.x].map(|x| centres(x));
@@ -1509,13 +1512,18 @@ fn lattice_bodies_in_contact_match_the_cpu() {
             );
         } else {
             // Which way a node slips off another is decided by rounding: the bodies'
-            // motion is compared, as well as the CPU agrees with itself.
-            assert!(
-                centre_diff <= 2.0 * own_centre + 1e-4,
-                "step {step}: GPU − CPU centres of mass {centre_diff} m (CPU − nudged CPU up to {own_centre} m)"
-            );
+            // motion is compared, as well as the CPU agrees with itself over the run (the
+            // nudged CPU's own slip may come a step later than the GPU's).
+            if centre_diff > worst.1 {
+                worst = (step, centre_diff);
+            }
         }
     }
+    let (step, centre_diff) = worst;
+    assert!(
+        centre_diff <= 2.0 * own_centre + 1e-4,
+        "step {step}: GPU − CPU centres of mass {centre_diff} m (CPU − nudged CPU up to {own_centre} m over the run)"
+    );
     let touched = touched.expect("the boxes touched");
     assert!(
         touched > 2,
