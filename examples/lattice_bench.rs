@@ -28,6 +28,8 @@
 //! ```
 //! Options: `--no-speed`, `--no-accuracy`, `--organs`, `--bodies N` (default 1,000),
 //! `--newton N,...` (accuracy: Newton iterations per step to compare, default 1,2),
+//! `--cycles N,...` (V-cycles per Newton iteration to compare, more than 1 being
+//! conjugate gradients; default 1),
 //! `--smoother hybrid|chebyshev|gs`, `--fold N,...` (speed only: `LatticeOptions::fold_nodes`
 //! values to compare, default the library's), `--profile` (GPU time per kernel: every
 //! dispatch in its own timed pass).
@@ -233,10 +235,11 @@ fn speed(
     profile_kernels: bool,
     smoothers: &[Smoother],
     folds: &[u32],
+    cycles: &[u32],
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | fold limit (nodes) | Newton iterations | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | fold limit (nodes) | Newton iterations × V-cycles | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
@@ -260,17 +263,23 @@ fn speed(
     for (name, model) in &scenes {
         for &sm in smoothers {
             for &fold in folds {
-                for it in [1u32, 2] {
-                    eprintln!("speed: {name}, {sm:?}, fold {fold}, {it} Newton iteration(s) ...");
+                for (it, c) in [1u32, 2]
+                    .into_iter()
+                    .flat_map(|it| cycles.iter().map(move |&c| (it, c)))
+                {
+                    eprintln!(
+                        "speed: {name}, {sm:?}, fold {fold}, {it} Newton iteration(s) × {c} ..."
+                    );
                     let s = SolverSettings {
                         // Particle contacts in every Newton iteration where bodies touch.
                         particle_contacts: name.contains("touching"),
                         contact_every: 1,
+                        newton_cycles: c,
                         ..settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0, sm)
                     };
                     let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, fold);
                     println!(
-                        "| {name} | {} | {} | {sm:?} | {fold} | {it} | {} | {wall:.3} | {dispatches} |",
+                        "| {name} | {} | {} | {sm:?} | {fold} | {it} × {c} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
                         model.elements.len(),
                         gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
@@ -321,12 +330,12 @@ fn settle_gpu(
     state.x
 }
 
-fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother], newtons: &[u32]) {
+fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother], newtons: &[u32], cycles: &[u32]) {
     println!(
         "\n## Accuracy on the GPU: the settled cantilever (lattice) against its static answer\n"
     );
     println!(
-        "| across | particles | E (Pa) | smoother | Newton iterations per 1/60 s step | simulated s | tip / static |\n|---|---|---|---|---|---|---|"
+        "| across | particles | E (Pa) | smoother | Newton iterations × V-cycles per 1/60 s step | simulated s | tip / static |\n|---|---|---|---|---|---|---|"
     );
     let cases: &[(u32, f32)] = if quick {
         &[(6, 1e5)]
@@ -344,13 +353,21 @@ fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother], newtons: &[u32]) {
             (8.0 / w1).clamp(1.0, 20.0) as f32
         };
         for &sm in smoothers {
-            for &it in newtons {
-                eprintln!("accuracy: {across} across, E = {e}, {sm:?}, {it} iteration(s) ...");
-                let s = settings(it, Vec3::new(0.0, -gv as f32, 0.0), (2.0 * w1) as f32, sm);
+            for (it, c) in newtons
+                .iter()
+                .flat_map(|&it| cycles.iter().map(move |&c| (it, c)))
+            {
+                eprintln!(
+                    "accuracy: {across} across, E = {e}, {sm:?}, {it} iteration(s) × {c} ..."
+                );
+                let s = SolverSettings {
+                    newton_cycles: c,
+                    ..settings(it, Vec3::new(0.0, -gv as f32, 0.0), (2.0 * w1) as f32, sm)
+                };
                 let x = settle_gpu(g, &model, &s, secs, &[]);
                 let tip = bar_tip(&model, &displacements(&model, &x));
                 println!(
-                    "| {across} | {} | {e} | {sm:?} | {it} | {secs:.1} | {:.4} |",
+                    "| {across} | {} | {e} | {sm:?} | {it} × {c} | {secs:.1} | {:.4} |",
                     model.particle_count(),
                     tip / stat
                 );
@@ -453,6 +470,7 @@ fn main() {
         queue,
         kernels,
     };
+    let cycles = a.list("--cycles", &[1u32]);
     if !a.flag("--no-speed") {
         speed(
             &g,
@@ -461,10 +479,17 @@ fn main() {
             a.flag("--profile"),
             &smoothers,
             &a.list("--fold", &[LatticeOptions::default().fold_nodes]),
+            &cycles,
         );
     }
     if !a.flag("--no-accuracy") {
-        accuracy(&g, quick, &smoothers, &a.list("--newton", &[1u32, 2]));
+        accuracy(
+            &g,
+            quick,
+            &smoothers,
+            &a.list("--newton", &[1u32, 2]),
+            &cycles,
+        );
     }
     if a.flag("--organs") {
         organs(&g, quick);

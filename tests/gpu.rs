@@ -1115,20 +1115,25 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     // The fourth run tries every line-search candidate in the second, indirect pass; the
     // last two smooth by colour-ordered Gauss–Seidel instead of Chebyshev–Jacobi.
     use bevy_tissue::core::multigrid::Smoother::{Chebyshev, GaussSeidel, Hybrid};
-    for (spacing, fold, first, smoother) in [
-        (0.0075f32, 0, 4, Chebyshev),
-        (0.0075, FOLD, 4, Chebyshev),
-        (0.00375, FOLD, 4, Chebyshev),
-        (0.0075, FOLD, 0, Chebyshev),
-        (0.0075, 0, 4, GaussSeidel),
-        (0.00375, FOLD, 4, GaussSeidel),
-        (0.0075, 0, 4, Hybrid),
-        (0.0075, FOLD, 4, Hybrid),
-        (0.00375, FOLD, 4, Hybrid),
+    // The last three: conjugate gradients, 2 or 3 V-cycles per Newton iteration.
+    for (spacing, fold, first, smoother, cycles) in [
+        (0.0075f32, 0, 4, Chebyshev, 1),
+        (0.0075, FOLD, 4, Chebyshev, 1),
+        (0.00375, FOLD, 4, Chebyshev, 1),
+        (0.0075, FOLD, 0, Chebyshev, 1),
+        (0.0075, 0, 4, GaussSeidel, 1),
+        (0.00375, FOLD, 4, GaussSeidel, 1),
+        (0.0075, 0, 4, Hybrid, 1),
+        (0.0075, FOLD, 4, Hybrid, 1),
+        (0.00375, FOLD, 4, Hybrid, 1),
+        (0.0075, 0, 4, Hybrid, 2),
+        (0.00375, 0, 4, Hybrid, 3),
+        (0.0075, FOLD, 4, Chebyshev, 2),
     ] {
         let model = lattice_bar(spacing);
         let s = SolverSettings {
             smoother,
+            newton_cycles: cycles,
             ..lattice_settings()
         };
         let mut cpu_state = State::new(&model);
@@ -1161,7 +1166,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             let sag = max_dist(&rest, &cpu_state.x);
             let diff = max_dist(&gpu_state.x, &cpu_state.x);
             eprintln!(
-                "{} particles, {smoother:?}, fold limit {fold}, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
+                "{} particles, {smoother:?}, {cycles} cycle(s), fold limit {fold}, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
                 model.particle_count()
             );
             assert!(sag > 1e-4, "the bar moved ({sag} m)");

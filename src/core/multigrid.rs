@@ -983,6 +983,69 @@ impl LatticeMultigrid {
         }
     }
 
+    /// Solves level 0's `A δ = work.rhs[0]` by conjugate gradients preconditioned with
+    /// `cycles` V-cycles, one per iteration (flexible CG: Notay 2000, "Flexible conjugate
+    /// gradients", the V-cycle's energy-minimising coarse steps making it a nonlinear
+    /// preconditioner; `β = zₖᵀ (rₖ − rₖ₋₁) / zₖ₋₁ᵀ rₖ₋₁`, `α = rₖᵀ pₖ / pₖᵀ A pₖ`). The
+    /// answer is left in `work.delta[0]`; `work.rhs[0]` becomes the last residual. Nodes
+    /// `held` (and the level's fixed ones) keep a zero correction. With one cycle this is
+    /// the V-cycle's correction scaled by its energy-minimising step.
+    pub fn krylov(&self, h2: f32, cycles: u32, held: &[bool], work: &mut MgWork) {
+        let (pre, post, coarsest) = VCYCLE_SWEEPS;
+        let n = self.levels[0].nodes;
+        let free = |j: usize| !held.get(j).copied().unwrap_or(false) && !self.levels[0].fixed[j];
+        let mut x = vec![Vec3::ZERO; n];
+        let mut p = vec![Vec3::ZERO; n];
+        let mut q = vec![Vec3::ZERO; n];
+        // α and zᵀ r of the last iteration.
+        let (mut alpha, mut rz) = (0.0f64, 0.0f64);
+        for k in 0..cycles.max(1) {
+            work.delta[0].iter_mut().for_each(|d| *d = Vec3::ZERO);
+            self.vcycle(0, h2, pre, post, coarsest, work);
+            let z = &work.delta[0];
+            let beta = if k == 0 {
+                0.0
+            } else {
+                let zq: f64 = (0..n)
+                    .filter(|&j| free(j))
+                    .map(|j| z[j].dot(q[j]) as f64)
+                    .sum();
+                finite_or_zero(-alpha * zq / rz)
+            };
+            for j in 0..n {
+                p[j] = if free(j) {
+                    z[j] + p[j] * beta as f32
+                } else {
+                    Vec3::ZERO
+                };
+            }
+            let (mut pq, mut rp, mut rz_now) = (0.0f64, 0.0f64, 0.0f64);
+            for j in 0..n {
+                q[j] = if free(j) {
+                    self.apply_row(0, j, &p, h2, work)
+                } else {
+                    Vec3::ZERO
+                };
+                let r = work.rhs[0][j];
+                pq += p[j].dot(q[j]) as f64;
+                rp += r.dot(p[j]) as f64;
+                rz_now += r.dot(z[j]) as f64;
+            }
+            alpha = if pq > 0.0 {
+                finite_or_zero(rp / pq)
+            } else {
+                0.0
+            };
+            rz = rz_now;
+            let a = alpha as f32;
+            for j in 0..n {
+                x[j] += p[j] * a;
+                work.rhs[0][j] -= q[j] * a;
+            }
+        }
+        work.delta[0] = x;
+    }
+
     /// One V-cycle from level `l` down: `work.delta[l]` improves on `A δ = work.rhs[l]`.
     pub fn vcycle(&self, l: usize, h2: f32, pre: u32, post: u32, coarsest: u32, work: &mut MgWork) {
         let nl = self.levels.len();
@@ -1049,6 +1112,14 @@ impl LatticeMultigrid {
         }
         self.smooth(l, post, h2, work);
     }
+}
+
+/// Smoothing sweeps of a V-cycle: before and after each coarse correction, and on the
+/// coarsest level.
+pub const VCYCLE_SWEEPS: (u32, u32, u32) = (2, 2, 30);
+
+fn finite_or_zero(v: f64) -> f64 {
+    if v.is_finite() { v } else { 0.0 }
 }
 
 /// The inverse of a symmetric positive definite 3 × 3 block, by its Cholesky factor
@@ -1239,6 +1310,100 @@ mod tests {
                     "spacing {spacing}, h {h}: residual after 6 cycles {r6}"
                 );
             }
+        }
+    }
+
+    /// Conjugate gradients preconditioned by the V-cycle ([`LatticeMultigrid::krylov`])
+    /// on the cantilever's 1/60 s substep system. What they minimise, the error's energy
+    /// `φ(δ) − φ*` (`φ(δ) = ½ δᵀ A δ − bᵀ δ`; `φ*` its minimum, from 40 cycles), falls
+    /// with every added cycle, below what as many plain V-cycles leave, and in 8 cycles
+    /// to within 1e-5 of the start's (what f32 resolves); the residual left in `rhs` is
+    /// the true one. With some free nodes
+    /// held (as grasped ones are), they stay at zero and the rest converges, more slowly
+    /// (the V-cycle does not hold them).
+    #[test]
+    fn krylov_beats_as_many_vcycles() {
+        let model = bar(0.006);
+        let mg = LatticeMultigrid::new(&model, 64, 8);
+        let h2 = 1.0f32 / 3600.0;
+        let rot = vec![Quat::IDENTITY; model.elements.len()];
+        let n = model.particle_count();
+        let none = vec![false; n];
+        let some: Vec<bool> = (0..n)
+            .map(|j| j % 97 == 5 && !mg.levels[0].fixed[j])
+            .collect();
+        for held in [&none, &some] {
+            let free = |j: usize| !held[j] && !mg.levels[0].fixed[j];
+            let fresh = || {
+                let mut work = MgWork::default();
+                mg.prepare(&rot, h2, &mut work);
+                for j in 0..n {
+                    work.rhs[0][j] = if free(j) {
+                        Vec3::new(0.0, -0.2 * model.mass[j], 0.0)
+                    } else {
+                        Vec3::ZERO
+                    };
+                }
+                work
+            };
+            let b = fresh();
+            // φ(δ) over the free rows, and each free row's residual.
+            let phi = |delta: &[Vec3]| {
+                let mut value = 0.0f64;
+                let rows: Vec<Vec3> = (0..n)
+                    .map(|j| {
+                        if !free(j) {
+                            return Vec3::ZERO;
+                        }
+                        let ad = mg.apply_row(0, j, delta, h2, &b);
+                        value += (0.5 * delta[j].dot(ad) - b.rhs[0][j].dot(delta[j])) as f64;
+                        b.rhs[0][j] - ad
+                    })
+                    .collect();
+                (value, rows)
+            };
+            let mut best = fresh();
+            mg.krylov(h2, 40, held, &mut best);
+            let least = phi(&best.delta[0]).0;
+            let gap = |delta: &[Vec3]| (phi(delta).0 - least) / -least;
+            let mut last = f64::MAX;
+            for cycles in [1u32, 2, 3] {
+                let mut work = fresh();
+                mg.krylov(h2, cycles, held, &mut work);
+                let e = gap(&work.delta[0]);
+                let mut plain = fresh();
+                for _ in 0..cycles {
+                    mg.vcycle(0, h2, 2, 2, 30, &mut plain);
+                }
+                let plain_e = gap(&plain.delta[0]);
+                eprintln!("{cycles} cycles: CG {e:.3e}, plain V-cycles {plain_e:.3e}");
+                assert!(e < last, "{cycles} cycles: {e} after {last}");
+                if cycles > 1 && held == &none {
+                    assert!(e < plain_e, "{cycles} cycles: CG {e}, V-cycles {plain_e}");
+                }
+                let rows = phi(&work.delta[0]).1;
+                let scale = rows.iter().map(|r| r.length()).fold(0.0f32, f32::max);
+                for j in 0..n {
+                    if !free(j) {
+                        assert_eq!(work.delta[0][j], Vec3::ZERO);
+                        continue;
+                    }
+                    assert!(
+                        (work.rhs[0][j] - rows[j]).length() <= 1e-3 * scale + 1e-6,
+                        "node {j}: residual kept {} against {}",
+                        work.rhs[0][j],
+                        rows[j]
+                    );
+                }
+                last = e;
+            }
+            // 8 cycles: as near the minimum as f32 resolves it; with held nodes, which
+            // the V-cycle moves (only its levels' fixed nodes it keeps), more slowly.
+            let mut work = fresh();
+            mg.krylov(h2, 8, held, &mut work);
+            let e = gap(&work.delta[0]);
+            let bound = if held == &none { 1e-5 } else { 1e-3 };
+            assert!(e.abs() < bound, "8 cycles leave {e}");
         }
     }
 

@@ -168,6 +168,13 @@ pub struct SolverSettings {
     pub descent_adaptive_init: bool,
     /// [`ElementSolver::Multigrid`]: how the V-cycle smooths each level.
     pub smoother: super::multigrid::Smoother,
+    /// [`ElementSolver::Multigrid`]: V-cycles per Newton iteration. 1: the Newton step is
+    /// one V-cycle's correction. More: conjugate gradients preconditioned by the V-cycle
+    /// solve the Newton system, one V-cycle per iteration
+    /// ([`super::multigrid::LatticeMultigrid::krylov`]), before the same trust region
+    /// and line search: a Newton iteration's forces, rotations and line search are
+    /// not repeated for a better step. Must be at least 1.
+    pub newton_cycles: u32,
 }
 
 /// What the coarse levels of hierarchical PBD solve. Level 0 is solved last in every
@@ -220,6 +227,7 @@ impl Default for SolverSettings {
             newton_iterations: 2,
             descent_adaptive_init: false,
             smoother: Default::default(),
+            newton_cycles: 1,
         }
     }
 }
@@ -261,6 +269,7 @@ impl SolverSettings {
         count("iterations", self.iterations)?;
         count("knn_every", self.knn_every)?;
         count("contact_every", self.contact_every)?;
+        count("newton_cycles", self.newton_cycles)?;
         if !self.gravity.is_finite() {
             return Err(TissueError::InvalidParameter {
                 name: "gravity",
@@ -1266,7 +1275,12 @@ impl Solver {
         self.mg_work.delta[0]
             .iter_mut()
             .for_each(|d| *d = Vec3::ZERO);
-        mg.vcycle(0, h2, 2, 2, 30, &mut self.mg_work);
+        if self.settings.newton_cycles > 1 {
+            mg.krylov(h2, self.settings.newton_cycles, &held, &mut self.mg_work);
+        } else {
+            let (pre, post, coarsest) = super::multigrid::VCYCLE_SWEEPS;
+            mg.vcycle(0, h2, pre, post, coarsest, &mut self.mg_work);
+        }
         // Backtracking line search on the substep's energy
         // `Σ m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²` (active contacts and
         // the elements' rotations held, so that the forces above are its gradient): the

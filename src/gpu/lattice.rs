@@ -43,7 +43,7 @@ const RED_STRIDE: usize = 16;
 const MAX_PARTIALS: u32 = 1024;
 /// Smoothing sweeps before and after the coarse correction, and on the coarsest
 /// level (as the CPU solver's V-cycle; even, for the Chebyshev smoother's buffers).
-const SWEEPS: (u32, u32, u32) = (2, 2, 30);
+const SWEEPS: (u32, u32, u32) = crate::core::multigrid::VCYCLE_SWEEPS;
 /// Most workgroups of a Chebyshev sweep (they stride over larger levels).
 const CHEBYSHEV_GROUPS: u32 = 8192;
 
@@ -118,6 +118,9 @@ pub struct Shape {
     /// With particle contacts between bodies: their projection runs after every this
     /// many Newton iterations and after the last (as the CPU's `contact_every`).
     pub pairs: Option<u32>,
+    /// V-cycles per Newton iteration (more than 1: conjugate gradients preconditioned
+    /// by them, [`SolverSettings::newton_cycles`]).
+    pub cycles: u32,
 }
 
 /// A limit for [`LatticeOptions::fold_nodes`]: the levels below [`Shape::fold`] have at
@@ -198,7 +201,24 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         // level's rotations and contact blocks, all made above).
         let total = shape.levels.last().map_or(0, |lv| lv[0] + lv[1]);
         push(Kernel::Diag, 0, total, 0, 0, groups(total));
-        vcycle(shape, 0, &mut push);
+        if shape.cycles <= 1 {
+            vcycle(shape, 0, &mut push);
+        } else {
+            // Conjugate gradients, a V-cycle per iteration (LatticeMultigrid::krylov).
+            let g = reduction_groups(n);
+            for k in 0..shape.cycles {
+                vcycle(shape, 0, &mut push);
+                if k > 0 {
+                    push(Kernel::CgDots, 0, n, 0, 0, g);
+                    push(Kernel::Pick, 0, g, 0, 5, 1);
+                }
+                push(Kernel::CgDirection, 0, n, 0, k.min(1), groups(n));
+                push(Kernel::CgMatvec, 0, n, 0, 0, g);
+                push(Kernel::Pick, 0, g, 0, 6, 1);
+                let last = (k + 1 == shape.cycles) as u32;
+                push(Kernel::CgUpdate, 0, n, 0, k.min(1) | last << 1, groups(n));
+            }
+        }
         push(Kernel::Trust, 0, n, 0, 0, reduction_groups(n));
         push(Kernel::Pick, 0, reduction_groups(n), 0, 2, 1);
         let g = reduction_groups(ne + n);
@@ -514,6 +534,7 @@ fn pack(
         colours,
         smoother: mg.smoother,
         pairs: pairs.then_some(settings.contact_every),
+        cycles: settings.newton_cycles.max(1),
     };
     Packed {
         params,
@@ -716,7 +737,14 @@ impl GpuLattice {
             &vec![0u8; model.elements.len() * 8 * 16],
             st,
         )?;
-        let vecs = make("tissue lattice vectors", &vec![0u8; nt * 4 * 16], st)?;
+        // The V-cycle's 4 regions of every level's nodes, then with conjugate gradients
+        // their iterate, direction and product (level 0's nodes each).
+        let cg = if packed.shape.cycles > 1 {
+            3 * packed.params.n as usize
+        } else {
+            0
+        };
+        let vecs = make("tissue lattice vectors", &vec![0u8; (nt * 4 + cg) * 16], st)?;
         let nblk = make("tissue lattice blocks", &vec![0u8; nt * 6 * 16], st)?;
         let red = make(
             "tissue lattice reductions",
@@ -1291,6 +1319,7 @@ mod tests {
             fold: None,
             smoother: Smoother::GaussSeidel,
             pairs: None,
+            cycles: 1,
         }
     }
 
@@ -1415,6 +1444,70 @@ mod tests {
         );
         assert_eq!(
             whole.iter().filter(|d| d.kernel == Kernel::Smooth).count(),
+            0
+        );
+    }
+
+    /// With conjugate gradients (3 V-cycles a Newton iteration), each Newton iteration
+    /// runs 3 V-cycles, each followed by its direction, product and update; from the
+    /// second on a `pick` of β first; the last update marks the Newton step; then the
+    /// trust region as with one V-cycle.
+    #[test]
+    fn a_conjugate_gradient_plan_runs_its_cycles_between_directions() {
+        let s = Shape {
+            cycles: 3,
+            ..shape()
+        };
+        let p = plan(&s, 2);
+        let count = |k: Kernel| p.iter().filter(|d| d.kernel == k).count();
+        assert_eq!(count(Kernel::Restrict), 2 * 3 * 2);
+        assert_eq!(count(Kernel::CgMatvec), 2 * 3);
+        assert_eq!(count(Kernel::CgDots), 2 * 2);
+        let cg: Vec<(Kernel, u32)> = p
+            .iter()
+            .filter(|d| {
+                matches!(
+                    d.kernel,
+                    Kernel::CgDots
+                        | Kernel::CgDirection
+                        | Kernel::CgMatvec
+                        | Kernel::CgUpdate
+                        | Kernel::Trust
+                ) || (d.kernel == Kernel::Pick && d.pass.mode >= 5)
+            })
+            .map(|d| (d.kernel, d.pass.mode))
+            .take(16)
+            .collect();
+        use Kernel::*;
+        assert_eq!(
+            cg,
+            [
+                (CgDirection, 0),
+                (CgMatvec, 0),
+                (Pick, 6),
+                (CgUpdate, 0),
+                (CgDots, 0),
+                (Pick, 5),
+                (CgDirection, 1),
+                (CgMatvec, 0),
+                (Pick, 6),
+                (CgUpdate, 1),
+                (CgDots, 0),
+                (Pick, 5),
+                (CgDirection, 1),
+                (CgMatvec, 0),
+                (Pick, 6),
+                (CgUpdate, 3),
+            ]
+        );
+        let trust = p.iter().position(|d| d.kernel == Trust).unwrap();
+        assert_eq!(p[trust - 1].kernel, CgUpdate);
+        // One V-cycle: none of it.
+        assert_eq!(
+            plan(&shape(), 2)
+                .iter()
+                .filter(|d| matches!(d.kernel, CgDots | CgDirection | CgMatvec | CgUpdate))
+                .count(),
             0
         );
     }

@@ -169,6 +169,14 @@ pub enum Kernel {
     ForceTotal,
     /// `force_clear`: zeroes the step's collider forces.
     ForceClear,
+    /// `cg_dots`: partial sums of the next conjugate direction's β.
+    CgDots,
+    /// `cg_direction`: the next conjugate direction.
+    CgDirection,
+    /// `cg_matvec`: the direction times the Newton matrix, and the step's partial sums.
+    CgMatvec,
+    /// `cg_update`: the conjugate gradients' step on the iterate and the residual.
+    CgUpdate,
 }
 
 /// One entry point and the slots it uses.
@@ -326,6 +334,28 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::ForceClear,
         name: "force_clear",
         uses: &["params", "red"],
+    },
+    Entry {
+        kernel: Kernel::CgDots,
+        name: "cg_dots",
+        uses: &["params", "vecs", "red"],
+    },
+    Entry {
+        kernel: Kernel::CgDirection,
+        name: "cg_direction",
+        uses: &["params", "pc", "vecs", "red", "ccol", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::CgMatvec,
+        name: "cg_matvec",
+        uses: &[
+            "params", "rot", "vecs", "nblk", "red", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::CgUpdate,
+        name: "cg_update",
+        uses: &["params", "pc", "vecs", "red"],
     },
 ];
 

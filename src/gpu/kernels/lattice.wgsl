@@ -19,6 +19,9 @@ const RED_BASE: u32 = 16u;
 const S_ALPHA: u32 = 0u;       // the step chosen by the last `pick`
 const S_ALPHA_MAX: u32 = 1u;   // the trust region's step bound
 const S_PENDING: u32 = 2u;     // 1: the line search's second pass runs
+const S_CG_ALPHA: u32 = 3u;    // conjugate gradients: the last step α
+const S_CG_RZ: u32 = 4u;       // conjugate gradients: the last zᵀ r
+const S_CG_BETA: u32 = 5u;     // conjugate gradients: the next direction's β
 const S_MG_ALPHA: u32 = 8u;    // + level: the coarse correction's step
 // Regions of `pos` (× n): positions, iterate, inertial target, velocity, pin target.
 const R_X: u32 = 0u;
@@ -447,7 +450,8 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
 // energy (else 0, and the second pass's workgroups into `args`); mode 4: after the
 // second pass, if it ran, the first of its candidates that does not, else 0;
 // mode 2: the trust region's bound α_max; mode 3: the coarse correction's step of
-// level `pc.level`.
+// level `pc.level`; conjugate gradients: mode 5 the next direction's β, mode 6 the
+// step α along the direction and zᵀ r.
 @compute @workgroup_size(64)
 fn pick(@builtin(local_invocation_index) lid: u32) {
     let mode = pc.mode;
@@ -459,6 +463,10 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
         used = part_a();
     } else if (mode == 4u) {
         used = LINE_CANDIDATES - part_a();
+    } else if (mode == 5u) {
+        used = 1u;
+    } else if (mode == 6u) {
+        used = 3u;
     }
     var acc: array<f32, 16>;
     if (mode == 2u) {
@@ -534,6 +542,16 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
         }
     } else if (mode == 2u) {
         red[S_ALPHA_MAX] = select(wsum[0][0], 0.0, wsum[0][1] > 0.0);
+    } else if (mode == 5u) {
+        let beta = -red[S_CG_ALPHA] * wsum[0][0] / red[S_CG_RZ];
+        red[S_CG_BETA] = select(0.0, beta, is_finite_f(beta));
+    } else if (mode == 6u) {
+        var a = 0.0;
+        if (wsum[0][0] > 0.0) {
+            a = wsum[0][1] / wsum[0][0];
+        }
+        red[S_CG_ALPHA] = select(0.0, a, is_finite_f(a));
+        red[S_CG_RZ] = wsum[0][2];
     } else {
         red[S_MG_ALPHA + pc.level] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
     }
@@ -687,7 +705,11 @@ fn element_term(ec: u32, off: u32, first: u32, step: u32) -> vec3<f32> {
 // (A x)_j with A = M/h² + S + Σ_e R K Rᵀ, x the `vecs` region `region`
 // (core::multigrid's apply_row).
 fn apply_row(j: u32, region: u32) -> vec3<f32> {
-    let off = region * params.n_total;
+    return apply_row_at(j, region * params.n_total);
+}
+
+// (A x)_j with x at `vecs[off ..]`.
+fn apply_row_at(j: u32, off: u32) -> vec3<f32> {
     let xj = vecs[off + j].xyz;
     var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
     for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
@@ -1460,4 +1482,91 @@ fn force_clear(@builtin(local_invocation_index) k: u32) {
     red[o] = 0.0;
     red[o + 1u] = 0.0;
     red[o + 2u] = 0.0;
+}
+
+// Conjugate gradients on level 0, the V-cycle as preconditioner
+// (core::multigrid::LatticeMultigrid::krylov): the iterate x, the direction p and
+// q = A p, each n vectors after the V-cycle's regions; the residual r is level 0's
+// right-hand side, the preconditioned residual z the V-cycle's correction.
+fn cg_at(k: u32) -> u32 {
+    return 4u * params.n_total + k * params.n;
+}
+
+const CG_X: u32 = 0u;
+const CG_P: u32 = 1u;
+const CG_Q: u32 = 2u;
+
+// Partial sums of zᵀ q (q of the last direction, 0 on held nodes): the next
+// direction's β.
+@compute @workgroup_size(64)
+fn cg_dots(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
+           @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    var zq = 0.0;
+    for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
+        zq = zq + dot(vecs[V_DELTA * params.n_total + j].xyz, vecs[cg_at(CG_Q) + j].xyz);
+    }
+    wsum[lid][0] = zq;
+    reduce_partials(lid, wg.x, 1u);
+}
+
+// The direction p = z + β p (mode 0: the first, p = z); on held nodes 0, with w = 1
+// (what `cg_matvec` reads).
+@compute @workgroup_size(64)
+fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    var p = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    if (!held_now(j)) {
+        var d = vecs[V_DELTA * params.n_total + j].xyz;
+        if (pc.mode != 0u) {
+            d = d + vecs[cg_at(CG_P) + j].xyz * red[S_CG_BETA];
+        }
+        p = vec4<f32>(d, 0.0);
+    }
+    vecs[cg_at(CG_P) + j] = p;
+}
+
+// q = A p (0 on held nodes, the direction's w = 1), and partial sums of pᵀ q, rᵀ p and
+// rᵀ z.
+@compute @workgroup_size(64)
+fn cg_matvec(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
+             @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    var t = vec3<f32>(0.0);
+    for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
+        let pw = vecs[cg_at(CG_P) + j];
+        var q = vec3<f32>(0.0);
+        if (pw.w == 0.0) {
+            q = apply_row_at(j, cg_at(CG_P));
+        }
+        vecs[cg_at(CG_Q) + j] = vec4<f32>(q, 0.0);
+        let p = pw.xyz;
+        let r = vecs[V_RHS * params.n_total + j].xyz;
+        t = t + vec3<f32>(dot(p, q), dot(r, p), dot(r, vecs[V_DELTA * params.n_total + j].xyz));
+    }
+    wsum[lid][0] = t.x;
+    wsum[lid][1] = t.y;
+    wsum[lid][2] = t.z;
+    reduce_partials(lid, wg.x, 3u);
+}
+
+// x += α p (mode bit 0 clear, the first iteration: x = α p), r −= α q; then the next
+// V-cycle's zero start, or, after the last iteration (mode bit 1), x as the Newton step.
+@compute @workgroup_size(64)
+fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n) {
+        return;
+    }
+    let a = red[S_CG_ALPHA];
+    var x = vec3<f32>(0.0);
+    if ((pc.mode & 1u) != 0u) {
+        x = vecs[cg_at(CG_X) + j].xyz;
+    }
+    x = x + vecs[cg_at(CG_P) + j].xyz * a;
+    let ri = V_RHS * params.n_total + j;
+    vecs[ri] = vec4<f32>(vecs[ri].xyz - vecs[cg_at(CG_Q) + j].xyz * a, 0.0);
+    vecs[cg_at(CG_X) + j] = vec4<f32>(x, 0.0);
+    vecs[V_DELTA * params.n_total + j] = vec4<f32>(select(vec3<f32>(0.0), x, (pc.mode & 2u) != 0u), 0.0);
 }
