@@ -82,9 +82,10 @@ fn main() {
         }
     }
     println!(
-        "{steps} steps in {:.2} s ({:.1} ms per step, Newton–multigrid, {} Newton iterations a step)",
+        "{steps} steps in {:.2} s ({:.1} ms per step, Newton–multigrid, {} Newton iteration(s) of {} V-cycles a step)",
         t.elapsed().as_secs_f64(),
         t.elapsed().as_secs_f64() * 1e3 / steps as f64,
-        SolverSettings::default().newton_iterations
+        SolverSettings::default().newton_iterations,
+        SolverSettings::default().newton_cycles
     );
 }

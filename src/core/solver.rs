@@ -173,7 +173,7 @@ pub struct SolverSettings {
     /// solve the Newton system, one V-cycle per iteration
     /// ([`super::multigrid::LatticeMultigrid::krylov`]), before the same trust region
     /// and line search: a Newton iteration's forces, rotations and line search are
-    /// not repeated for a better step. Must be at least 1.
+    /// not repeated for a better step. Must be at least 1; default 1.
     pub newton_cycles: u32,
 }
 

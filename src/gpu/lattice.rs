@@ -3,11 +3,12 @@
 //! [`super::kernels::lattice`]).
 //!
 //! Each substep: predict the inertial target and the first iterate; then per Newton
-//! iteration the element forces and rotations, the residual, one V-cycle of
-//! the configured smoother on every level of the hierarchy (Chebyshev-accelerated block
-//! Jacobi, one dispatch a sweep, or block Gauss–Seidel by colour; coarse corrections
-//! taken with their energy-minimising step), a trust region and a backtracking line
-//! search on the substep energy; finally the velocity update. The sequence of dispatches
+//! iteration the element forces and rotations, the residual, the Newton step — one
+//! V-cycle of the configured smoother on every level of the hierarchy
+//! (Chebyshev-accelerated block Jacobi, one dispatch a sweep, or block Gauss–Seidel by
+//! colour; coarse corrections taken with their energy-minimising step), or conjugate
+//! gradients preconditioned by several — a trust region and a backtracking line search
+//! on the substep energy; finally the velocity update. The sequence of dispatches
 //! is [`plan`], a pure function of the hierarchy's shape and the settings; recording
 //! replays it. Scope: lattice bodies with pins, colliders and graspers under gravity
 //! (particle contacts between bodies, collider forces and the divergence check stay on

@@ -535,11 +535,19 @@ pub struct TissueSettings {
     /// Where bodies are simulated (GPU, with the CPU for what it cannot run; or all on
     /// the CPU).
     pub backend: TissueBackend,
-    /// Newton iterations per substep of lattice bodies (each one multigrid V-cycle;
-    /// default 2). Their accuracy does not hang on it the way XPBD's hangs on
-    /// `iterations`: 1 or 2 land within a few percent of the static answer of a
-    /// cantilever from 100 kPa to 1 MPa (BENCHMARKS.md, "Newton–multigrid").
+    /// Newton iterations per substep of lattice bodies (default 2). Their accuracy does
+    /// not hang on it the way XPBD's hangs on `iterations`: 2 land within a few percent
+    /// of the static answer of a cantilever from 1 kPa to 1 MPa (BENCHMARKS.md,
+    /// "Newton–multigrid").
     pub newton_iterations: u32,
+    /// Multigrid V-cycles per Newton iteration of lattice bodies (default 1): more than
+    /// one solve the Newton step by conjugate gradients, each V-cycle a preconditioner
+    /// step. One Newton iteration of 2 V-cycles is about as accurate as 2 Newton
+    /// iterations and faster, and it falls at the rate gravity sets where one V-cycle
+    /// lags; but bodies then meet each other faster, and particle contacts between
+    /// lattice bodies let a body sink into another at impacts of about 0.7 m/s and more
+    /// (BENCHMARKS.md, "Conjugate gradients in the Newton iteration").
+    pub newton_cycles: u32,
 }
 
 impl Default for TissueSettings {
@@ -566,6 +574,7 @@ impl Default for TissueSettings {
             max_steps_per_frame: 4,
             backend: TissueBackend::default(),
             newton_iterations: Self::NEWTON_ITERATIONS,
+            newton_cycles: Self::NEWTON_CYCLES,
         }
     }
 }
@@ -585,6 +594,8 @@ impl TissueSettings {
     pub const PLUGIN_CONTACT_RELAXATION: f32 = 2.0;
     /// The default [`Self::newton_iterations`]: 2.
     pub const NEWTON_ITERATIONS: u32 = 2;
+    /// The default [`Self::newton_cycles`]: 1.
+    pub const NEWTON_CYCLES: u32 = 1;
 
     /// The core solver settings of the CPU path ([`super::cpu`]): [`Self::to_core`] with
     /// Newton–multigrid for lattice bodies, [`Self::newton_iterations`] of them in each
@@ -593,6 +604,7 @@ impl TissueSettings {
         SolverSettings {
             element_solver: ElementSolver::Multigrid,
             newton_iterations: self.newton_iterations.max(1),
+            newton_cycles: self.newton_cycles.max(1),
             threads: 0,
             ..self.to_core()
         }

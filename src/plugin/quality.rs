@@ -18,20 +18,21 @@
 //! let background = SoftBody { quality: TissueQuality::Fast, ..default() };
 //! let organ = SoftBody { quality: TissueQuality::Accurate, ..default() };
 //! let demand = demanded([&background, &organ]).unwrap();
-//! assert_eq!(demand.newton_iterations, Some(4));
+//! assert_eq!((demand.newton_iterations, demand.newton_cycles), (Some(4), Some(1)));
 //! ```
 //!
 //! **Lattice bodies** (the default, [`TissueDiscretisation::Lattice`]) are stepped by
-//! Newton–multigrid at one substep of the step; a level sets its Newton iterations. The
-//! error is that of the settled cantilever's tip (24 × 3 × 3 cm, 6 and 12 particles
-//! across, E from 1 kPa to 1 MPa) against the static answer of the same model, on the
-//! GPU (BENCHMARKS.md, "Lattice bodies by default"):
+//! Newton–multigrid at one substep of the step; a level sets its Newton iterations and
+//! the V-cycles of each (more than one: conjugate gradients). The error is that of the
+//! settled cantilever's tip (24 × 3 × 3 cm, 6 and 12 particles across, E from 1 kPa to
+//! 1 MPa) against the static answer of the same model, on the GPU (BENCHMARKS.md,
+//! "Conjugate gradients in the Newton iteration"):
 //!
-//! | preset | Newton iterations | error of the settled tip |
+//! | preset | Newton iterations × V-cycles | error of the settled tip |
 //! |---|---|---|
-//! | `Fast` | 1 | 1.0% at 1 kPa, 5.2% at 100 kPa (6 across), 14% at 100 kPa (12 across), 45% at 1 MPa (not settled after 1 s) |
-//! | `Balanced` | 2 (the default) | ≤ 2.0% everywhere measured |
-//! | `Accurate` | 4 | ≤ 1.0% everywhere measured |
+//! | `Fast` | 1 × 1 | 0.7% at 1 kPa, 5.2% at 100 kPa (6 across), 14% at 100 kPa (12 across), 45% at 1 MPa (not settled after 1 s) |
+//! | `Balanced` | 2 × 1 (the default) | ≤ 1.8% everywhere measured |
+//! | `Accurate` | 4 × 1 | ≤ 1.0% everywhere measured (BENCHMARKS.md, "Lattice bodies by default") |
 //!
 //! **Cluster bodies** (the paper's model) come from `examples/speed_accuracy.rs` on the
 //! H100 (BENCHMARKS.md, "Speed against accuracy"; 1,000-particle bar, GPU Jacobi,
@@ -77,6 +78,8 @@ pub struct Preset {
     pub substeps: Option<u32>,
     /// [`TissueSettings::newton_iterations`] (lattice bodies).
     pub newton_iterations: Option<u32>,
+    /// [`TissueSettings::newton_cycles`] (lattice bodies).
+    pub newton_cycles: Option<u32>,
 }
 
 impl Preset {
@@ -90,6 +93,7 @@ impl Preset {
             iterations: m(self.iterations, other.iterations),
             substeps: m(self.substeps, other.substeps),
             newton_iterations: m(self.newton_iterations, other.newton_iterations),
+            newton_cycles: m(self.newton_cycles, other.newton_cycles),
         }
     }
 }
@@ -102,13 +106,14 @@ impl TissueQuality {
             return None;
         }
         if body.discretisation == TissueDiscretisation::Lattice {
-            let newton = match self {
-                TissueQuality::Fast => 1,
-                TissueQuality::Balanced => 2,
-                _ => 4,
+            let (newton, cycles) = match self {
+                TissueQuality::Fast => (1, 1),
+                TissueQuality::Balanced => (2, 1),
+                _ => (4, 1),
             };
             return Some(Preset {
                 newton_iterations: Some(newton),
+                newton_cycles: Some(cycles),
                 ..Default::default()
             });
         }
@@ -125,6 +130,7 @@ impl TissueQuality {
             iterations: Some(iterations),
             substeps: Some(substeps),
             newton_iterations: None,
+            newton_cycles: None,
         })
     }
 }
@@ -148,16 +154,19 @@ pub fn apply_quality(bodies: Query<&SoftBody>, mut settings: ResMut<TissueSettin
         d.iterations.unwrap_or(settings.iterations),
         d.substeps.unwrap_or(settings.substeps),
         d.newton_iterations.unwrap_or(settings.newton_iterations),
+        d.newton_cycles.unwrap_or(settings.newton_cycles),
     );
     if (
         settings.iterations,
         settings.substeps,
         settings.newton_iterations,
+        settings.newton_cycles,
     ) != want
     {
         settings.iterations = want.0;
         settings.substeps = want.1;
         settings.newton_iterations = want.2;
+        settings.newton_cycles = want.3;
     }
 }
 
@@ -182,7 +191,10 @@ mod tests {
     };
 
     fn work(p: Preset) -> u32 {
-        p.iterations.unwrap_or(1) * p.substeps.unwrap_or(1) * p.newton_iterations.unwrap_or(1)
+        p.iterations.unwrap_or(1)
+            * p.substeps.unwrap_or(1)
+            * p.newton_iterations.unwrap_or(1)
+            * p.newton_cycles.unwrap_or(1)
     }
 
     #[test]
@@ -204,6 +216,7 @@ mod tests {
         let p = TissueQuality::Balanced.preset(&lattice).unwrap();
         assert_eq!(p.iterations, None);
         assert_eq!(p.newton_iterations, Some(TissueSettings::NEWTON_ITERATIONS));
+        assert_eq!(p.newton_cycles, Some(TissueSettings::NEWTON_CYCLES));
     }
 
     #[test]
@@ -240,6 +253,14 @@ mod tests {
         });
         app.update();
         let s = app.world().resource::<TissueSettings>();
-        assert_eq!((s.iterations, s.substeps, s.newton_iterations), (5, 1, 4));
+        assert_eq!(
+            (
+                s.iterations,
+                s.substeps,
+                s.newton_iterations,
+                s.newton_cycles
+            ),
+            (5, 1, 4, 1)
+        );
     }
 }

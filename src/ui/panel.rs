@@ -317,6 +317,16 @@ pub(crate) fn settings_widgets(
         "Newton–multigrid iterations per substep of lattice bodies (default 2: within \
          a few percent of the static answer from 1 kPa to 1 MPa)",
     ));
+    let r = ui.add(slider(
+        &mut s.newton_cycles,
+        1..=6,
+        "V-cycles / Newton iteration",
+    ));
+    e.add(&r.on_hover_text(
+        "Multigrid V-cycles per Newton iteration of lattice bodies (default 1; more than \
+         one solve the Newton step by conjugate gradients: faster for the same accuracy, \
+         but bodies may sink into each other at fast impacts)",
+    ));
     ui.horizontal(|ui| {
         let r = ui.radio_value(&mut s.backend, TissueBackend::Auto, "GPU")
             | ui.radio_value(&mut s.backend, TissueBackend::Cpu, "CPU only");
