@@ -1194,7 +1194,7 @@ impl Solver {
                     (ri, &state.element_rot),
                     (&[], control),
                     &at,
-                )
+                ) + self.pair_overlap_energy(model, &held, h2, &at)
             };
             let mut best = (at_s(1.0), 1.0f32);
             for s in [0.5f32, 0.25, 0.0] {
@@ -1367,8 +1367,6 @@ impl Solver {
         held: &[bool],
         h2: f32,
     ) -> Vec<NewtonContact> {
-        /// Penalty stiffness over the particle's stiffness scale.
-        const PENALTY: f32 = 1.0e3;
         let mut out = Vec::new();
         let pairs = self.settings.particle_contacts && !self.contact_list.is_empty();
         if control.colliders.is_empty() && !pairs {
@@ -1378,19 +1376,8 @@ impl Solver {
             if held_j || model.elements_of(j).is_empty() {
                 continue;
             }
-            let body = &model.bodies[model.particle_body[j] as usize];
-            let r = body.radius;
-            let modulus = match body.material {
-                Material::Hyperelastic {
-                    youngs_modulus,
-                    poisson_ratio,
-                } => {
-                    let m = Hyperelastic::new(youngs_modulus, poisson_ratio);
-                    m.lambda + 2.0 * m.mu
-                }
-                Material::ShapeMatching { .. } => 0.0,
-            };
-            let stiffness = PENALTY * (model.mass[j] / h2 + modulus * body.spacing);
+            let r = model.bodies[model.particle_body[j] as usize].radius;
+            let stiffness = contact_stiffness(model, j, h2);
             for (k, col) in control.colliders.iter().enumerate() {
                 if matches!(col.shape, ColliderShape::Grasper { .. }) {
                     continue;
@@ -1430,6 +1417,38 @@ impl Solver {
             }
         }
         out
+    }
+
+    /// The particle contacts' penalty energy at positions `at` (J): `½ k (r_i + r_j −
+    /// |x_i − x_j|)²` for every pair of the contact lists closer than their radii, held
+    /// by the free lattice particle whose list has it (as in the Newton iterations). What
+    /// the substep's first iterate weighs, so that a body arriving at another faster than
+    /// a particle radius a step starts from where it meets it rather than from inside it.
+    fn pair_overlap_energy(
+        &self,
+        model: &Model,
+        held: &[bool],
+        h2: f32,
+        at: &dyn Fn(usize) -> Vec3,
+    ) -> f64 {
+        if !self.settings.particle_contacts || self.contact_list.is_empty() {
+            return 0.0;
+        }
+        let mut g = 0.0f64;
+        for (j, &held_j) in held.iter().enumerate() {
+            if held_j || model.elements_of(j).is_empty() {
+                continue;
+            }
+            let r = model.bodies[model.particle_body[j] as usize].radius;
+            let k = contact_stiffness(model, j, h2);
+            for s in self.contact_start[j]..self.contact_start[j + 1] {
+                let i = self.contact_list[s as usize] as usize;
+                let reach = r + model.bodies[model.particle_body[i] as usize].radius;
+                let depth = (reach - (at(j) - at(i)).length()).max(0.0);
+                g += 0.5 * (k * depth * depth) as f64;
+            }
+        }
+        g
     }
 
     /// The lattice bodies' elements under a Newton-type element solver (vertex block
@@ -2034,6 +2053,27 @@ impl NewtonContact {
 /// Newton step's forces are; more: the fixed-corotated energy itself). `free` = (held
 /// nodes, inertial targets x̃ in m), `contacts` = (the active collider contacts, the
 /// colliders).
+/// The contact penalty stiffness of lattice particle `j` in a substep of `h2` (s²), N/m:
+/// a thousand times its own stiffness scale `m/h² + (λ + 2μ) s` (inertia plus the P-wave
+/// modulus times the lattice spacing `s`: what its elements hold it with), so that it
+/// dominates soft and stiff bodies alike.
+fn contact_stiffness(model: &Model, j: usize, h2: f32) -> f32 {
+    /// Penalty stiffness over the particle's stiffness scale.
+    const PENALTY: f32 = 1.0e3;
+    let body = &model.bodies[model.particle_body[j] as usize];
+    let modulus = match body.material {
+        Material::Hyperelastic {
+            youngs_modulus,
+            poisson_ratio,
+        } => {
+            let m = Hyperelastic::new(youngs_modulus, poisson_ratio);
+            m.lambda + 2.0 * m.mu
+        }
+        Material::ShapeMatching { .. } => 0.0,
+    };
+    PENALTY * (model.mass[j] / h2 + modulus * body.spacing)
+}
+
 fn substep_energy(
     model: &Model,
     mg: &super::multigrid::LatticeMultigrid,

@@ -409,10 +409,13 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                         }
                     }
                 }
-                // Particle contacts this node holds (line search only): ½ k depth² with
-                // both nodes moving along the step.
+                // Particle contacts this node holds: ½ k depth² with both nodes moving
+                // along the step. The line search holds the pairs in contact at its start
+                // (as the Newton iteration's forces); the first iterate weighs every
+                // candidate pair's overlap at each candidate (core::solver's
+                // pair_overlap_energy).
                 let pr = pair_range(j);
-                if (mode != 0u && pr.x < pr.y) {
+                if (pr.x < pr.y) {
                     let sc = contact_scale(j);
                     let y = pos[R_Y * n + j].xyz;
                     for (var s = pr.x; s < pr.y; s = s + 1u) {
@@ -420,12 +423,21 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                         let yi = pos[R_Y * n + i].xyz;
                         let reach = sc.x + contact_scale(i).x;
                         let len0 = length(y - yi);
-                        if (len0 >= reach || len0 <= 1e-12) {
-                            continue;
-                        }
                         var di = direction(i, mode);
                         if (held_now(i)) {
                             di = vec3<f32>(0.0);
+                        }
+                        if (mode == 0u) {
+                            let o0 = max(reach - len0, 0.0);
+                            for (var k = 0u; k < kc; k = k + 1u) {
+                                let a = candidate(k0 + k, mode);
+                                let oa = max(reach - length(y + d * a - yi - di * a), 0.0);
+                                acc[k] = acc[k] + 0.5 * sc.y * (oa * oa - o0 * o0);
+                            }
+                            continue;
+                        }
+                        if (len0 >= reach || len0 <= 1e-12) {
+                            continue;
                         }
                         let d0 = reach - len0;
                         for (var k = 0u; k < kc; k = k + 1u) {
