@@ -721,3 +721,60 @@ fn lattice_box_dropped_onto_another_rests_on_it() {
         assert!(speed < 0.05, "{label}: the upper box settles ({speed} m/s)");
     }
 }
+
+/// A free lattice body falls at gravity's rate (no damping): its centre's drop after 1,
+/// 3, 10 and 30 steps of 1/60 s within 0.5% of implicit Euler's `g h² n (n + 1) / 2`, at
+/// the default 2 Newton iterations for soft bodies on an 8 and a 4 mm lattice, and with
+/// conjugate gradients (1 Newton iteration of 2 V-cycles) for a soft and a stiff body on
+/// the 8 mm lattice. (The default lags a stiff body; one Newton iteration lags on a
+/// lattice finer than twice gravity's 2.7 mm a step, its particles held to half a
+/// spacing per iteration: BENCHMARKS.md.)
+#[test]
+fn free_lattice_bodies_fall_at_gravitys_rate() {
+    for (e, spacing, half, newton, cycles) in [
+        (20e3f32, 0.008f32, 0.016f32, 2u32, 1u32),
+        (20e3, 0.004, 0.016, 2, 1),
+        (20e3, 0.008, 0.016, 1, 2),
+        (1e6, 0.008, 0.016, 1, 2),
+    ] {
+        let mut model = Model::new();
+        model
+            .add_body(
+                &procedural::cuboid(Vec3::splat(half), 2),
+                &BodyDesc {
+                    resolution: Resolution::Spacing(spacing),
+                    material: Material::Hyperelastic {
+                        youngs_modulus: e,
+                        poisson_ratio: 0.3,
+                    },
+                    discretisation: bevy_tissue::core::model::Discretisation::Lattice,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+        let s = SolverSettings {
+            newton_iterations: newton,
+            newton_cycles: cycles,
+            damping: 0.0,
+            ..Default::default()
+        };
+        let h = s.dt;
+        let mut solver = Solver::new(&model, s).unwrap();
+        let mut state = State::new(&model);
+        let centre = |x: &[Vec3]| x.iter().sum::<Vec3>() / x.len() as f32;
+        let c0 = centre(&state.x);
+        for n in 1..=30u32 {
+            solver
+                .step(&model, &mut state, &Control::default())
+                .unwrap();
+            if [1, 3, 10, 30].contains(&n) {
+                let exact = 9.81 * h * h * (n * (n + 1)) as f32 / 2.0;
+                let ratio = (c0.y - centre(&state.x).y) / exact;
+                assert!(
+                    (ratio - 1.0).abs() < 5e-3,
+                    "E {e} Pa, spacing {spacing} m, {newton} × {cycles}: fell {ratio} of gravity's drop after {n} steps"
+                );
+            }
+        }
+    }
+}

@@ -543,10 +543,10 @@ pub struct TissueSettings {
     /// Multigrid V-cycles per Newton iteration of lattice bodies (default 1): more than
     /// one solve the Newton step by conjugate gradients, each V-cycle a preconditioner
     /// step. One Newton iteration of 2 V-cycles is about as accurate as 2 Newton
-    /// iterations and faster, and it falls at the rate gravity sets where one V-cycle
-    /// lags; but bodies then meet each other faster, and particle contacts between
-    /// lattice bodies let a body sink into another at impacts of about 0.7 m/s and more
-    /// (BENCHMARKS.md, "Conjugate gradients in the Newton iteration").
+    /// iterations and faster, and a stiff body falls at the rate gravity sets where one
+    /// V-cycle lags; but with one Newton iteration no particle moves more than half its
+    /// lattice spacing a step, so a finely sampled body falls too slowly (BENCHMARKS.md,
+    /// "Conjugate gradients in the Newton iteration").
     pub newton_cycles: u32,
 }
 

@@ -324,8 +324,8 @@ pub(crate) fn settings_widgets(
     ));
     e.add(&r.on_hover_text(
         "Multigrid V-cycles per Newton iteration of lattice bodies (default 1; more than \
-         one solve the Newton step by conjugate gradients: faster for the same accuracy, \
-         but bodies may sink into each other at fast impacts)",
+         one solve the Newton step by conjugate gradients: with 1 Newton iteration, \
+         faster for the same accuracy, but finely sampled bodies fall too slowly)",
     ));
     ui.horizontal(|ui| {
         let r = ui.radio_value(&mut s.backend, TissueBackend::Auto, "GPU")
