@@ -1301,24 +1301,33 @@ impl Solver {
                 &at,
             )
         };
-        let d = &self.mg_work.delta[0];
-        // A trust region: no particle moves more than half its lattice spacing in one
-        // iteration (the linearisation about a badly deformed shape can ask for metres),
-        // then halving until the energy falls.
+        // A trust region, body by body: no particle moves more than half its lattice
+        // spacing in one iteration (the linearisation about a badly deformed shape can ask
+        // for metres), each body's step scaled down to its own bound (so that a body
+        // settling into a collider does not hold back another falling freely); then
+        // halving until the energy falls.
         let mut alpha = 1.0f32;
-        for (j, dj) in d.iter().enumerate() {
+        let mut bound = vec![1.0f32; model.bodies.len()];
+        for (j, dj) in self.mg_work.delta[0].iter().enumerate() {
             if held[j] || !dj.is_finite() {
                 if !dj.is_finite() {
                     alpha = 0.0;
                 }
                 continue;
             }
-            let reach = 0.5 * model.bodies[model.particle_body[j] as usize].spacing;
+            let b = model.particle_body[j] as usize;
+            let reach = 0.5 * model.bodies[b].spacing;
             let len = dj.length();
-            if len * alpha > reach {
-                alpha = reach / len;
+            if len * bound[b] > reach {
+                bound[b] = reach / len;
             }
         }
+        for (j, dj) in self.mg_work.delta[0].iter_mut().enumerate() {
+            if !held[j] {
+                *dj *= bound[model.particle_body[j] as usize];
+            }
+        }
+        let d = &self.mg_work.delta[0];
         let g0 = energy(0.0, &self.p, d);
         let mut halvings = 0;
         while alpha > 0.0 {

@@ -222,6 +222,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         }
         push(Kernel::Trust, 0, n, 0, 0, reduction_groups(n));
         push(Kernel::Pick, 0, reduction_groups(n), 0, 2, 1);
+        push(Kernel::TrustScale, 0, n, 0, 0, groups(n));
         let g = reduction_groups(ne + n);
         push(Kernel::Energy, 0, ne + n, 0, 1, g);
         push(Kernel::Pick, 0, g, 0, 1, 1);
@@ -772,6 +773,12 @@ impl GpuLattice {
             bytemuck::cast_slice(&packed.nodes),
             st,
         )?;
+        // Each body's trust-region bound (f32 bits), 1 between iterations.
+        let bodyt = make(
+            "tissue lattice body trust",
+            bytemuck::cast_slice(&vec![1.0f32; model.bodies.len().max(1)]),
+            st,
+        )?;
         let mats = make(
             "tissue lattice materials",
             bytemuck::cast_slice(&packed.mats),
@@ -844,6 +851,7 @@ impl GpuLattice {
                 "kmat" => &kmat,
                 "topo" => &topo,
                 "nodes" => &nodes,
+                "bodyt" => &bodyt,
                 _ => &mats,
             }
         };
@@ -890,7 +898,7 @@ impl GpuLattice {
             colliders: 0,
             pair_capacity,
             nodes,
-            _keep: vec![ef, vecs, nblk, elems, kmat, topo, mats, passes],
+            _keep: vec![ef, vecs, nblk, elems, kmat, topo, mats, passes, bodyt],
         })
     }
 

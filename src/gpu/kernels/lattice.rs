@@ -114,6 +114,11 @@ pub const SLOTS: &[Slot] = &[
         ty: "array<vec4<f32>>",
         access: Access::Read,
     },
+    Slot {
+        name: "bodyt",
+        ty: "array<atomic<u32>>",
+        access: Access::ReadWrite,
+    },
 ];
 
 /// The entry points of `lattice.wgsl`.
@@ -149,8 +154,10 @@ pub enum Kernel {
     AlphaTerms,
     /// `correct`: adds the scaled coarse correction.
     Correct,
-    /// `trust`: partial minima of the trust region's step bound.
+    /// `trust`: each body's trust-region bound on its step.
     Trust,
+    /// `trust_scale`: each body's step scaled to its trust-region bound.
+    TrustScale,
     /// `finish`: velocities and positions at the end of a substep.
     Finish,
     /// `coarse_cycle`: the small levels' V-cycle in one workgroup.
@@ -212,7 +219,9 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Advance,
         name: "advance",
-        uses: &["params", "pc", "pos", "vecs", "red", "ccol", "nodes"],
+        uses: &[
+            "params", "pc", "pos", "vecs", "red", "ccol", "nodes", "bodyt",
+        ],
     },
     Entry {
         kernel: Kernel::Forces,
@@ -282,7 +291,12 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Trust,
         name: "trust",
-        uses: &["params", "vecs", "red", "ccol", "nodes"],
+        uses: &["params", "vecs", "red", "ccol", "nodes", "bodyt"],
+    },
+    Entry {
+        kernel: Kernel::TrustScale,
+        name: "trust_scale",
+        uses: &["params", "vecs", "ccol", "nodes", "bodyt"],
     },
     Entry {
         kernel: Kernel::Finish,

@@ -570,10 +570,15 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
 }
 
 // y += α d for the free nodes (mode as `direction`; nothing at α = 0, where a
-// direction that is not finite must not touch y).
+// direction that is not finite must not touch y); resets the bodies' trust bounds.
 @compute @workgroup_size(64)
 fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
+    // The bodies' trust bounds back to 1 for the next iteration's `trust` (this
+    // iteration's `trust_scale` has read them).
+    if (j < arrayLength(&bodyt)) {
+        atomicStore(&bodyt[j], bitcast<u32>(1.0));
+    }
     let a = red[S_ALPHA];
     if (j >= params.n || held_now(j) || a == 0.0) {
         return;
@@ -1158,12 +1163,14 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 }
 
-// Partial minima of reach / |δ| over the free nodes (the trust region: no node moves
-// more than half its lattice spacing per iteration) and whether any δ is not finite.
+// The trust region, body by body (core::solver's Newton iteration): no free node moves
+// more than its reach (half its body's lattice spacing) in one iteration. Each body's
+// bound, the least reach / |δ| of its nodes (at most 1), into `bodyt` (f32 bits: for
+// non-negative floats their order); partial sums of whether any δ is not finite (slot
+// 1; slot 0 the line search's start, 1).
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
          @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    var bound = 1.0;
     var bad = 0.0;
     for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
         if (held_now(j)) {
@@ -1175,11 +1182,11 @@ fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocatio
         } else {
             let len = length(d);
             if (len > nodes[j].z) {
-                bound = min(bound, nodes[j].z / len);
+                atomicMin(&bodyt[u32(nodes[j].w)], bitcast<u32>(nodes[j].z / len));
             }
         }
     }
-    wsum[lid][0] = bound;
+    wsum[lid][0] = 1.0;
     wsum[lid][1] = bad;
     for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
         workgroupBarrier();
@@ -1192,6 +1199,18 @@ fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocatio
         red[RED_BASE + wg.x * RED_STRIDE] = wsum[0][0];
         red[RED_BASE + wg.x * RED_STRIDE + 1u] = wsum[0][1];
     }
+}
+
+// Each free node's step scaled to its body's trust bound.
+@compute @workgroup_size(64)
+fn trust_scale(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n || held_now(j)) {
+        return;
+    }
+    let t = bitcast<f32>(atomicLoad(&bodyt[u32(nodes[j].w)]));
+    let i = V_DELTA * params.n_total + j;
+    vecs[i] = vec4<f32>(vecs[i].xyz * t, 0.0);
 }
 
 // Finish: v = (y − x)/h, damped; x = y.
