@@ -1178,6 +1178,7 @@ impl Solver {
             // work from.
             let x = &state.x;
             let step: Vec<Vec3> = (0..n).map(|j| self.p[j] - x[j]).collect();
+            let start = |j: usize| if held[j] { self.p[j] } else { x[j] };
             let at_s = |s: f32| {
                 let at = |j: usize| {
                     if held[j] {
@@ -1194,7 +1195,7 @@ impl Solver {
                     (ri, &state.element_rot),
                     (&[], control),
                     &at,
-                ) + self.pair_overlap_energy(model, &held, h2, &at)
+                ) + self.pair_overlap_energy(model, &held, h2, &start, &at)
             };
             let mut best = (at_s(1.0), 1.0f32);
             for s in [0.5f32, 0.25, 0.0] {
@@ -1428,16 +1429,19 @@ impl Solver {
         out
     }
 
-    /// The particle contacts' penalty energy at positions `at` (J): `½ k (r_i + r_j −
-    /// |x_i − x_j|)²` for every pair of the contact lists closer than their radii, held
-    /// by the free lattice particle whose list has it (as in the Newton iterations). What
-    /// the substep's first iterate weighs, so that a body arriving at another faster than
-    /// a particle radius a step starts from where it meets it rather than from inside it.
+    /// The particle contacts' penalty energy of moving from positions `from` to `at` in
+    /// a straight line (J): `½ k (r_i + r_j − d)²` for every pair of the contact lists
+    /// whose closest distance `d` along the way comes within their radii, held by the free
+    /// lattice particle whose list has it (as in the Newton iterations). What the
+    /// substep's first iterate weighs, so that a body arriving at another faster than a
+    /// particle radius a step starts from where it meets it rather than from inside it or
+    /// past it.
     fn pair_overlap_energy(
         &self,
         model: &Model,
         held: &[bool],
         h2: f32,
+        from: &dyn Fn(usize) -> Vec3,
         at: &dyn Fn(usize) -> Vec3,
     ) -> f64 {
         if !self.settings.particle_contacts || self.contact_list.is_empty() {
@@ -1453,7 +1457,15 @@ impl Solver {
             for s in self.contact_start[j]..self.contact_start[j + 1] {
                 let i = self.contact_list[s as usize] as usize;
                 let reach = r + model.bodies[model.particle_body[i] as usize].radius;
-                let depth = (reach - (at(j) - at(i)).length()).max(0.0);
+                let r0 = from(j) - from(i);
+                let v = at(j) - at(i) - r0;
+                let vv = v.length_squared();
+                let t = if vv > 0.0 {
+                    (-r0.dot(v) / vv).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                let depth = (reach - (r0 + v * t).length()).max(0.0);
                 g += 0.5 * (k * depth * depth) as f64;
             }
         }

@@ -323,6 +323,18 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     ccol[C_COL * n + j] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
 }
 
+// The closest distance of two nodes over their straight paths from the step's start to
+// candidate a of the first iterate: their offset r1 + t v for t from −1 (the start) to a
+// (r1 the offset at the inertial iterate, v the difference of their steps).
+fn swept_gap(r1: vec3<f32>, v: vec3<f32>, a: f32) -> f32 {
+    let vv = dot(v, v);
+    var t = a;
+    if (vv > 0.0) {
+        t = clamp(-dot(r1, v) / vv, -1.0, a);
+    }
+    return length(r1 + v * t);
+}
+
 // Energy changes of the candidate steps along the direction (mode 0: first iterate,
 // rotations refined per candidate; mode 1: line search, rotations held), one partial sum
 // per candidate and workgroup: elements first, then the nodes' inertia.
@@ -412,8 +424,8 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                 // Particle contacts this node holds: ½ k depth² with both nodes moving
                 // along the step. The line search holds the pairs in contact at its start
                 // (as the Newton iteration's forces); the first iterate weighs every
-                // candidate pair's overlap at each candidate (core::solver's
-                // pair_overlap_energy).
+                // candidate pair's overlap at its closest along the way to each candidate
+                // (core::solver's pair_overlap_energy).
                 let pr = pair_range(j);
                 if (pr.x < pr.y) {
                     let sc = contact_scale(j);
@@ -428,10 +440,12 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
                             di = vec3<f32>(0.0);
                         }
                         if (mode == 0u) {
-                            let o0 = max(reach - len0, 0.0);
+                            let r1 = y - yi;
+                            let v = d - di;
+                            let o0 = max(reach - swept_gap(r1, v, 0.0), 0.0);
                             for (var k = 0u; k < kc; k = k + 1u) {
                                 let a = candidate(k0 + k, mode);
-                                let oa = max(reach - length(y + d * a - yi - di * a), 0.0);
+                                let oa = max(reach - swept_gap(r1, v, a), 0.0);
                                 acc[k] = acc[k] + 0.5 * sc.y * (oa * oa - o0 * o0);
                             }
                             continue;
