@@ -7,8 +7,8 @@
 // acts on it between two iterations, so its positions and cluster rotations stay in the
 // workgroup): in `body_substep` without particle contacts, with them in the substep's
 // first `body_iteration` dispatch, beside the other bodies' first block of iterations
-// (H100, every body touching: ~0.04 ms per step less; BENCHMARKS.md, session 13); a
-// body with contact candidates runs one iteration
+// (measured faster even with every body touching: BENCHMARKS.md, "The 1,000-body step
+// as the plugin runs it"); a body with contact candidates runs one iteration
 // per dispatch (`body_iteration`), which starts with the previous iteration's contact
 // pass for the body's particles (iterations alternate between two halves of p2).
 // The arithmetic is the cluster and gather kernels' (the gather adds a particle's
