@@ -2,6 +2,8 @@
 //! whatever Vulkan adapter exists (Mesa's lavapipe in CI). Under `CI=true` a missing
 //! adapter is a failure; elsewhere these tests say they were skipped.
 
+mod common;
+
 use bevy_tissue::core::colliders::{Collider, ColliderShape};
 use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
@@ -10,6 +12,7 @@ use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
 use bevy_tissue::core::{TissueError, knn, skin};
 use bevy_tissue::gpu::world::{read_buffer, read_u32, read_vec3};
 use bevy_tissue::gpu::{GpuWorld, Headless, NoTiming, headless};
+use common::lattice_box_at;
 use glam::{Quat, Vec3};
 use std::sync::OnceLock;
 
@@ -1253,27 +1256,6 @@ fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
 /// height `y`.
 fn lattice_box(half: Vec3, y: f32) -> Model {
     lattice_box_at(half, Vec3::new(0.0, y, 0.0))
-}
-
-/// [`lattice_box`] centred at `at`.
-fn lattice_box_at(half: Vec3, at: Vec3) -> Model {
-    let mut model = Model::new();
-    model
-        .add_body(
-            &procedural::cuboid(half, 2),
-            &BodyDesc {
-                resolution: Resolution::Spacing(0.008),
-                material: Material::Hyperelastic {
-                    youngs_modulus: 20e3,
-                    poisson_ratio: 0.3,
-                },
-                discretisation: bevy_tissue::core::model::Discretisation::Lattice,
-                translation: at,
-                ..Default::default()
-            },
-        )
-        .unwrap();
-    model
 }
 
 /// The CPU solver, perturbed CPU solvers (how sensitive the run is) and the GPU lattice

@@ -662,24 +662,6 @@ fn two_bodies_collide_without_passing_through() {
 /// into or through another starts where they meet.
 #[test]
 fn lattice_box_dropped_onto_another_rests_on_it() {
-    let lattice_box = |half: Vec3, at: Vec3| {
-        let mut m = Model::new();
-        m.add_body(
-            &procedural::cuboid(half, 2),
-            &BodyDesc {
-                resolution: Resolution::Spacing(0.008),
-                material: Material::Hyperelastic {
-                    youngs_modulus: 20e3,
-                    poisson_ratio: 0.3,
-                },
-                discretisation: bevy_tissue::core::model::Discretisation::Lattice,
-                translation: at,
-                ..Default::default()
-            },
-        )
-        .unwrap();
-        m
-    };
     // (drop, Newton iterations, V-cycles, whether it must rest on top or only stay above
     // the lower box's middle)
     for (drop, newton, cycles, on_top) in [
@@ -689,10 +671,11 @@ fn lattice_box_dropped_onto_another_rests_on_it() {
         (0.10, 2, 1, false),
         (0.10, 1, 2, false),
     ] {
-        let mut model = lattice_box(Vec3::new(0.03, 0.016, 0.03), Vec3::new(0.0, 0.017, 0.0));
+        let mut model =
+            common::lattice_box_at(Vec3::new(0.03, 0.016, 0.03), Vec3::new(0.0, 0.017, 0.0));
         // A quarter spacing off the lower box's lattice (no particle balanced on another).
         let top = 0.017 + 0.016 + 0.008 + 0.016;
-        model.append(&lattice_box(
+        model.append(&common::lattice_box_at(
             Vec3::splat(0.016),
             Vec3::new(0.002, top + drop, 0.003),
         ));
@@ -806,26 +789,8 @@ fn free_lattice_bodies_fall_at_gravitys_rate() {
 /// search are still one for the batch (BENCHMARKS.md).
 #[test]
 fn a_settling_body_does_not_hold_back_a_falling_one() {
-    let lattice_box = |half: Vec3, at: Vec3| {
-        let mut m = Model::new();
-        m.add_body(
-            &procedural::cuboid(half, 2),
-            &BodyDesc {
-                resolution: Resolution::Spacing(0.008),
-                material: Material::Hyperelastic {
-                    youngs_modulus: 20e3,
-                    poisson_ratio: 0.3,
-                },
-                discretisation: bevy_tissue::core::model::Discretisation::Lattice,
-                translation: at,
-                ..Default::default()
-            },
-        )
-        .unwrap();
-        m
-    };
-    let mut model = lattice_box(Vec3::splat(0.016), Vec3::new(0.0, 1.0, 0.0));
-    model.append(&lattice_box(
+    let mut model = common::lattice_box_at(Vec3::splat(0.016), Vec3::new(0.0, 1.0, 0.0));
+    model.append(&common::lattice_box_at(
         Vec3::new(0.03, 0.016, 0.03),
         Vec3::new(0.5, 0.017, 0.0),
     ));

@@ -237,6 +237,29 @@ pub fn cpu_path_reference(
     (model, state.x)
 }
 
+/// A lattice box of half extents `half` (8 mm spacing, E = 20 kPa, ν = 0.3) centred at
+/// `at`: the core's contact and falling scenes.
+pub fn lattice_box_at(half: Vec3, at: Vec3) -> bevy_tissue::core::model::Model {
+    use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model};
+    let mut model = Model::new();
+    model
+        .add_body(
+            &bevy_tissue::core::procedural::cuboid(half, 2),
+            &BodyDesc {
+                resolution: bevy_tissue::core::sampling::Resolution::Spacing(0.008),
+                material: Material::Hyperelastic {
+                    youngs_modulus: 20e3,
+                    poisson_ratio: 0.3,
+                },
+                discretisation: Discretisation::Lattice,
+                translation: at,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+    model
+}
+
 /// A 12 × 5 × 5 cm lattice body of about 400 particles (E = 50 kPa, ν = 0.4), pinned at
 /// its −x end (the plugin tests' accurate body).
 pub fn lattice_body() -> (

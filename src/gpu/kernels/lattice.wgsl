@@ -17,7 +17,7 @@ const RED_STRIDE: u32 = 16u;
 const RED_BASE: u32 = 16u;
 // Scalars in `red`.
 const S_ALPHA: u32 = 0u;       // the step chosen by the last `pick`
-const S_ALPHA_MAX: u32 = 1u;   // the trust region's step bound
+const S_ALPHA_MAX: u32 = 1u;   // the line search's first step: 1, or 0 where a step is not finite
 const S_PENDING: u32 = 2u;     // 1: the line search's second pass runs
 const S_CG_ALPHA: u32 = 3u;    // conjugate gradients: the last step α
 const S_CG_RZ: u32 = 4u;       // conjugate gradients: the last zᵀ r
@@ -475,7 +475,8 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
 // mode 1: the first of the line search's first candidates that does not raise the
 // energy (else 0, and the second pass's workgroups into `args`); mode 4: after the
 // second pass, if it ran, the first of its candidates that does not, else 0;
-// mode 2: the trust region's bound α_max; mode 3: the coarse correction's step of
+// mode 2: the line search's first step α_max, 1 unless a step is not finite (each
+// body's trust bound is already in its step: `trust_scale`); mode 3: the coarse correction's step of
 // level `pc.level`; conjugate gradients: mode 5 the next direction's β, mode 6 the
 // step α along the direction and zᵀ r.
 @compute @workgroup_size(64)
@@ -489,24 +490,16 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
         used = part_a();
     } else if (mode == 4u) {
         used = LINE_CANDIDATES - part_a();
-    } else if (mode == 5u) {
+    } else if (mode == 2u || mode == 5u) {
         used = 1u;
     } else if (mode == 6u) {
         used = 3u;
     }
     var acc: array<f32, 16>;
-    if (mode == 2u) {
-        acc[0] = 1.0;
-    }
     for (var w = lid; w < pc.count; w = w + LWG) {
         let o = RED_BASE + w * RED_STRIDE;
         for (var k = 0u; k < used; k = k + 1u) {
-            let v = red[o + k];
-            if (mode == 2u && k == 0u) {
-                acc[0] = min(acc[0], v);
-            } else {
-                acc[k] = acc[k] + v;
-            }
+            acc[k] = acc[k] + red[o + k];
         }
     }
     for (var k = 0u; k < used; k = k + 1u) {
@@ -516,11 +509,7 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
         workgroupBarrier();
         if (lid < stride) {
             for (var k = 0u; k < used; k = k + 1u) {
-                if (mode == 2u && k == 0u) {
-                    wsum[lid][k] = min(wsum[lid][k], wsum[lid + stride][k]);
-                } else {
-                    wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
-                }
+                wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
             }
         }
     }
@@ -567,7 +556,7 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
             red[S_PENDING] = 0.0;
         }
     } else if (mode == 2u) {
-        red[S_ALPHA_MAX] = select(wsum[0][0], 0.0, wsum[0][1] > 0.0);
+        red[S_ALPHA_MAX] = select(1.0, 0.0, wsum[0][0] > 0.0);
     } else if (mode == 5u) {
         let beta = -red[S_CG_ALPHA] * wsum[0][0] / red[S_CG_RZ];
         red[S_CG_BETA] = select(0.0, beta, is_finite_f(beta));
@@ -1180,8 +1169,7 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
 // The trust region, body by body (core::solver's Newton iteration): no free node moves
 // more than its reach (half its body's lattice spacing) in one iteration. Each body's
 // bound, the least reach / |δ| of its nodes (at most 1), into `bodyt` (f32 bits: for
-// non-negative floats their order); partial sums of whether any δ is not finite (slot
-// 1; slot 0 the line search's start, 1).
+// non-negative floats their order); partial sums of how many δ are not finite.
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
          @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -1200,19 +1188,8 @@ fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocatio
             }
         }
     }
-    wsum[lid][0] = 1.0;
-    wsum[lid][1] = bad;
-    for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
-        workgroupBarrier();
-        if (lid < stride) {
-            wsum[lid][0] = min(wsum[lid][0], wsum[lid + stride][0]);
-            wsum[lid][1] = wsum[lid][1] + wsum[lid + stride][1];
-        }
-    }
-    if (lid == 0u) {
-        red[RED_BASE + wg.x * RED_STRIDE] = wsum[0][0];
-        red[RED_BASE + wg.x * RED_STRIDE + 1u] = wsum[0][1];
-    }
+    wsum[lid][0] = bad;
+    reduce_partials(lid, wg.x, 1u);
 }
 
 // Each free node's step scaled to its body's trust bound.
