@@ -30,6 +30,11 @@ pub struct MgLevel {
     pub elements: Vec<[u32; CORNERS]>,
     /// Each element's body.
     pub body: Vec<u32>,
+    /// Where each body's nodes start on this level, and where the last ends (bodies + 1
+    /// entries; a body's nodes are contiguous). The coarse corrections' steps and the
+    /// conjugate gradients' scalars are each body's own, over these ranges, so that a body
+    /// steps as it would alone.
+    pub body_start: Vec<u32>,
     /// Each element's stiffness scale `V / h²` (m): its stiffness is this times the
     /// body's unit-cube stiffness.
     pub scale: Vec<f32>,
@@ -315,6 +320,7 @@ impl BodyLevels {
         }
         for lv in &mut levels {
             lv.blocks = to_blocks(&lv.stiffness);
+            lv.body_start = vec![0, lv.nodes as u32];
         }
         Self {
             levels,
@@ -490,6 +496,7 @@ impl LatticeMultigrid {
 fn join_level(parts: &[&BodyLevels], l: usize, links: bool) -> MgLevel {
     let mut out = MgLevel {
         inv_start: vec![0],
+        body_start: vec![0],
         ..Default::default()
     };
     if links {
@@ -502,11 +509,13 @@ fn join_level(parts: &[&BodyLevels], l: usize, links: bool) -> MgLevel {
     for (b, part) in parts.iter().enumerate() {
         let Some(lv) = part.levels.get(l) else {
             bases.push(out.nodes as u32);
+            out.body_start.push(out.nodes as u32);
             continue;
         };
         let (n0, e0) = (out.nodes as u32, out.elements.len() as u32);
         bases.push(n0);
         out.nodes += lv.nodes;
+        out.body_start.push(out.nodes as u32);
         out.elements
             .extend(lv.elements.iter().map(|el| el.map(|j| j + n0)));
         out.body
@@ -997,50 +1006,62 @@ impl LatticeMultigrid {
         let mut x = vec![Vec3::ZERO; n];
         let mut p = vec![Vec3::ZERO; n];
         let mut q = vec![Vec3::ZERO; n];
-        // α and zᵀ r of the last iteration.
-        let (mut alpha, mut rz) = (0.0f64, 0.0f64);
+        // Each body's own scalars (sums over its nodes), so that a body steps as it
+        // would alone: α and zᵀ r of the last iteration.
+        let starts = &self.levels[0].body_start;
+        let bodies: Vec<std::ops::Range<usize>> = starts
+            .windows(2)
+            .map(|w| w[0] as usize..w[1] as usize)
+            .collect();
+        let mut alpha = vec![0.0f64; bodies.len()];
+        let mut rz = vec![0.0f64; bodies.len()];
         for k in 0..cycles.max(1) {
             work.delta[0].iter_mut().for_each(|d| *d = Vec3::ZERO);
             self.vcycle(0, h2, pre, post, coarsest, work);
             let z = &work.delta[0];
-            let beta = if k == 0 {
-                0.0
-            } else {
-                let zq: f64 = (0..n)
-                    .filter(|&j| free(j))
-                    .map(|j| z[j].dot(q[j]) as f64)
-                    .sum();
-                finite_or_zero(-alpha * zq / rz)
-            };
-            for j in 0..n {
-                p[j] = if free(j) {
-                    z[j] + p[j] * beta as f32
+            for (b, range) in bodies.iter().enumerate() {
+                let beta = if k == 0 {
+                    0.0
                 } else {
-                    Vec3::ZERO
+                    let zq: f64 = range
+                        .clone()
+                        .filter(|&j| free(j))
+                        .map(|j| z[j].dot(q[j]) as f64)
+                        .sum();
+                    finite_or_zero(-alpha[b] * zq / rz[b])
                 };
+                for j in range.clone() {
+                    p[j] = if free(j) {
+                        z[j] + p[j] * beta as f32
+                    } else {
+                        Vec3::ZERO
+                    };
+                }
             }
-            let (mut pq, mut rp, mut rz_now) = (0.0f64, 0.0f64, 0.0f64);
-            for j in 0..n {
-                q[j] = if free(j) {
-                    self.apply_row(0, j, &p, h2, work)
+            for (b, range) in bodies.iter().enumerate() {
+                let (mut pq, mut rp, mut rz_now) = (0.0f64, 0.0f64, 0.0f64);
+                for j in range.clone() {
+                    q[j] = if free(j) {
+                        self.apply_row(0, j, &p, h2, work)
+                    } else {
+                        Vec3::ZERO
+                    };
+                    let r = work.rhs[0][j];
+                    pq += p[j].dot(q[j]) as f64;
+                    rp += r.dot(p[j]) as f64;
+                    rz_now += r.dot(z[j]) as f64;
+                }
+                alpha[b] = if pq > 0.0 {
+                    finite_or_zero(rp / pq)
                 } else {
-                    Vec3::ZERO
+                    0.0
                 };
-                let r = work.rhs[0][j];
-                pq += p[j].dot(q[j]) as f64;
-                rp += r.dot(p[j]) as f64;
-                rz_now += r.dot(z[j]) as f64;
-            }
-            alpha = if pq > 0.0 {
-                finite_or_zero(rp / pq)
-            } else {
-                0.0
-            };
-            rz = rz_now;
-            let a = alpha as f32;
-            for j in 0..n {
-                x[j] += p[j] * a;
-                work.rhs[0][j] -= q[j] * a;
+                rz[b] = rz_now;
+                let a = alpha[b] as f32;
+                for j in range.clone() {
+                    x[j] += p[j] * a;
+                    work.rhs[0][j] -= q[j] * a;
+                }
             }
         }
         work.delta[0] = x;
@@ -1092,22 +1113,20 @@ impl LatticeMultigrid {
                 *ej += work.delta[l + 1][lv.prolong_node[s] as usize] * lv.prolong_weight[s];
             }
         }
-        let (mut num, mut den) = (0.0f64, 0.0f64);
-        for j in 0..lv.nodes {
-            if lv.fixed[j] {
-                continue;
+        // Each body's own step (its nodes' sums), so that a body steps as it would alone.
+        for b in 0..lv.body_start.len().saturating_sub(1) {
+            let range = lv.body_start[b] as usize..lv.body_start[b + 1] as usize;
+            let (mut num, mut den) = (0.0f64, 0.0f64);
+            for j in range.clone() {
+                if lv.fixed[j] {
+                    continue;
+                }
+                num += rf[j].dot(e[j]) as f64;
+                den += self.apply_row(l, j, &e, h2, work).dot(e[j]) as f64;
             }
-            num += rf[j].dot(e[j]) as f64;
-            den += self.apply_row(l, j, &e, h2, work).dot(e[j]) as f64;
-        }
-        let alpha = if den > 0.0 && num > 0.0 {
-            (num / den) as f32
-        } else {
-            0.0
-        };
-        if alpha.is_finite() {
-            for (d, ej) in work.delta[l].iter_mut().zip(&e) {
-                *d += *ej * alpha;
+            let alpha = correction_step(num, den);
+            for j in range {
+                work.delta[l][j] += e[j] * alpha;
             }
         }
         self.smooth(l, post, h2, work);
@@ -1120,6 +1139,17 @@ pub const VCYCLE_SWEEPS: (u32, u32, u32) = (2, 2, 30);
 
 fn finite_or_zero(v: f64) -> f64 {
     if v.is_finite() { v } else { 0.0 }
+}
+
+/// A coarse correction's energy-minimising step `eᵀ r / eᵀ A e` from those two sums:
+/// 0 unless both are positive and the quotient is finite.
+fn correction_step(num: f64, den: f64) -> f32 {
+    let a = if den > 0.0 && num > 0.0 {
+        (num / den) as f32
+    } else {
+        0.0
+    };
+    if a.is_finite() { a } else { 0.0 }
 }
 
 /// The inverse of a symmetric positive definite 3 × 3 block, by its Cholesky factor

@@ -1170,12 +1170,13 @@ impl Solver {
         let held: Vec<bool> = (0..n)
             .map(|j| fixed[j] || self.pin_slot[j] != u32::MAX || state.grab[j].collider != u32::MAX)
             .collect();
+        let bodies = model.bodies.len();
         if std::mem::take(&mut self.mg_fresh) {
             // The substep's first iterate: the previous positions moved by the velocity,
-            // `x + s h v`, at the lowest energy of s = 1, ½, ¼, 0. A smooth motion keeps
-            // s = 1 (momentum carried exactly); a violent one (a body flying apart or
-            // through itself within the step) starts from a shape the linearisation can
-            // work from.
+            // `x + s h v`, at the lowest energy of s = 1, ½, ¼, 0, each body its own. A
+            // smooth motion keeps s = 1 (momentum carried exactly); a violent one (a body
+            // flying apart or through itself within the step) starts from a shape the
+            // linearisation can work from.
             let x = &state.x;
             let step: Vec<Vec3> = (0..n).map(|j| self.p[j] - x[j]).collect();
             let start = |j: usize| if held[j] { self.p[j] } else { x[j] };
@@ -1187,7 +1188,7 @@ impl Solver {
                         x[j] + step[j] * s
                     }
                 };
-                substep_energy(
+                let mut g = substep_energy(
                     model,
                     &mg,
                     (&held, &self.target),
@@ -1195,20 +1196,22 @@ impl Solver {
                     (ri, &state.element_rot),
                     (&[], control),
                     &at,
-                ) + self.pair_overlap_energy(model, &held, h2, &start, &at)
+                );
+                self.pair_overlap_energy(model, &held, h2, &start, &at, &mut g);
+                g
             };
-            let mut best = (at_s(1.0), 1.0f32);
+            let mut best: Vec<(f64, f32)> = at_s(1.0).into_iter().map(|g| (g, 1.0)).collect();
             for s in [0.5f32, 0.25, 0.0] {
-                let g = at_s(s);
-                if g < best.0 {
-                    best = (g, s);
+                for (b, g) in at_s(s).into_iter().enumerate() {
+                    if g < best[b].0 {
+                        best[b] = (g, s);
+                    }
                 }
             }
-            if best.1 < 1.0 {
-                for j in 0..n {
-                    if !held[j] {
-                        self.p[j] = x[j] + step[j] * best.1;
-                    }
+            for j in 0..n {
+                let s = best[model.particle_body[j] as usize].1;
+                if !held[j] && s < 1.0 {
+                    self.p[j] = x[j] + step[j] * s;
                 }
             }
         }
@@ -1284,13 +1287,13 @@ impl Solver {
         }
         // Backtracking line search on the substep's energy
         // `Σ m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²` (active contacts and
-        // the elements' rotations held, so that the forces above are its gradient): the
-        // V-cycle's step, cut to the trust region below, is taken when it lowers the
-        // energy, else halved until it does (Nocedal & Wright, "Numerical Optimization",
-        // §3.1), so that a step far from the solution (an impact, a squashed or inverted
-        // body, a long step) cannot raise it.
+        // the elements' rotations held, so that the forces above are its gradient), each
+        // body on its own energy: the V-cycle's step, cut to the trust region below, is
+        // taken when it lowers the energy, else halved until it does (Nocedal & Wright,
+        // "Numerical Optimization", §3.1), so that a step far from the solution (an
+        // impact, a squashed or inverted body, a long step) cannot raise it.
         let rots = &state.element_rot;
-        let energy = |alpha: f32, p: &[Vec3], d: &[Vec3]| -> f64 {
+        let energy = |alpha: f32, p: &[Vec3], d: &[Vec3]| -> Vec<f64> {
             let at = |j: usize| if held[j] { p[j] } else { p[j] + d[j] * alpha };
             substep_energy(
                 model,
@@ -1305,18 +1308,19 @@ impl Solver {
         // A trust region, body by body: no particle moves more than half its lattice
         // spacing in one iteration (the linearisation about a badly deformed shape can ask
         // for metres), each body's step scaled down to its own bound (so that a body
-        // settling into a collider does not hold back another falling freely); then
-        // halving until the energy falls.
-        let mut alpha = 1.0f32;
-        let mut bound = vec![1.0f32; model.bodies.len()];
+        // settling into a collider does not hold back another falling freely; a body
+        // with a step that is not finite does not move); then halving until the energy
+        // falls.
+        let mut bound = vec![1.0f32; bodies];
         for (j, dj) in self.mg_work.delta[0].iter().enumerate() {
-            if held[j] || !dj.is_finite() {
-                if !dj.is_finite() {
-                    alpha = 0.0;
-                }
+            if held[j] {
                 continue;
             }
             let b = model.particle_body[j] as usize;
+            if !dj.is_finite() {
+                bound[b] = 0.0;
+                continue;
+            }
             let reach = 0.5 * model.bodies[b].spacing;
             let len = dj.length();
             if len * bound[b] > reach {
@@ -1324,27 +1328,34 @@ impl Solver {
             }
         }
         for (j, dj) in self.mg_work.delta[0].iter_mut().enumerate() {
-            if !held[j] {
-                *dj *= bound[model.particle_body[j] as usize];
+            let t = bound[model.particle_body[j] as usize];
+            if held[j] || t == 0.0 {
+                *dj = Vec3::ZERO;
+            } else {
+                *dj *= t;
             }
         }
         let d = &self.mg_work.delta[0];
         let g0 = energy(0.0, &self.p, d);
-        let mut halvings = 0;
-        while alpha > 0.0 {
-            if energy(alpha, &self.p, d) <= g0 {
+        // Each body's step: the first of 1, ½, ¼, … (13 in all) that does not raise its
+        // energy, else 0.
+        let mut alpha: Vec<Option<f32>> = vec![None; bodies];
+        let mut a = 1.0f32;
+        for _ in 0..LINE_SEARCH_STEPS {
+            if alpha.iter().all(Option::is_some) {
                 break;
             }
-            alpha *= 0.5;
-            halvings += 1;
-            if halvings > 12 {
-                alpha = 0.0;
+            for (b, g) in energy(a, &self.p, d).into_iter().enumerate() {
+                if alpha[b].is_none() && g <= g0[b] {
+                    alpha[b] = Some(a);
+                }
             }
+            a *= 0.5;
         }
         for (j, dj) in d.iter().enumerate() {
-            // At α = 0 nothing moves (a direction that is not finite must not either).
-            if !held[j] && alpha > 0.0 {
-                self.p[j] += *dj * alpha;
+            let a = alpha[model.particle_body[j] as usize].unwrap_or(0.0);
+            if !held[j] && a > 0.0 {
+                self.p[j] += *dj * a;
             }
         }
         // The colliders' penalty forces at the new positions: the tissue presses on a
@@ -1429,10 +1440,11 @@ impl Solver {
         out
     }
 
-    /// The particle contacts' penalty energy of moving from positions `from` to `at` in
-    /// a straight line (J): `½ k (r_i + r_j − d)²` for every pair of the contact lists
-    /// whose closest distance `d` along the way comes within their radii, held by the free
-    /// lattice particle whose list has it (as in the Newton iterations). What the
+    /// Adds to `g` (J, by body) the particle contacts' penalty energy of moving from
+    /// positions `from` to `at` in a straight line: `½ k (r_i + r_j − d)²` for every pair
+    /// of the contact lists whose closest distance `d` along the way comes within their
+    /// radii, held by the free lattice particle whose list has it (as in the Newton
+    /// iterations), and counted to that particle's body. What the
     /// substep's first iterate weighs, so that a body arriving at another faster than a
     /// particle radius a step starts from where it meets it rather than from inside it or
     /// past it.
@@ -1443,11 +1455,11 @@ impl Solver {
         h2: f32,
         from: &dyn Fn(usize) -> Vec3,
         at: &dyn Fn(usize) -> Vec3,
-    ) -> f64 {
+        g: &mut [f64],
+    ) {
         if !self.settings.particle_contacts || self.contact_list.is_empty() {
-            return 0.0;
+            return;
         }
-        let mut g = 0.0f64;
         for (j, &held_j) in held.iter().enumerate() {
             if held_j || model.elements_of(j).is_empty() {
                 continue;
@@ -1466,10 +1478,9 @@ impl Solver {
                     0.0
                 };
                 let depth = (reach - (r0 + v * t).length()).max(0.0);
-                g += 0.5 * (k * depth * depth) as f64;
+                g[model.particle_body[j] as usize] += 0.5 * (k * depth * depth) as f64;
             }
         }
-        g
     }
 
     /// The lattice bodies' elements under a Newton-type element solver (vertex block
@@ -2067,6 +2078,10 @@ impl NewtonContact {
     }
 }
 
+/// Steps the lattice line search tries: 1, ½, ¼, … down to 2⁻¹²; none lowering the
+/// energy, the body stays.
+const LINE_SEARCH_STEPS: usize = 13;
+
 /// The implicit-Euler substep energy of the lattice bodies (J) at positions `y(j)`:
 /// `Σ_free m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²`, each element's energy
 /// ([`super::multigrid::element_energy`]) with the rotation `rot.1[e]` refined by
@@ -2095,6 +2110,9 @@ fn contact_stiffness(model: &Model, j: usize, h2: f32) -> f32 {
     PENALTY * (model.mass[j] / h2 + modulus * body.spacing)
 }
 
+/// The substep energy of positions `y`, each body's own (J, indexed by body): the
+/// inertia of its free particles, its elements' energy, and the penalty energy of the
+/// active contacts its particles hold.
 fn substep_energy(
     model: &Model,
     mg: &super::multigrid::LatticeMultigrid,
@@ -2103,28 +2121,30 @@ fn substep_energy(
     rot: (u32, &[Quat]),
     contacts: (&[NewtonContact], &Control),
     y: &dyn Fn(usize) -> Vec3,
-) -> f64 {
+) -> Vec<f64> {
     let (held, target) = free;
-    let mut g = 0.0f64;
+    let mut g = vec![0.0f64; model.bodies.len()];
     for j in 0..model.particle_count() {
         if !held[j] {
-            g += 0.5 * (model.mass[j] / h2) as f64 * (y(j) - target[j]).length_squared() as f64;
+            g[model.particle_body[j] as usize] +=
+                0.5 * (model.mass[j] / h2) as f64 * (y(j) - target[j]).length_squared() as f64;
         }
     }
     for (e, nodes) in model.elements.iter().enumerate() {
-        let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
+        let b = model.element_body[e] as usize;
+        let Some((mat, modes)) = &mg.material[b] else {
             continue;
         };
         let r = &model.element_rest[e];
         let x = nodes.map(|j| y(j as usize));
         let mut q = rot.1[e];
         extract_rotation(&element_gradient(&x, r.size), &mut q, rot.0);
-        g +=
+        g[b] +=
             super::multigrid::element_energy(&x, r.size, r.volume, mat, modes, &Mat3::from_quat(q));
     }
     for c in contacts.0 {
         let depth = c.depth(model, contacts.1, y);
-        g += 0.5 * (c.stiffness * depth * depth) as f64;
+        g[model.particle_body[c.node] as usize] += 0.5 * (c.stiffness * depth * depth) as f64;
     }
     g
 }
