@@ -31,9 +31,10 @@
 //! `--newton N,...` (accuracy: Newton iterations per step to compare, default 1,2),
 //! `--cycles N,...` (V-cycles per Newton iteration to compare, more than 1 being
 //! conjugate gradients; default 1),
-//! `--smoother hybrid|chebyshev|gs`, `--fold N,...` (speed only: `LatticeOptions::fold_nodes`
-//! values to compare, default the library's), `--profile` (GPU time per kernel: every
-//! dispatch in its own timed pass).
+//! `--smoother hybrid|chebyshev|gs`, `--first N,...` (speed only: line-search candidates
+//! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
+//! default the library's), `--profile` (GPU time per kernel: every dispatch in its own
+//! timed pass).
 //!
 //! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
 //! guarantees; the tests run the example so).
@@ -149,12 +150,11 @@ fn time(
     model: &Model,
     s: &SolverSettings,
     steps: u32,
-    fold: u32,
+    first: u32,
 ) -> (Option<f64>, f64, usize) {
     let state = State::new(model);
     let options = LatticeOptions {
-        fold_nodes: fold,
-        ..Default::default()
+        first_candidates: first,
     };
     let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
@@ -235,12 +235,12 @@ fn speed(
     bodies: u32,
     profile_kernels: bool,
     smoothers: &[Smoother],
-    folds: &[u32],
+    firsts: &[u32],
     cycles: &[u32],
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | fold limit (nodes) | Newton iterations × V-cycles | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | first-pass candidates | Newton iterations × V-cycles | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
@@ -263,13 +263,13 @@ fn speed(
     let steps = if quick { 5 } else { 60 };
     for (name, model) in &scenes {
         for &sm in smoothers {
-            for &fold in folds {
+            for &first in firsts {
                 for (it, c) in [1u32, 2]
                     .into_iter()
                     .flat_map(|it| cycles.iter().map(move |&c| (it, c)))
                 {
                     eprintln!(
-                        "speed: {name}, {sm:?}, fold {fold}, {it} Newton iteration(s) × {c} ..."
+                        "speed: {name}, {sm:?}, {first} first candidates, {it} Newton iteration(s) × {c} ..."
                     );
                     let s = SolverSettings {
                         // Particle contacts in every Newton iteration where bodies touch.
@@ -278,9 +278,9 @@ fn speed(
                         newton_cycles: c,
                         ..settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0, sm)
                     };
-                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, fold);
+                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, first);
                     println!(
-                        "| {name} | {} | {} | {sm:?} | {fold} | {it} × {c} | {} | {wall:.3} | {dispatches} |",
+                        "| {name} | {} | {} | {sm:?} | {first} | {it} × {c} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
                         model.elements.len(),
                         gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
@@ -477,7 +477,7 @@ fn main() {
             a.num("--bodies", 1000u32),
             a.flag("--profile"),
             &smoothers,
-            &a.list("--fold", &[LatticeOptions::default().fold_nodes]),
+            &a.list("--first", &[LatticeOptions::default().first_candidates]),
             &cycles,
         );
     }

@@ -40,8 +40,15 @@ const MAX_LEVELS: usize = 8;
 const RED_BASE: usize = 16;
 /// Floats per workgroup's partial sums.
 const RED_STRIDE: usize = 16;
-/// Most workgroups of a reduction (see [`reduction_groups`]).
+/// Most workgroups of the collider forces' reduction (see [`reduction_groups`]).
 const MAX_PARTIALS: u32 = 1024;
+/// Most chunks a body's items make in one reduction table: a chunk holds a multiple of
+/// [`WORKGROUP`] items, as few as that allows (see [`chunk_table`]).
+const MAX_BODY_CHUNKS: usize = 1024;
+/// Floats of each body's scalars in `red` (`BODY_SLOTS` in `lattice.wgsl`).
+const BODY_SLOTS: usize = 16;
+/// Most workgroups of a `pick` (they stride over the bodies).
+const MAX_PICK_GROUPS: u32 = 65_535;
 /// Smoothing sweeps before and after the coarse correction, and on the coarsest
 /// level (as the CPU solver's V-cycle; even, for the Chebyshev smoother's buffers).
 const SWEEPS: (u32, u32, u32) = crate::core::multigrid::VCYCLE_SWEEPS;
@@ -70,6 +77,7 @@ struct Params {
     misc: [u32; 4],
     cheb: [[f32; 4]; MAX_LEVELS],
     pair: [u32; 4],
+    chunks: [u32; 4],
 }
 
 /// Byte offset of `misc` (the collider count first) in the parameter block.
@@ -111,9 +119,12 @@ pub struct Shape {
     /// Per level: where each colour starts in the concatenated colour order (absolute
     /// position in the topology buffer) and ends.
     pub colours: Vec<[u32; COLOURS + 1]>,
-    /// The level from which the rest of the V-cycle runs in one workgroup (one dispatch),
-    /// if its levels are small enough.
-    pub fold: Option<usize>,
+    /// The reductions' tables (0: the energy's elements and nodes; 1 + l: level l's
+    /// nodes): each one's first chunk and chunk count. Every workgroup of a reduction sums
+    /// one chunk, a run of one body's items.
+    pub tables: Vec<[u32; 2]>,
+    /// Bodies (each `pick` decides per body).
+    pub bodies: u32,
     /// How each level is smoothed.
     pub smoother: Smoother,
     /// With particle contacts between bodies: their projection runs after every this
@@ -124,29 +135,17 @@ pub struct Shape {
     pub cycles: u32,
 }
 
-/// A limit for [`LatticeOptions::fold_nodes`]: the levels below [`Shape::fold`] have at
-/// most this many nodes together, and one workgroup of 256 threads cycles through them.
-/// Not the default: that workgroup waits on one level's loads after another, one
-/// sweep after another, and dispatching every level was measured faster on a desktop
-/// GPU for every scene tried, small bodies included.
-pub const FOLD_NODES: u32 = 1024;
-
 /// How [`GpuLattice`] schedules its work (the answer is the same either way).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LatticeOptions {
-    /// The V-cycle runs in one workgroup from the first level at which at most this
-    /// many nodes remain (0: never; every level's smoothing then dispatches per colour
-    /// and sweep). Default 0 (see [`FOLD_NODES`]).
-    pub fold_nodes: u32,
     /// Line-search candidates (of 13) tried in the first energy pass; the rest in a
-    /// second pass only when none of these lowers the energy. Default 4.
+    /// second pass only for the bodies none of these lowers the energy of. Default 4.
     pub first_candidates: u32,
 }
 
 impl Default for LatticeOptions {
     fn default() -> Self {
         Self {
-            fold_nodes: 0,
             first_candidates: 4,
         }
     }
@@ -156,8 +155,9 @@ fn groups(count: u32) -> u32 {
     count.div_ceil(WORKGROUP)
 }
 
-/// Workgroups of a reduction over `count` items (each thread strides over several when
-/// there are many, so that the single-workgroup sum after it reads few partials).
+/// Workgroups of the collider forces' reduction over `count` items (each thread strides
+/// over several when there are many, so that the single-workgroup sum after it reads few
+/// partials).
 fn reduction_groups(count: u32) -> u32 {
     groups(count).min(MAX_PARTIALS)
 }
@@ -181,12 +181,15 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
             });
         }
     };
+    // Each body's step from its chunks' sums (`pick` strides over the bodies).
+    let picks = shape.bodies.clamp(1, MAX_PICK_GROUPS);
+    let [e0, ec] = shape.tables[0];
+    let [n0, nc] = shape.tables[1];
     push(Kernel::Predict, 0, n, 0, 0, groups(n));
     for it in 0..newton {
         if it == 0 {
-            let g = reduction_groups(ne + n);
-            push(Kernel::Energy, 0, ne + n, 0, 0, g);
-            push(Kernel::Pick, 0, g, 0, 0, 1);
+            push(Kernel::Energy, e0, ec, 0, 0, ec);
+            push(Kernel::Pick, 0, ec, 0, 0, picks);
             push(Kernel::Advance, 0, n, 0, 0, groups(n));
         }
         push(Kernel::Forces, 0, ne, 0, 0, groups(ne));
@@ -206,28 +209,25 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
             vcycle(shape, 0, &mut push);
         } else {
             // Conjugate gradients, a V-cycle per iteration (LatticeMultigrid::krylov).
-            let g = reduction_groups(n);
             for k in 0..shape.cycles {
                 vcycle(shape, 0, &mut push);
                 if k > 0 {
-                    push(Kernel::CgDots, 0, n, 0, 0, g);
-                    push(Kernel::Pick, 0, g, 0, 5, 1);
+                    push(Kernel::CgDots, n0, nc, 0, 0, nc);
+                    push(Kernel::Pick, 0, nc, 0, 5, picks);
                 }
                 push(Kernel::CgDirection, 0, n, 0, k.min(1), groups(n));
-                push(Kernel::CgMatvec, 0, n, 0, 0, g);
-                push(Kernel::Pick, 0, g, 0, 6, 1);
+                push(Kernel::CgMatvec, n0, nc, 0, 0, nc);
+                push(Kernel::Pick, 0, nc, 0, 6, picks);
                 let last = (k + 1 == shape.cycles) as u32;
                 push(Kernel::CgUpdate, 0, n, 0, k.min(1) | last << 1, groups(n));
             }
         }
-        push(Kernel::Trust, 0, n, 0, 0, reduction_groups(n));
-        push(Kernel::Pick, 0, reduction_groups(n), 0, 2, 1);
+        push(Kernel::Trust, 0, n, 0, 0, groups(n));
         push(Kernel::TrustScale, 0, n, 0, 0, groups(n));
-        let g = reduction_groups(ne + n);
-        push(Kernel::Energy, 0, ne + n, 0, 1, g);
-        push(Kernel::Pick, 0, g, 0, 1, 1);
-        push(Kernel::Energy, 0, ne + n, 0, 2, g);
-        push(Kernel::Pick, 0, g, 0, 4, 1);
+        push(Kernel::Energy, e0, ec, 0, 1, ec);
+        push(Kernel::Pick, 0, ec, 0, 1, picks);
+        push(Kernel::Energy, e0, ec, 0, 2, ec);
+        push(Kernel::Pick, 0, ec, 0, 4, picks);
         push(Kernel::Advance, 0, n, 0, 1, groups(n));
         let pairs = shape
             .pairs
@@ -280,10 +280,6 @@ fn sweeps(
 
 fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
     let (pre, post, coarsest) = SWEEPS;
-    if shape.fold == Some(l) {
-        push(Kernel::CoarseCycle, 0, 0, l as u32, 0, 1);
-        return;
-    }
     if l + 1 == shape.levels.len() {
         sweeps(shape, l, coarsest, push);
         return;
@@ -296,15 +292,10 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     push(Kernel::Restrict, cv[0], cv[1], ll + 1, 0, groups(cv[1]));
     vcycle(shape, l + 1, push);
     push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
-    push(
-        Kernel::AlphaTerms,
-        lv[0],
-        lv[1],
-        ll,
-        0,
-        reduction_groups(lv[1]),
-    );
-    push(Kernel::Pick, 0, reduction_groups(lv[1]), ll, 3, 1);
+    let [c0, cn] = shape.tables[1 + l];
+    push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
+    let picks = shape.bodies.clamp(1, MAX_PICK_GROUPS);
+    push(Kernel::Pick, 0, cn, ll, 3, picks);
     push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
     sweeps(shape, l, post, push);
 }
@@ -445,14 +436,56 @@ fn pack(
     topo[child_base as usize + coarse_elems] = topo.len() as u32;
     let mut nodes = Vec::with_capacity(n_total as usize);
     for (l, lv) in levels.iter().enumerate() {
-        for j in 0..lv.nodes {
-            nodes.push(if l == 0 {
-                particle_node(model, j, lv.fixed[j])
-            } else {
-                [lv.mass[j], lv.fixed[j] as u32 as f32, 0.0, 0.0]
-            });
+        for (b, w) in lv.body_start.windows(2).enumerate() {
+            for j in w[0] as usize..w[1] as usize {
+                nodes.push(if l == 0 {
+                    particle_node(model, j, lv.fixed[j])
+                } else {
+                    [lv.mass[j], lv.fixed[j] as u32 as f32, 0.0, b as f32]
+                });
+            }
         }
     }
+    // The reductions' chunks, after the elements' records: the energy's table (each
+    // body's elements, then its nodes, as items `e` and `ne + j`), then every level's
+    // nodes; then each table's per-body chunk ranges.
+    let bodies = model.bodies.len();
+    let ne = levels[0].elements.len() as u32;
+    let mut element_start = vec![0u32; bodies + 1];
+    for &b in &levels[0].body {
+        element_start[b as usize + 1] += 1;
+    }
+    for b in 0..bodies {
+        element_start[b + 1] += element_start[b];
+    }
+    let node_runs = |l: usize, b: usize| {
+        let bs = &levels[l].body_start;
+        node_off[l] + bs[b]..node_off[l] + bs[b + 1]
+    };
+    let mut tables = vec![chunk_table(bodies, |b| {
+        let n = node_runs(0, b);
+        [
+            element_start[b]..element_start[b + 1],
+            ne + n.start..ne + n.end,
+        ]
+    })];
+    for l in 0..nl {
+        tables.push(chunk_table(bodies, |b| [node_runs(l, b), 0..0]));
+    }
+    let chunk_base = elems.len() as u32;
+    let mut table_range = Vec::with_capacity(tables.len());
+    for (records, _) in &tables {
+        table_range.push([elems.len() as u32 - chunk_base, records.len() as u32]);
+        elems.extend_from_slice(records);
+    }
+    let starts: Vec<u32> = tables.iter().flat_map(|(_, s)| s.iter().copied()).collect();
+    let starts_base = 4 * elems.len() as u32;
+    elems.extend(
+        starts
+            .chunks(4)
+            .map(|c| std::array::from_fn(|i| c.get(i).copied().unwrap_or(0))),
+    );
+    let most_chunks = table_range.iter().map(|t| t[1]).max().unwrap_or(0) as usize;
     let mut mats = Vec::new();
     for (m, body) in mg.material.iter().zip(&model.bodies) {
         let mut rec = vec![[0.0f32; 4]; 100];
@@ -481,9 +514,10 @@ fn pack(
             colour_table[i / 4][i % 4] = v;
         }
     }
-    // `red`: scalars, the reductions' partial sums, the collider forces' partial sums,
-    // their totals.
-    let force_base = (RED_BASE + RED_STRIDE * MAX_PARTIALS as usize) as u32;
+    // `red`: scalars, the reductions' partial sums (a chunk's each), each body's
+    // scalars, the collider forces' partial sums, their totals.
+    let body_base = (RED_BASE + RED_STRIDE * most_chunks) as u32;
+    let force_base = body_base + (BODY_SLOTS * bodies) as u32;
     let force_partials = 4 * MAX_COLLIDERS as u32 * MAX_PARTIALS;
     let params = Params {
         gravity: vec4(settings.gravity),
@@ -520,6 +554,7 @@ fn pack(
             settings.contact_relaxation.min(1.0).to_bits(),
             0,
         ],
+        chunks: [chunk_base, starts_base, bodies as u32, body_base],
     };
     let shape = Shape {
         levels: (0..nl)
@@ -532,7 +567,8 @@ fn pack(
                 ]
             })
             .collect(),
-        fold: (0..nl).find(|&l| node_off[nl] - node_off[l] <= options.fold_nodes),
+        tables: table_range,
+        bodies: bodies as u32,
         colours,
         smoother: mg.smoother,
         pairs: pairs.then_some(settings.contact_every),
@@ -547,6 +583,36 @@ fn pack(
         nodes,
         mats,
     }
+}
+
+/// A reduction table of `bodies` bodies whose items are, for body `b`, the two runs
+/// `runs(b)` (either may be empty): its chunks (first item, item count, body, 0), each a
+/// run of at most one body's items and as few per body as [`MAX_BODY_CHUNKS`] allows in
+/// multiples of [`WORKGROUP`], and where each body's chunks start (bodies + 1 entries,
+/// from the table's first chunk).
+fn chunk_table(
+    bodies: usize,
+    runs: impl Fn(usize) -> [std::ops::Range<u32>; 2],
+) -> (Vec<[u32; 4]>, Vec<u32>) {
+    let mut records = Vec::new();
+    let mut starts = Vec::with_capacity(bodies + 1);
+    for b in 0..bodies {
+        starts.push(records.len() as u32);
+        let rs = runs(b);
+        let items: u32 = rs.iter().map(|r| r.len() as u32).sum();
+        let per = (WORKGROUP as usize * MAX_BODY_CHUNKS) as u32;
+        let len = WORKGROUP * items.div_ceil(per).max(1);
+        for r in rs {
+            let mut at = r.start;
+            while at < r.end {
+                let count = len.min(r.end - at);
+                records.push([at, count, b as u32, 0]);
+                at += count;
+            }
+        }
+    }
+    starts.push(records.len() as u32);
+    (records, starts)
 }
 
 /// Entries each of the particle-contact lists (a node's candidates, and the nodes that
@@ -1325,7 +1391,9 @@ mod tests {
                 [100, 103, 106, 109, 112, 115, 118, 118, 120],
                 [120, 121, 122, 123, 124, 125, 126, 127, 128],
             ],
-            fold: None,
+            // The energy's table, then each level's (3 bodies).
+            tables: vec![[0, 5], [5, 3], [8, 3], [11, 3]],
+            bodies: 3,
             smoother: Smoother::GaussSeidel,
             pairs: None,
             cycles: 1,
@@ -1420,43 +1488,6 @@ mod tests {
         );
     }
 
-    /// With the coarse levels folded into one workgroup, level 1 and below are one
-    /// dispatch per V-cycle; level 0's smoothing and transfers stay.
-    #[test]
-    fn a_folded_plan_cycles_the_coarse_levels_in_one_dispatch() {
-        let s = Shape {
-            fold: Some(1),
-            ..shape()
-        };
-        let p = plan(&s, 2);
-        let count = |k: Kernel| p.iter().filter(|d| d.kernel == k).count();
-        assert_eq!(count(Kernel::CoarseCycle), 2);
-        assert_eq!(count(Kernel::Smooth), 2 * 8 * 4);
-        assert_eq!(count(Kernel::Restrict), 2);
-        assert!(
-            p.iter()
-                .all(|d| d.kernel != Kernel::Smooth || d.pass.level == 0)
-        );
-        let whole = plan(
-            &Shape {
-                fold: Some(0),
-                ..shape()
-            },
-            1,
-        );
-        assert_eq!(
-            whole
-                .iter()
-                .filter(|d| d.kernel == Kernel::CoarseCycle)
-                .count(),
-            1
-        );
-        assert_eq!(
-            whole.iter().filter(|d| d.kernel == Kernel::Smooth).count(),
-            0
-        );
-    }
-
     /// With conjugate gradients (3 V-cycles a Newton iteration), each Newton iteration
     /// runs 3 V-cycles, each followed by its direction, product and update; from the
     /// second on a `pick` of β first; the last update marks the Newton step; then the
@@ -1522,8 +1553,9 @@ mod tests {
     }
 
     /// The plan visits every level once per V-cycle, smooths each colour the configured
-    /// number of times, skips empty colours, and its reductions read as many partial
-    /// sums as the dispatch before them wrote.
+    /// number of times, skips empty colours; each reduction dispatches one workgroup per
+    /// chunk of its table, and the `pick` after it reads that table's chunks, one
+    /// workgroup per body.
     #[test]
     fn plan_is_a_v_cycle_per_newton_iteration() {
         let s = shape();
@@ -1550,15 +1582,60 @@ mod tests {
         assert_eq!(p.iter().filter(|d| d.indirect).count(), 2);
         for (i, d) in p.iter().enumerate() {
             if d.kernel == Kernel::Pick {
-                assert_eq!(d.groups, 1);
-                assert_eq!(
-                    d.pass.count,
-                    p[i - 1].groups,
-                    "pick after {:?}",
-                    p[i - 1].kernel
-                );
+                let before = &p[i - 1];
+                assert_eq!(d.groups, s.bodies);
+                let table = match before.kernel {
+                    Kernel::Energy => 0,
+                    Kernel::AlphaTerms => 1 + before.pass.level as usize,
+                    other => panic!("pick after {other:?}"),
+                };
+                let [first, count] = s.tables[table];
+                assert_eq!((before.pass.first, before.pass.count), (first, count));
+                assert_eq!((before.groups, d.pass.count), (count, count));
+                if before.kernel == Kernel::AlphaTerms {
+                    assert_eq!(d.pass.level, before.pass.level);
+                }
             }
             assert!(d.groups > 0);
         }
+        // The trust region needs no reduction: each body's bound by atomics.
+        assert!(
+            p.iter()
+                .filter(|d| d.kernel == Kernel::Trust)
+                .all(|d| d.groups == 100u32.div_ceil(WORKGROUP))
+        );
+    }
+
+    /// A reduction table's chunks cover every item of every body once, each chunk within
+    /// one body's run, a multiple of the workgroup long but for a run's last, at most
+    /// [`MAX_BODY_CHUNKS`] per body; each body's chunks are where its starts say.
+    #[test]
+    fn chunks_cover_each_body_apart() {
+        let big = (WORKGROUP as usize * MAX_BODY_CHUNKS) as u32 * 3 + 5;
+        let runs = [
+            [0..10, 100..400],
+            [10..10, 400..400],
+            [10..10 + big, 0..0],
+            [10 + big..10 + big + 64, 400..401],
+        ];
+        let (records, starts) = chunk_table(runs.len(), |b| runs[b].clone());
+        assert_eq!(starts.len(), runs.len() + 1);
+        for (b, r) in runs.iter().enumerate() {
+            let own = &records[starts[b] as usize..starts[b + 1] as usize];
+            assert!(own.iter().all(|c| c[2] == b as u32));
+            assert!(own.len() <= MAX_BODY_CHUNKS);
+            let mut items: Vec<u32> = own.iter().flat_map(|c| c[0]..c[0] + c[1]).collect();
+            let mut want: Vec<u32> = r.iter().flat_map(|r| r.clone()).collect();
+            items.sort();
+            want.sort();
+            assert_eq!(items, want, "body {b}");
+            for c in own {
+                let run = r.iter().find(|r| r.contains(&c[0])).unwrap();
+                assert!(c[0] + c[1] <= run.end);
+                assert!(c[1] % WORKGROUP == 0 || c[0] + c[1] == run.end);
+            }
+        }
+        assert_eq!(starts[1] - starts[0], 1 + 5); // 10 items, then 300 in 64s
+        assert_eq!(starts[2], starts[1]); // a body without items
     }
 }

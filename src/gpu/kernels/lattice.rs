@@ -81,7 +81,7 @@ pub const SLOTS: &[Slot] = &[
     },
     Slot {
         name: "args",
-        ty: "array<u32>",
+        ty: "array<atomic<u32>>",
         access: Access::ReadWrite,
     },
     Slot {
@@ -128,7 +128,7 @@ pub enum Kernel {
     Predict,
     /// `energy`: energy changes of candidate steps (first iterate, line search).
     Energy,
-    /// `pick`: sums partial sums and picks a step (one workgroup).
+    /// `pick`: sums each body's partial sums and picks its step.
     Pick,
     /// `advance`: takes the picked step.
     Advance,
@@ -160,8 +160,6 @@ pub enum Kernel {
     TrustScale,
     /// `finish`: velocities and positions at the end of a substep.
     Finish,
-    /// `coarse_cycle`: the small levels' V-cycle in one workgroup.
-    CoarseCycle,
     /// `contacts`: penalty contacts with the colliders.
     Contacts,
     /// `lump_extra`: contact stiffness lumped onto a coarse level.
@@ -214,7 +212,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Pick,
         name: "pick",
-        uses: &["params", "pc", "red", "args"],
+        uses: &["params", "pc", "red", "args", "elems"],
     },
     Entry {
         kernel: Kernel::Advance,
@@ -286,12 +284,12 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Correct,
         name: "correct",
-        uses: &["params", "pc", "vecs", "red"],
+        uses: &["params", "pc", "vecs", "red", "nodes"],
     },
     Entry {
         kernel: Kernel::Trust,
         name: "trust",
-        uses: &["params", "vecs", "red", "ccol", "nodes", "bodyt"],
+        uses: &["params", "vecs", "ccol", "nodes", "bodyt"],
     },
     Entry {
         kernel: Kernel::TrustScale,
@@ -302,13 +300,6 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Finish,
         name: "finish",
         uses: &["params", "pos", "ccol"],
-    },
-    Entry {
-        kernel: Kernel::CoarseCycle,
-        name: "coarse_cycle",
-        uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
-        ],
     },
     Entry {
         kernel: Kernel::Contacts,
@@ -352,7 +343,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::CgDots,
         name: "cg_dots",
-        uses: &["params", "vecs", "red"],
+        uses: &["params", "pc", "vecs", "red", "elems"],
     },
     Entry {
         kernel: Kernel::CgDirection,
@@ -363,20 +354,20 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::CgMatvec,
         name: "cg_matvec",
         uses: &[
-            "params", "rot", "vecs", "nblk", "red", "elems", "kmat", "topo", "nodes",
+            "params", "pc", "rot", "vecs", "nblk", "red", "elems", "kmat", "topo", "nodes",
         ],
     },
     Entry {
         kernel: Kernel::CgUpdate,
         name: "cg_update",
-        uses: &["params", "pc", "vecs", "red"],
+        uses: &["params", "pc", "vecs", "red", "nodes"],
     },
 ];
 
 /// Colliders the lattice kernels take at once.
 pub const MAX_COLLIDERS: usize = 32;
 
-/// Threads per workgroup of every lattice kernel but the coarse cycle's.
+/// Threads per workgroup of every lattice kernel.
 pub const WORKGROUP: u32 = 64;
 
 /// The slot index (binding number) of `name`.

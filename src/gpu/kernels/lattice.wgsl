@@ -16,14 +16,16 @@ const FIRST_CANDIDATES: u32 = 4u;
 const RED_STRIDE: u32 = 16u;
 const RED_BASE: u32 = 16u;
 // Scalars in `red`.
-const S_ALPHA: u32 = 0u;       // the step chosen by the last `pick`
-const S_ALPHA_MAX: u32 = 1u;   // the line search's first step: 1, or 0 where a step is not finite
-const S_PENDING: u32 = 2u;     // 1: the line search's second pass runs
-const S_CG_ALPHA: u32 = 3u;    // conjugate gradients: the last step α
-const S_CG_RZ: u32 = 4u;       // conjugate gradients: the last zᵀ r
-const S_CG_BETA: u32 = 5u;     // conjugate gradients: the next direction's β
-const S_MG_ALPHA: u32 = 8u;    // + level: the coarse correction's step
-// Regions of `pos` (× n): positions, iterate, inertial target, velocity, pin target.
+// Per-body scalars in `red` (`body_slot`): every step the Newton iteration takes is
+// each body's own, so that a body steps as it would alone.
+const BODY_SLOTS: u32 = 16u;
+const B_ALPHA: u32 = 0u;      // the step chosen by the last `pick`
+const B_PENDING: u32 = 1u;    // 1: the line search's second pass decides
+const B_CG_ALPHA: u32 = 2u;   // conjugate gradients: the last step α
+const B_CG_RZ: u32 = 3u;      // conjugate gradients: the last zᵀ r
+const B_CG_BETA: u32 = 4u;    // conjugate gradients: the next direction's β
+const B_MG_ALPHA: u32 = 8u;   // + level: the coarse correction's step
+
 const R_X: u32 = 0u;
 const R_Y: u32 = 1u;
 const R_T: u32 = 2u;
@@ -84,6 +86,10 @@ struct LatticeParams {
                              // the level is smoothed by Chebyshev (else Gauss–Seidel)
     pair: vec4<u32>,         // x: 1 if `ccol` holds particle-contact lists; z: the
                              // contacts' Jacobi relaxation ω_c (f32 bits)
+    chunks: vec4<u32>,       // the reductions' chunks: x: where their records start in
+                             // `elems`; y: where each table's per-body chunk ranges start
+                             // in `elems` (u32s, 4 a vec4); z: bodies; w: where the
+                             // per-body scalars start in `red`
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -230,7 +236,7 @@ fn candidate(k: u32, mode: u32) -> f32 {
         var s = array<f32, 4>(0.0, -0.5, -0.75, -1.0);
         return s[k];
     }
-    return red[S_ALPHA_MAX] * exp2(-f32(k));
+    return exp2(-f32(k));
 }
 
 // The line search's candidates in its first pass.
@@ -269,6 +275,30 @@ fn reduce_partials(lid: u32, wid: u32, count: u32) {
             red[RED_BASE + wid * RED_STRIDE + k] = wsum[0][k];
         }
     }
+}
+
+// Slot k of body b's scalars in `red`.
+fn body_slot(b: u32, k: u32) -> u32 {
+    return params.chunks.w + b * BODY_SLOTS + k;
+}
+
+// The body of node j (any level).
+fn node_body(j: u32) -> u32 {
+    return u32(nodes[j].w);
+}
+
+// Chunk c of the reductions (a run of one body's items of one table): x its first item,
+// y its item count, z its body. A reduction's workgroup sums one chunk, so each body's
+// sums are its own chunks' (`pick`).
+fn chunk(c: u32) -> vec4<u32> {
+    return elems[params.chunks.x + c];
+}
+
+// The chunks of table t (0: the energy's elements and nodes; 1 + l: level l's nodes)
+// that are body b's, as indices from the table's first chunk: x .. y.
+fn body_chunks(t: u32, b: u32) -> vec2<u32> {
+    let i = params.chunks.y + t * (params.chunks.z + 1u) + b;
+    return vec2<u32>(elems[i / 4u][i % 4u], elems[(i + 1u) / 4u][(i + 1u) % 4u]);
 }
 
 // Predict: inertial target x̃ = x + h (v + h g) and first iterate y = x + h v (pinned
@@ -336,16 +366,22 @@ fn swept_gap(r1: vec3<f32>, v: vec3<f32>, a: f32) -> f32 {
 }
 
 // Energy changes of the candidate steps along the direction (mode 0: first iterate,
-// rotations refined per candidate; mode 1: line search, rotations held), one partial sum
-// per candidate and workgroup: elements first, then the nodes' inertia.
+// rotations refined per candidate; mode 1: line search, rotations held; mode 2: its
+// second pass, for the bodies whose first candidates all failed), one partial sum per
+// candidate and chunk (workgroup pc.first + wg.x of the energy table: items below `ne`
+// are elements, the rest nodes).
 @compute @workgroup_size(64)
-fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-          @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     let mode = pc.mode;
     let kc = candidates(mode);
     let k0 = first_candidate(mode);
     var acc: array<f32, 16>;
-    for (var i = gid.x; i < params.ne + params.n; i = i + nwg.x * LWG) {
+    let ch = chunk(pc.first + wg.x);
+    var end = ch.x + ch.y;
+    if (mode == 2u && red[body_slot(ch.z, B_PENDING)] < 0.5) {
+        end = ch.x;
+    }
+    for (var i = ch.x + lid; i < end; i = i + LWG) {
         if (i < params.ne) {
             let e = i;
             let y = load_x(e, R_Y);
@@ -470,52 +506,69 @@ fn energy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
     reduce_partials(lid, wg.x, kc);
 }
 
-// One workgroup: sums the partials of `pc.count` workgroups and picks the step.
-// mode 0: the first iterate's s of lowest energy (s = 1 unless another is lower);
-// mode 1: the first of the line search's first candidates that does not raise the
-// energy (else 0, and the second pass's workgroups into `args`); mode 4: after the
-// second pass, if it ran, the first of its candidates that does not, else 0;
-// mode 2: the line search's first step α_max, 1 unless a step is not finite (each
-// body's trust bound is already in its step: `trust_scale`); mode 3: the coarse correction's step of
-// level `pc.level`; conjugate gradients: mode 5 the next direction's β, mode 6 the
-// step α along the direction and zᵀ r.
+// Per body (workgroups striding over the bodies): sums the body's chunks' partial sums
+// and picks its step. mode 0: the first iterate's s of lowest energy (s = 1 unless
+// another is lower); mode 1: the first of the line search's first candidates that does
+// not raise the body's energy (else 0, the body pending, and the second pass's
+// workgroups, `pc.count`, into `args`); mode 4: for a pending body, the first of the
+// second pass's candidates that does not, else 0 (and `args` back to none); mode 3: the
+// coarse correction's step of level `pc.level`; conjugate gradients: mode 5 the next
+// direction's β, mode 6 the step α along the direction and zᵀ r.
 @compute @workgroup_size(64)
-fn pick(@builtin(local_invocation_index) lid: u32) {
+fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>,
+        @builtin(num_workgroups) nwg: vec3<u32>) {
     let mode = pc.mode;
-    // The sums this mode reads.
+    // The sums this mode reads, and their table.
     var used = 2u;
+    var table = 0u;
     if (mode == 0u) {
         used = FIRST_CANDIDATES;
     } else if (mode == 1u) {
         used = part_a();
     } else if (mode == 4u) {
         used = LINE_CANDIDATES - part_a();
-    } else if (mode == 2u || mode == 5u) {
+        if (lid == 0u && wg.x == 0u) {
+            atomicStore(&args[0], 0u);
+        }
+    } else if (mode == 5u) {
         used = 1u;
+        table = 1u;
     } else if (mode == 6u) {
         used = 3u;
+        table = 1u;
+    } else {
+        table = 1u + pc.level;
     }
-    var acc: array<f32, 16>;
-    for (var w = lid; w < pc.count; w = w + LWG) {
-        let o = RED_BASE + w * RED_STRIDE;
-        for (var k = 0u; k < used; k = k + 1u) {
-            acc[k] = acc[k] + red[o + k];
-        }
-    }
-    for (var k = 0u; k < used; k = k + 1u) {
-        wsum[lid][k] = acc[k];
-    }
-    for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
-        workgroupBarrier();
-        if (lid < stride) {
+    for (var b = wg.x; b < params.chunks.z; b = b + nwg.x) {
+        let r = body_chunks(table, b);
+        var acc: array<f32, 16>;
+        for (var w = r.x + lid; w < r.y; w = w + LWG) {
+            let o = RED_BASE + w * RED_STRIDE;
             for (var k = 0u; k < used; k = k + 1u) {
-                wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
+                acc[k] = acc[k] + red[o + k];
             }
         }
+        // The last body's sums have been read.
+        workgroupBarrier();
+        for (var k = 0u; k < used; k = k + 1u) {
+            wsum[lid][k] = acc[k];
+        }
+        for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
+            workgroupBarrier();
+            if (lid < stride) {
+                for (var k = 0u; k < used; k = k + 1u) {
+                    wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
+                }
+            }
+        }
+        if (lid == 0u) {
+            pick_body(b, mode);
+        }
     }
-    if (lid != 0u) {
-        return;
-    }
+}
+
+// `pick`'s choice for body b from the sums in wsum[0].
+fn pick_body(b: u32, mode: u32) {
     if (mode == 0u) {
         var best = 0u;
         for (var k = 1u; k < FIRST_CANDIDATES; k = k + 1u) {
@@ -523,28 +576,25 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
                 best = k;
             }
         }
-        red[S_ALPHA] = candidate(best, 0u);
+        red[body_slot(b, B_ALPHA)] = candidate(best, 0u);
     } else if (mode == 1u) {
         // The line search's first candidates; the rest only if none of them is taken.
         var a = 0.0;
         var found = false;
-        if (red[S_ALPHA_MAX] > 0.0) {
-            for (var k = 0u; k < part_a(); k = k + 1u) {
-                if (wsum[0][k] <= 0.0) {
-                    a = candidate(k, 1u);
-                    found = true;
-                    break;
-                }
+        for (var k = 0u; k < part_a(); k = k + 1u) {
+            if (wsum[0][k] <= 0.0) {
+                a = candidate(k, 1u);
+                found = true;
+                break;
             }
         }
-        red[S_ALPHA] = a;
-        let pending = red[S_ALPHA_MAX] > 0.0 && !found;
-        red[S_PENDING] = select(0.0, 1.0, pending);
-        args[0] = select(0u, pc.count, pending);
-        args[1] = 1u;
-        args[2] = 1u;
+        red[body_slot(b, B_ALPHA)] = a;
+        red[body_slot(b, B_PENDING)] = select(1.0, 0.0, found);
+        if (!found) {
+            atomicStore(&args[0], pc.count);
+        }
     } else if (mode == 4u) {
-        if (red[S_PENDING] > 0.5) {
+        if (red[body_slot(b, B_PENDING)] > 0.5) {
             var a = 0.0;
             for (var k = 0u; k < LINE_CANDIDATES - part_a(); k = k + 1u) {
                 if (wsum[0][k] <= 0.0) {
@@ -552,28 +602,26 @@ fn pick(@builtin(local_invocation_index) lid: u32) {
                     break;
                 }
             }
-            red[S_ALPHA] = a;
-            red[S_PENDING] = 0.0;
+            red[body_slot(b, B_ALPHA)] = a;
+            red[body_slot(b, B_PENDING)] = 0.0;
         }
-    } else if (mode == 2u) {
-        red[S_ALPHA_MAX] = select(1.0, 0.0, wsum[0][0] > 0.0);
     } else if (mode == 5u) {
-        let beta = -red[S_CG_ALPHA] * wsum[0][0] / red[S_CG_RZ];
-        red[S_CG_BETA] = select(0.0, beta, is_finite_f(beta));
+        let beta = -red[body_slot(b, B_CG_ALPHA)] * wsum[0][0] / red[body_slot(b, B_CG_RZ)];
+        red[body_slot(b, B_CG_BETA)] = select(0.0, beta, is_finite_f(beta));
     } else if (mode == 6u) {
         var a = 0.0;
         if (wsum[0][0] > 0.0) {
             a = wsum[0][1] / wsum[0][0];
         }
-        red[S_CG_ALPHA] = select(0.0, a, is_finite_f(a));
-        red[S_CG_RZ] = wsum[0][2];
+        red[body_slot(b, B_CG_ALPHA)] = select(0.0, a, is_finite_f(a));
+        red[body_slot(b, B_CG_RZ)] = wsum[0][2];
     } else {
-        red[S_MG_ALPHA + pc.level] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
+        red[body_slot(b, B_MG_ALPHA + pc.level)] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
     }
 }
 
-// y += α d for the free nodes (mode as `direction`; nothing at α = 0, where a
-// direction that is not finite must not touch y); resets the bodies' trust bounds.
+// y += α d for the free nodes, α their body's step (mode as `direction`; nothing at
+// α = 0); resets the bodies' trust bounds.
 @compute @workgroup_size(64)
 fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -582,8 +630,11 @@ fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (j < arrayLength(&bodyt)) {
         atomicStore(&bodyt[j], bitcast<u32>(1.0));
     }
-    let a = red[S_ALPHA];
-    if (j >= params.n || held_now(j) || a == 0.0) {
+    if (j >= params.n || held_now(j)) {
+        return;
+    }
+    let a = red[body_slot(node_body(j), B_ALPHA)];
+    if (a == 0.0) {
         return;
     }
     let y = pos[R_Y * params.n + j].xyz;
@@ -912,10 +963,7 @@ fn colour_range(l: u32, c: u32) -> vec2<u32> {
     return vec2<u32>(params.colours[i / 4u][i % 4u], params.colours[(i + 1u) / 4u][(i + 1u) % 4u]);
 }
 
-const CWG: u32 = 256u;
-var<workgroup> csum: array<vec2<f32>, 256>;
-
-var<workgroup> part: array<vec3<f32>, 256>;
+var<workgroup> part: array<vec3<f32>, 64>;
 
 // Part `slot` of (A x)_j split `split` ways (8: one of node j's elements; 64: one of its
 // elements' corner blocks), the mass and extra terms in part 0; 0 past its elements.
@@ -932,50 +980,6 @@ fn apply_part(j: u32, region: u32, slot: u32, split: u32) -> vec3<f32> {
         return y;
     }
     return y + element_term(topo[s], off, slot % per, per);
-}
-
-// Threads per node's row when the workgroup updates `nodes` nodes at once: 64 (one per
-// corner block) or 8 (one per element) where they fit, else 1.
-fn row_split(nodes: u32) -> u32 {
-    if (nodes <= CWG / 64u) {
-        return 64u;
-    } else if (nodes <= CWG) {
-        return 8u;
-    }
-    return 1u;
-}
-
-// `count` sweeps of level l by the workgroup: Chebyshev where the level is so smoothed,
-// else Gauss–Seidel by colour. A colour of few nodes splits
-// each node's row over 8 or 64 threads (summed in workgroup memory), so that its
-// latency is one element's or one block's loads rather than all of them.
-fn cycle_sweeps(l: u32, count: u32, lid: u32) {
-    if (params.cheb[l].z > 0.5) {
-        chebyshev_sweeps(l, count, lid);
-        return;
-    }
-    var widest = 0u;
-    for (var c = 0u; c < 8u; c = c + 1u) {
-        let r = colour_range(l, c);
-        widest = max(widest, r.y - r.x);
-    }
-    let split = row_split(widest);
-    let per = CWG / split;
-    for (var s = 0u; s < count; s = s + 1u) {
-        for (var c = 0u; c < 8u; c = c + 1u) {
-            let r = colour_range(l, c);
-            if (split == 1u) {
-                for (var i = r.x + lid; i < r.y; i = i + CWG) {
-                    smooth_node(topo[i]);
-                }
-            } else {
-                for (var base = r.x; base < r.y; base = base + per) {
-                    smooth_split(base + lid / split, r.y, lid, split);
-                }
-            }
-            storageBarrier();
-        }
-    }
 }
 
 // (A x)_j of region `region` split `split` ways (8 or 64): thread `lid` adds its part
@@ -1073,83 +1077,15 @@ fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
     }
 }
 
-// `count` Chebyshev sweeps of level l by the workgroup, rows split as `cycle_sweeps`.
-fn chebyshev_sweeps(l: u32, count: u32, lid: u32) {
-    let lv = params.lv[l];
-    let split = row_split(lv.y - lv.x);
-    let per = CWG / split;
-    for (var k = 0u; k < count; k = k + 1u) {
-        if (split == 1u) {
-            for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
-                chebyshev_node(j, apply_row(j, select(V_DELTA, V_PE, (k & 1u) == 1u)), l, k);
-            }
-        } else {
-            for (var base = lv.x; base < lv.y; base = base + per) {
-                chebyshev_split(base + lid / split, lv.y, lid, split, l, k);
-            }
-        }
-        storageBarrier();
-    }
-}
-
-// The V-cycle from level pc.level down to the coarsest in one workgroup (the coarse
-// levels are small: one dispatch instead of one per colour and sweep). The same
-// operations in the same order as the dispatches it replaces.
-@compute @workgroup_size(256)
-fn coarse_cycle(@builtin(local_invocation_index) lid: u32) {
-    let top = pc.level;
-    let last = params.levels - 1u;
-    for (var l = top; l < last; l = l + 1u) {
-        cycle_sweeps(l, params.sweeps.x, lid);
-        let lv = params.lv[l];
-        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
-            fine_residual_node(j);
-        }
-        storageBarrier();
-        let cv = params.lv[l + 1u];
-        for (var j = cv.x + lid; j < cv.y; j = j + CWG) {
-            restrict_node(j);
-        }
-        storageBarrier();
-    }
-    cycle_sweeps(last, params.sweeps.z, lid);
-    for (var l = last; l > top; l = l - 1u) {
-        let lv = params.lv[l - 1u];
-        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
-            prolong_node(j);
-        }
-        storageBarrier();
-        var t = vec2<f32>(0.0);
-        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
-            t = t + alpha_node(j);
-        }
-        csum[lid] = t;
-        for (var stride = CWG / 2u; stride > 0u; stride = stride / 2u) {
-            workgroupBarrier();
-            if (lid < stride) {
-                csum[lid] = csum[lid] + csum[lid + stride];
-            }
-        }
-        workgroupBarrier();
-        let a = correction_step(csum[0]);
-        workgroupBarrier();
-        for (var j = lv.x + lid; j < lv.y; j = j + CWG) {
-            correct_node(j, a);
-        }
-        storageBarrier();
-        cycle_sweeps(l - 1u, params.sweeps.y, lid);
-    }
-}
-
-// Partial sums of eᵀ r and eᵀ A e over level pc.level's nodes (the coarse
-// correction's energy-minimising step).
+// Partial sums of eᵀ r and eᵀ A e over a chunk of level pc.level's nodes (workgroup
+// pc.first + wg.x of its table; the coarse correction's energy-minimising step).
 @compute @workgroup_size(64)
-fn alpha_terms(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-               @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn alpha_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     var num = 0.0;
     var den = 0.0;
-    for (var i = gid.x; i < pc.count; i = i + nwg.x * LWG) {
-        let t = alpha_node(pc.first + i);
+    let ch = chunk(pc.first + wg.x);
+    for (var i = ch.x + lid; i < ch.x + ch.y; i = i + LWG) {
+        let t = alpha_node(i);
         num = num + t.x;
         den = den + t.y;
     }
@@ -1158,50 +1094,52 @@ fn alpha_terms(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_inv
     reduce_partials(lid, wg.x, 2u);
 }
 
-// δ += α e on level pc.level.
+// δ += α e on level pc.level, α each node's body's.
 @compute @workgroup_size(64)
 fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x < pc.count) {
-        correct_node(pc.first + gid.x, red[S_MG_ALPHA + pc.level]);
+        let j = pc.first + gid.x;
+        correct_node(j, red[body_slot(node_body(j), B_MG_ALPHA + pc.level)]);
     }
 }
 
 // The trust region, body by body (core::solver's Newton iteration): no free node moves
 // more than its reach (half its body's lattice spacing) in one iteration. Each body's
-// bound, the least reach / |δ| of its nodes (at most 1), into `bodyt` (f32 bits: for
-// non-negative floats their order); partial sums of how many δ are not finite.
+// bound, the least reach / |δ| of its nodes (at most 1; 0 where a δ is not finite), into
+// `bodyt` (f32 bits: for non-negative floats their order).
 @compute @workgroup_size(64)
-fn trust(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-         @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    var bad = 0.0;
-    for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
-        if (held_now(j)) {
-            continue;
-        }
-        let d = vecs[V_DELTA * params.n_total + j].xyz;
-        if (!(is_finite_f(d.x) && is_finite_f(d.y) && is_finite_f(d.z))) {
-            bad = 1.0;
-        } else {
-            let len = length(d);
-            if (len > nodes[j].z) {
-                atomicMin(&bodyt[u32(nodes[j].w)], bitcast<u32>(nodes[j].z / len));
-            }
+fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.n || held_now(j)) {
+        return;
+    }
+    let d = vecs[V_DELTA * params.n_total + j].xyz;
+    let b = node_body(j);
+    if (!(is_finite_f(d.x) && is_finite_f(d.y) && is_finite_f(d.z))) {
+        atomicMin(&bodyt[b], 0u);
+    } else {
+        let len = length(d);
+        if (len > nodes[j].z) {
+            atomicMin(&bodyt[b], bitcast<u32>(nodes[j].z / len));
         }
     }
-    wsum[lid][0] = bad;
-    reduce_partials(lid, wg.x, 1u);
 }
 
-// Each free node's step scaled to its body's trust bound.
+// Each free node's step scaled to its body's trust bound (none at a bound of 0: a body
+// with a step that is not finite stays).
 @compute @workgroup_size(64)
 fn trust_scale(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
     if (j >= params.n || held_now(j)) {
         return;
     }
-    let t = bitcast<f32>(atomicLoad(&bodyt[u32(nodes[j].w)]));
+    let t = bitcast<f32>(atomicLoad(&bodyt[node_body(j)]));
     let i = V_DELTA * params.n_total + j;
-    vecs[i] = vec4<f32>(vecs[i].xyz * t, 0.0);
+    var d = vec3<f32>(0.0);
+    if (t > 0.0) {
+        d = vecs[i].xyz * t;
+    }
+    vecs[i] = vec4<f32>(d, 0.0);
 }
 
 // Finish: v = (y − x)/h, damped; x = y.
@@ -1518,13 +1456,13 @@ const CG_X: u32 = 0u;
 const CG_P: u32 = 1u;
 const CG_Q: u32 = 2u;
 
-// Partial sums of zᵀ q (q of the last direction, 0 on held nodes): the next
-// direction's β.
+// Partial sums of zᵀ q (q of the last direction, 0 on held nodes) over a chunk of level
+// 0's nodes (workgroup pc.first + wg.x of its table): the next direction's β.
 @compute @workgroup_size(64)
-fn cg_dots(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-           @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn cg_dots(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     var zq = 0.0;
-    for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
+    let ch = chunk(pc.first + wg.x);
+    for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
         zq = zq + dot(vecs[V_DELTA * params.n_total + j].xyz, vecs[cg_at(CG_Q) + j].xyz);
     }
     wsum[lid][0] = zq;
@@ -1543,7 +1481,7 @@ fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (!held_now(j)) {
         var d = vecs[V_DELTA * params.n_total + j].xyz;
         if (pc.mode != 0u) {
-            d = d + vecs[cg_at(CG_P) + j].xyz * red[S_CG_BETA];
+            d = d + vecs[cg_at(CG_P) + j].xyz * red[body_slot(node_body(j), B_CG_BETA)];
         }
         p = vec4<f32>(d, 0.0);
     }
@@ -1551,12 +1489,12 @@ fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // q = A p (0 on held nodes, the direction's w = 1), and partial sums of pᵀ q, rᵀ p and
-// rᵀ z.
+// rᵀ z, over a chunk of level 0's nodes (workgroup pc.first + wg.x of its table).
 @compute @workgroup_size(64)
-fn cg_matvec(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-             @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     var t = vec3<f32>(0.0);
-    for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
+    let ch = chunk(pc.first + wg.x);
+    for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
         let pw = vecs[cg_at(CG_P) + j];
         var q = vec3<f32>(0.0);
         if (pw.w == 0.0) {
@@ -1581,7 +1519,7 @@ fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (j >= params.n) {
         return;
     }
-    let a = red[S_CG_ALPHA];
+    let a = red[body_slot(node_body(j), B_CG_ALPHA)];
     var x = vec3<f32>(0.0);
     if ((pc.mode & 1u) != 0u) {
         x = vecs[cg_at(CG_X) + j].xyz;
