@@ -74,6 +74,8 @@ fn settings(iterations: u32, gravity: Vec3, damping: f32, smoother: Smoother) ->
         substeps: 1,
         iterations,
         newton_iterations: iterations,
+        // One V-cycle a Newton iteration unless a run asks for more.
+        newton_cycles: 1,
         gravity,
         damping,
         particle_contacts: false,

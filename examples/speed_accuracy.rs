@@ -222,6 +222,8 @@ impl Config {
             substeps: self.substeps,
             iterations: self.iterations,
             newton_iterations: self.iterations,
+            // A row's iterations are Newton iterations of one V-cycle each.
+            newton_cycles: 1,
             gravity,
             damping,
             method: if gauss_seidel {

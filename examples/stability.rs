@@ -453,8 +453,9 @@ fn settings(scenario: Scenario, row: Row, cfg: &Config) -> SolverSettings {
         } else {
             ElementSolver::Xpbd
         },
-        // Every iteration a Newton iteration under Newton–multigrid.
+        // Every iteration a Newton iteration of one V-cycle under Newton–multigrid.
         newton_iterations: 0,
+        newton_cycles: 1,
         ..Default::default()
     };
     match scenario {

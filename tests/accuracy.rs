@@ -220,6 +220,7 @@ fn lattice_rest_and_momentum() {
             method,
             element_solver,
             newton_iterations: 0,
+            newton_cycles: 1,
             damping: 0.0,
             ..Default::default()
         };

@@ -468,8 +468,9 @@ impl Stepping {
             method: self.method,
             warm_start: self.warm_start,
             element_solver: self.element_solver,
-            // Every iteration a Newton iteration under Newton–multigrid.
+            // Every iteration a Newton iteration of one V-cycle under Newton–multigrid.
             newton_iterations: 0,
+            newton_cycles: 1,
             threads: if self.method == Method::GaussSeidel {
                 1
             } else {

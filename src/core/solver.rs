@@ -161,7 +161,7 @@ pub struct SolverSettings {
     /// [`ElementSolver::Multigrid`]: Newton iterations per substep, taken in the first
     /// iterations of the substep (0: one in every iteration). Lets a world of lattice
     /// and cluster bodies give the clusters their `iterations` and the lattice the few
-    /// Newton iterations it needs.
+    /// Newton iterations it needs. Default 1 (with [`Self::newton_cycles`] 2).
     pub newton_iterations: u32,
     /// Vertex block descent: start from the last substep's acceleration along gravity
     /// (Chen et al. 2024's adaptive initialisation) instead of the velocity alone.
@@ -173,7 +173,9 @@ pub struct SolverSettings {
     /// solve the Newton system, one V-cycle per iteration
     /// ([`super::multigrid::LatticeMultigrid::krylov`]), before the same trust region
     /// and line search: a Newton iteration's forces, rotations and line search are
-    /// not repeated for a better step. Must be at least 1; default 1.
+    /// not repeated for a better step. Must be at least 1; default 2: one Newton
+    /// iteration of 2 V-cycles is about as accurate as 2 Newton iterations of one and
+    /// faster (BENCHMARKS.md, "Conjugate gradients in the Newton iteration").
     pub newton_cycles: u32,
 }
 
@@ -224,10 +226,10 @@ impl Default for SolverSettings {
             coarse_constraint: CoarseConstraint::Clusters,
             warm_start: false,
             element_solver: ElementSolver::Multigrid,
-            newton_iterations: 2,
+            newton_iterations: 1,
             descent_adaptive_init: false,
             smoother: Default::default(),
-            newton_cycles: 1,
+            newton_cycles: 2,
         }
     }
 }
@@ -1306,12 +1308,28 @@ impl Solver {
             )
         };
         // A trust region, body by body: no particle moves more than half its lattice
-        // spacing in one iteration (the linearisation about a badly deformed shape can ask
-        // for metres), each body's step scaled down to its own bound (so that a body
+        // spacing in one iteration, and gravity's step from rest `|g| h²` more where it
+        // touches nothing (the linearisation about a badly deformed shape can ask for
+        // metres; gravity's step lets a finely sampled body fall at gravity's rate in
+        // one iteration, and bodies meeting are held back as before), each body's step scaled down to its own bound (so that a body
         // settling into a collider does not hold back another falling freely; a body
         // with a step that is not finite does not move); then halving until the energy
         // falls.
         let mut bound = vec![1.0f32; bodies];
+        let fall = self.settings.gravity.length() * h2;
+        // Particles near something (a collider contact, or another body's particle in
+        // their contact list) keep to half a spacing.
+        let mut near = vec![false; n];
+        for c in &contacts {
+            if let ContactWith::Collider(_) = c.other {
+                near[c.node] = true;
+            }
+        }
+        if self.settings.particle_contacts && self.contact_start.len() == n + 1 {
+            for (j, nj) in near.iter_mut().enumerate() {
+                *nj |= self.contact_start[j] < self.contact_start[j + 1];
+            }
+        }
         for (j, dj) in self.mg_work.delta[0].iter().enumerate() {
             if held[j] {
                 continue;
@@ -1321,7 +1339,7 @@ impl Solver {
                 bound[b] = 0.0;
                 continue;
             }
-            let reach = 0.5 * model.bodies[b].spacing;
+            let reach = 0.5 * model.bodies[b].spacing + if near[j] { 0.0 } else { fall };
             let len = dj.length();
             if len * bound[b] > reach {
                 bound[b] = reach / len;

@@ -1104,9 +1104,10 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // The trust region, body by body (core::solver's Newton iteration): no free node moves
-// more than its reach (half its body's lattice spacing) in one iteration. Each body's
-// bound, the least reach / |δ| of its nodes (at most 1; 0 where a δ is not finite), into
-// `bodyt` (f32 bits: for non-negative floats their order).
+// more than its reach (half its body's lattice spacing) in one iteration, and gravity's
+// step from rest |g| h² more where it touches nothing. Each body's bound, the least reach / |δ| of its nodes (at
+// most 1; 0 where a δ is not finite), into `bodyt` (f32 bits: for non-negative floats
+// their order).
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -1119,8 +1120,13 @@ fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
         atomicMin(&bodyt[b], 0u);
     } else {
         let len = length(d);
-        if (len > nodes[j].z) {
-            atomicMin(&bodyt[b], bitcast<u32>(nodes[j].z / len));
+        // Near something (an active collider contact, or particle-contact candidates):
+        // half a spacing; else gravity's step more.
+        let pr = pair_range(j);
+        let near = bitcast<u32>(ccol[C_TOUCH * params.n + j].y) != 0u || pr.x < pr.y;
+        let reach = nodes[j].z + select(length(params.gravity.xyz) * params.h2, 0.0, near);
+        if (len > reach) {
+            atomicMin(&bodyt[b], bitcast<u32>(reach / len));
         }
     }
 }
