@@ -201,8 +201,8 @@ pub enum CoarseConstraint {
 impl Default for SolverSettings {
     /// The accurate real-time setting, the plugin's for lattice bodies: one step of
     /// 1/60 s, one substep, gravity −9.81 m/s² along y; lattice bodies by
-    /// Newton–multigrid, 2 Newton iterations (each one V-cycle and an energy line
-    /// search); the paper's clusters by 10 Gauss–Seidel iterations (the remaining 8
+    /// Newton–multigrid, one Newton iteration (conjugate gradients over 2 V-cycles, an
+    /// energy line search), every step each body's own; the paper's clusters by 10 Gauss–Seidel iterations (the remaining 8
     /// iterations only project contacts, colliders and pins on lattice bodies).
     fn default() -> Self {
         Self {
