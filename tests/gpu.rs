@@ -1431,8 +1431,8 @@ fn lattice_colliders_match_the_cpu() {
 /// iterations and are projected apart after each. The GPU must agree with the CPU to
 /// rounding until the boxes touch, and afterwards as well as the CPU agrees with itself
 /// started 0.1 µm away (over the run); the upper box must come to rest on the lower one,
-/// not in it. With 2 Newton iterations of one V-cycle and at the default (1 Newton
-/// iteration, conjugate gradients over 2 V-cycles).
+/// not in it. With the default 2 Newton iterations of one V-cycle, and with 1 Newton
+/// iteration of conjugate gradients over 2 V-cycles.
 #[test]
 fn lattice_bodies_in_contact_match_the_cpu() {
     let Some(g) = gpu() else {

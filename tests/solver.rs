@@ -655,8 +655,8 @@ fn two_bodies_collide_without_passing_through() {
 /// Lattice boxes meeting fast: a 3.2 cm box dropped from 4.5 cm and 7 cm above a wider
 /// box resting on the ground (arriving at about 0.8 and 1 m/s: 14–17 mm a step, two
 /// particle radii and more) comes to rest on it, its particles all above the lower box's,
-/// with 2 Newton iterations of one V-cycle and 1 of conjugate gradients over 2 V-cycles
-/// (the default) or 3; from 10 cm (20 mm a step) it sinks into the lower box's top but
+/// with the default 2 Newton iterations of one V-cycle and 1 of conjugate gradients over
+/// 2 or 3 V-cycles; from 10 cm (20 mm a step) it sinks into the lower box's top but
 /// not past its middle. The substep's first iterate weighs the particle contacts'
 /// overlap at its closest along each candidate's way, so a step that would carry a body
 /// into or through another starts where they meet.
@@ -727,9 +727,9 @@ fn lattice_box_dropped_onto_another_rests_on_it() {
 
 /// A free lattice body falls at gravity's rate (no damping): its centre's drop after 1,
 /// 3, 10 and 30 steps of 1/60 s within 0.5% of implicit Euler's `g h² n (n + 1) / 2`,
-/// with 2 Newton iterations of one V-cycle for soft bodies on an 8 and a 4 mm lattice,
-/// and with the default (1 Newton iteration, conjugate gradients over 2 V-cycles) for
-/// soft bodies on both lattices and a stiff one on the 8 mm lattice. (2 × 1 lags a stiff
+/// with the default 2 Newton iterations of one V-cycle for soft bodies on an 8 and a 4 mm
+/// lattice, and with 1 Newton iteration of conjugate gradients over 2 V-cycles for soft
+/// bodies on both lattices and a stiff one on the 8 mm lattice. (2 × 1 lags a stiff
 /// body. One Newton iteration lagged on a lattice finer than twice gravity's 2.7 mm a
 /// step while the trust region held each particle to half a spacing per iteration; it
 /// now adds gravity's step from rest.)
