@@ -1310,13 +1310,13 @@ impl Solver {
             )
         };
         // A trust region, body by body: no particle moves more than half its lattice
-        // spacing in one iteration, and gravity's step from rest `|g| h²` more where it
-        // touches nothing (the linearisation about a badly deformed shape can ask for
-        // metres; gravity's step lets a finely sampled body fall at gravity's rate in
-        // one iteration, and bodies meeting are held back as before), each body's step scaled down to its own bound (so that a body
-        // settling into a collider does not hold back another falling freely; a body
-        // with a step that is not finite does not move); then halving until the energy
-        // falls.
+        // spacing in one iteration (the linearisation about a badly deformed shape can
+        // ask for metres; bodies meeting are held back), and gravity's step from rest
+        // `|g| h²` more where it touches nothing (so that a finely sampled body falls at
+        // gravity's rate in one iteration). Each body's step is scaled down to its own
+        // bound (so that a body settling into a collider does not hold back another
+        // falling freely; a body with a step that is not finite does not move); then
+        // halved until the energy falls.
         let mut bound = vec![1.0f32; bodies];
         let fall = self.settings.gravity.length() * h2;
         // Particles near something (a collider contact, or another body's particle in

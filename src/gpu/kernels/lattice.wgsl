@@ -1105,9 +1105,9 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 // The trust region, body by body (core::solver's Newton iteration): no free node moves
 // more than its reach (half its body's lattice spacing) in one iteration, and gravity's
-// step from rest |g| h² more where it touches nothing. Each body's bound, the least reach / |δ| of its nodes (at
-// most 1; 0 where a δ is not finite), into `bodyt` (f32 bits: for non-negative floats
-// their order).
+// step from rest |g| h² more where it touches nothing. Each body's bound, the least
+// reach / |δ| of its nodes (at most 1; 0 where a δ is not finite), into `bodyt` (f32
+// bits: for non-negative floats their order).
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
