@@ -195,11 +195,18 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         push(Kernel::Forces, 0, ne, 0, 0, groups(ne));
         push(Kernel::Residual, 0, n, 0, 0, groups(n));
         push(Kernel::Contacts, 0, n, 0, 0, groups(n));
+        // Each coarse level's rotations and contact stiffness from the finer level's,
+        // one dispatch a level.
         for (l, lv) in shape.levels.iter().enumerate().skip(1) {
-            push(Kernel::LumpExtra, lv[0], lv[1], l as u32, 0, groups(lv[1]));
-        }
-        for (l, lv) in shape.levels.iter().enumerate().skip(1) {
-            push(Kernel::CoarsenRot, lv[2], lv[3], l as u32, 0, groups(lv[3]));
+            let items = lv[1].max(lv[3]);
+            push(
+                Kernel::CoarsenLevel,
+                lv[0],
+                items,
+                l as u32,
+                0,
+                groups(items),
+            );
         }
         // Every level's diagonal blocks at once (a node's block reads only its own
         // level's rotations and contact blocks, all made above).

@@ -136,8 +136,9 @@ pub enum Kernel {
     Forces,
     /// `residual`: the Newton residual, level 0's right-hand side.
     Residual,
-    /// `coarsen_rot`: coarse elements' rotations from their children's.
-    CoarsenRot,
+    /// `coarsen_level`: a coarse level's element rotations and contact stiffness from
+    /// the finer level's.
+    CoarsenLevel,
     /// `diag`: inverted diagonal blocks of a level.
     Diag,
     /// `smooth_colour`: one colour of a Gauss–Seidel sweep.
@@ -162,8 +163,6 @@ pub enum Kernel {
     Finish,
     /// `contacts`: penalty contacts with the colliders.
     Contacts,
-    /// `lump_extra`: contact stiffness lumped onto a coarse level.
-    LumpExtra,
     /// `pair_project`: the particle contacts' Jacobi projection between bodies.
     PairProject,
     /// `boundary`: projection out of the colliders, grasp targets, contact forces.
@@ -232,9 +231,9 @@ pub const ENTRIES: &[Entry] = &[
         uses: &["params", "pos", "ef", "vecs", "ccol", "topo", "nodes"],
     },
     Entry {
-        kernel: Kernel::CoarsenRot,
-        name: "coarsen_rot",
-        uses: &["params", "pc", "rot", "topo"],
+        kernel: Kernel::CoarsenLevel,
+        name: "coarsen_level",
+        uses: &["params", "pc", "rot", "nblk", "topo"],
     },
     Entry {
         kernel: Kernel::Diag,
@@ -307,11 +306,6 @@ pub const ENTRIES: &[Entry] = &[
         uses: &[
             "params", "cols", "pos", "vecs", "nblk", "ccol", "nodes", "mats",
         ],
-    },
-    Entry {
-        kernel: Kernel::LumpExtra,
-        name: "lump_extra",
-        uses: &["params", "pc", "nblk", "topo"],
     },
     Entry {
         kernel: Kernel::PairProject,

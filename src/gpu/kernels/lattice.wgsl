@@ -717,14 +717,9 @@ fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[V_DELTA * params.n_total + j] = vec4<f32>(0.0);
 }
 
-// Coarse rotations: each element of level pc.level + 1 the normalised mean of its
-// children's quaternions (signs aligned with the first child's).
-@compute @workgroup_size(64)
-fn coarsen_rot(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
-        return;
-    }
-    let e = pc.first + gid.x;
+// Coarse element e's rotation: the normalised mean of its children's quaternions (signs
+// aligned with the first child's).
+fn coarsen_rot(e: u32) {
     let c = params.child_base + e - params.lv[1].z;
     let first = rot[topo[topo[c]]];
     var sum = vec4<f32>(0.0);
@@ -733,6 +728,19 @@ fn coarsen_rot(@builtin(global_invocation_id) gid: vec3<u32>) {
         sum = sum + select(q, -q, dot(q, first) < 0.0);
     }
     rot[e] = sum * (1.0 / length(sum));
+}
+
+// Level pc.level (1 and below) from the finer one, one thread per node and element: each
+// element's rotation (`coarsen_rot`) and each node's extra stiffness (`lump_extra`).
+@compute @workgroup_size(64)
+fn coarsen_level(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let lv = params.lv[pc.level];
+    if (lv.z + gid.x < lv.w) {
+        coarsen_rot(lv.z + gid.x);
+    }
+    if (lv.x + gid.x < lv.y) {
+        lump_extra(lv.x + gid.x);
+    }
 }
 
 fn kblock(base: u32, a: u32, b: u32) -> mat3x3<f32> {
@@ -1249,13 +1257,8 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // Coarse node j's extra stiffness: its fine nodes' lumped, Σ w S (exact for a uniform
-// correction), for the nodes of level pc.level.
-@compute @workgroup_size(64)
-fn lump_extra(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
-        return;
-    }
-    let j = pc.first + gid.x;
+// correction).
+fn lump_extra(j: u32) {
     let c = params.restr_base + j - params.lv[1].x;
     var s = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     for (var i = topo[c]; i < topo[c + 1u]; i = i + 2u) {
