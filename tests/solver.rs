@@ -878,3 +878,44 @@ fn a_lattice_body_steps_in_a_batch_as_it_would_alone() {
         );
     }
 }
+
+/// A probe (a 1 cm sphere collider) pressed 2 cm into a lattice box resting on the
+/// ground at 3.85 mm a step (0.23 m/s, the liver example's scripted press), then held,
+/// reads at no step more than 10 times the force it holds at the end, at the default
+/// settings. The trust region widens by the step of the collider a body touches: bound
+/// to half a spacing per iteration, the tissue under the probe could not follow it, and
+/// the penalty read the depth left (13 times the held force; with one Newton iteration
+/// of conjugate gradients, 25,000 times, and still 6,500 times with the wider region:
+/// BENCHMARKS.md, "Each body its own steps").
+#[test]
+fn a_probe_pressed_into_a_lattice_body_reads_no_spike() {
+    let model = common::lattice_box_at(Vec3::new(0.04, 0.02, 0.04), Vec3::new(0.0, 0.021, 0.0));
+    let mut solver = Solver::new(&model, SolverSettings::default()).unwrap();
+    let mut state = State::new(&model);
+    // The box's top particles' surface.
+    let top = 0.041 + 0.004;
+    let start = top + 0.02;
+    let mut probe = Collider::new(
+        ColliderShape::Sphere { radius: 0.01 },
+        Vec3::new(0.003, start, 0.002),
+        Quat::IDENTITY,
+    );
+    let mut forces = Vec::new();
+    for step in 0..60 {
+        // Settle 10 steps, then down 3.85 mm a step until 2 cm into the box's top.
+        let down = (0.00385 * (step as f32 - 10.0).max(0.0)).min(0.03);
+        let y = start - down;
+        probe.velocity = Vec3::new(0.0, (y - probe.position.y) * 60.0, 0.0);
+        probe.position.y = y;
+        let control = Control {
+            colliders: vec![Collider::ground(0.0), probe.clone()],
+        };
+        let stats = solver.step(&model, &mut state, &control).unwrap();
+        forces.push(stats.collider_forces[1].length());
+    }
+    let held = *forces.last().unwrap();
+    let peak = forces.iter().copied().fold(0.0f32, f32::max);
+    eprintln!("held {held:.3} N, peak {peak:.3} N; {forces:?}");
+    assert!(held > 1e-3, "the probe presses ({held} N)");
+    assert!(peak <= 10.0 * held, "peak {peak} N against {held} N held");
+}

@@ -1311,14 +1311,23 @@ impl Solver {
         };
         // A trust region, body by body: no particle moves more than half its lattice
         // spacing in one iteration (the linearisation about a badly deformed shape can
-        // ask for metres; bodies meeting are held back), and gravity's step from rest
-        // `|g| h²` more where it touches nothing (so that a finely sampled body falls at
-        // gravity's rate in one iteration). Each body's step is scaled down to its own
-        // bound (so that a body settling into a collider does not hold back another
-        // falling freely; a body with a step that is not finite does not move); then
-        // halved until the energy falls.
+        // ask for metres; bodies meeting are held back), plus the step `|v| h` of the
+        // fastest collider the body touches (a tool pressing in moves the tissue it
+        // touches that far), plus gravity's step from rest `|g| h²` where the particle
+        // touches nothing (so that a finely sampled body falls at gravity's rate in one
+        // iteration). Each body's step is scaled down to its own bound (so that a body
+        // settling into a collider does not hold back another falling freely; a body
+        // with a step that is not finite does not move); then halved until the energy
+        // falls.
         let mut bound = vec![1.0f32; bodies];
         let fall = self.settings.gravity.length() * h2;
+        let mut tool = vec![0.0f32; bodies];
+        for c in &contacts {
+            if let ContactWith::Collider(k) = c.other {
+                let b = model.particle_body[c.node] as usize;
+                tool[b] = tool[b].max(control.colliders[k].velocity.length() * self.h);
+            }
+        }
         // Particles near something (a collider contact, or another body's particle in
         // their contact list) keep to half a spacing.
         let mut near = vec![false; n];
@@ -1341,7 +1350,7 @@ impl Solver {
                 bound[b] = 0.0;
                 continue;
             }
-            let reach = 0.5 * model.bodies[b].spacing + if near[j] { 0.0 } else { fall };
+            let reach = 0.5 * model.bodies[b].spacing + tool[b] + if near[j] { 0.0 } else { fall };
             let len = dj.length();
             if len * bound[b] > reach {
                 bound[b] = reach / len;

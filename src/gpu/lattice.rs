@@ -846,10 +846,14 @@ impl GpuLattice {
             bytemuck::cast_slice(&packed.nodes),
             st,
         )?;
-        // Each body's trust-region bound (f32 bits), 1 between iterations.
+        // Each body's trust-region bound (f32 bits), 1 between iterations; then each
+        // body's fastest touching collider's step (m, f32 bits), 0 between iterations.
+        let bodies = model.bodies.len();
+        let mut trust_init = vec![1.0f32; bodies];
+        trust_init.resize(2 * bodies, 0.0);
         let bodyt = make(
             "tissue lattice body trust",
-            bytemuck::cast_slice(&vec![1.0f32; model.bodies.len().max(1)]),
+            bytemuck::cast_slice(&trust_init),
             st,
         )?;
         let mats = make(

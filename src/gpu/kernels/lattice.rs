@@ -304,7 +304,7 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Contacts,
         name: "contacts",
         uses: &[
-            "params", "cols", "pos", "vecs", "nblk", "ccol", "nodes", "mats",
+            "params", "cols", "pos", "vecs", "nblk", "ccol", "nodes", "mats", "bodyt",
         ],
     },
     Entry {

@@ -625,10 +625,11 @@ fn pick_body(b: u32, mode: u32) {
 @compute @workgroup_size(64)
 fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    // The bodies' trust bounds back to 1 for the next iteration's `trust` (this
-    // iteration's `trust_scale` has read them).
-    if (j < arrayLength(&bodyt)) {
+    // The bodies' trust bounds back to 1 and their colliders' steps to 0 for the next
+    // iteration (this iteration's `trust_scale` has read them).
+    if (j < params.chunks.z) {
         atomicStore(&bodyt[j], bitcast<u32>(1.0));
+        atomicStore(&bodyt[params.chunks.z + j], 0u);
     }
     if (j >= params.n || held_now(j)) {
         return;
@@ -1112,10 +1113,11 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // The trust region, body by body (core::solver's Newton iteration): no free node moves
-// more than its reach (half its body's lattice spacing) in one iteration, and gravity's
-// step from rest |g| h² more where it touches nothing. Each body's bound, the least
-// reach / |δ| of its nodes (at most 1; 0 where a δ is not finite), into `bodyt` (f32
-// bits: for non-negative floats their order).
+// more than its reach (half its body's lattice spacing) in one iteration, plus the step
+// |v| h of the fastest collider its body touches (`contacts`), plus gravity's step from
+// rest |g| h² where it touches nothing. Each body's bound, the least reach / |δ| of its
+// nodes (at most 1; 0 where a δ is not finite), into `bodyt` (f32 bits: for
+// non-negative floats their order).
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -1132,7 +1134,8 @@ fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
         // half a spacing; else gravity's step more.
         let pr = pair_range(j);
         let near = bitcast<u32>(ccol[C_TOUCH * params.n + j].y) != 0u || pr.x < pr.y;
-        let reach = nodes[j].z + select(length(params.gravity.xyz) * params.h2, 0.0, near);
+        let tool = bitcast<f32>(atomicLoad(&bodyt[params.chunks.z + b]));
+        let reach = nodes[j].z + tool + select(length(params.gravity.xyz) * params.h2, 0.0, near);
         if (len > reach) {
             atomicMin(&bodyt[b], bitcast<u32>(reach / len));
         }
@@ -1217,6 +1220,8 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
             rhs = rhs + dn.xyz * (sc.y * (r - d));
             extra = extra + outer(dn.xyz, dn.xyz) * sc.y;
             mask = mask | (1u << k);
+            // The collider's step widens its body's trust region (`trust`).
+            atomicMax(&bodyt[params.chunks.z + node_body(j)], bitcast<u32>(length(cols[k].vel.xyz) * params.h));
         }
         for (var s = pr.x; s < pr.y; s = s + 1u) {
             let i = pair_at(s);
