@@ -908,7 +908,7 @@ fn a_probe_pressed_into_a_lattice_body_reads_no_spike() {
         probe.velocity = Vec3::new(0.0, (y - probe.position.y) * 60.0, 0.0);
         probe.position.y = y;
         let control = Control {
-            colliders: vec![Collider::ground(0.0), probe.clone()],
+            colliders: vec![Collider::ground(0.0), probe],
         };
         let stats = solver.step(&model, &mut state, &control).unwrap();
         forces.push(stats.collider_forces[1].length());
