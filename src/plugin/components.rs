@@ -660,11 +660,37 @@ impl TissueClock {
     pub fn step_once(&mut self) {
         self.pending_steps += 1;
     }
+
+    /// The simulated time a frame spans, s, over which a collider's motion in that
+    /// frame is its velocity: `n` steps of `dt` (s) where the clock takes exactly `n`
+    /// steps a frame (headless and scripted runs, whatever the frame's wall time), else
+    /// the frame's wall time `wall` (s).
+    pub fn frame_seconds(&self, dt: f32, wall: f32) -> f32 {
+        match self.fixed_steps_per_frame {
+            Some(n) if n > 0 => n as f32 * dt,
+            _ => wall,
+        }
+        .max(1e-6)
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scripted run's collider moves its frame's distance in the frame's fixed steps,
+    /// not in the frame's wall time; a real-time run's in the wall time.
+    #[test]
+    fn a_frame_spans_its_fixed_steps_or_its_wall_time() {
+        let dt = 1.0 / 60.0;
+        let fixed = TissueClock {
+            fixed_steps_per_frame: Some(2),
+            ..Default::default()
+        };
+        assert_eq!(fixed.frame_seconds(dt, 0.25), 2.0 * dt);
+        assert_eq!(TissueClock::default().frame_seconds(dt, 0.25), 0.25);
+        assert!(TissueClock::default().frame_seconds(dt, 0.0) > 0.0);
+    }
 
     #[test]
     fn settings_reach_the_core_solver_field_by_field() {

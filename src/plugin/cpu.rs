@@ -675,7 +675,10 @@ pub fn step_cpu_bodies(
     if cpu.is_empty() {
         return;
     }
-    let mut cols = scene_colliders(&colliders, time.delta_secs().max(1e-6));
+    let mut cols = scene_colliders(
+        &colliders,
+        clock.frame_seconds(settings.dt, time.delta_secs()),
+    );
     // A grasper captures in the CPU steps right after it closed (whether it closed
     // before or after this system in the frame), then holds.
     for (entity, c) in &mut cols {

@@ -236,7 +236,7 @@ pub fn extract_tissue(
         })
         .collect();
     list.sort_by_key(|b| b.entity.index_u32());
-    let dt = time.delta_secs().max(1e-6);
+    let dt = clock.frame_seconds(settings.dt, time.delta_secs());
     let mut cols: Vec<(Entity, Collider, bool)> = colliders
         .iter()
         .map(|(e, c, t, last, force, latch)| {
