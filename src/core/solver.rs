@@ -204,8 +204,9 @@ impl Default for SolverSettings {
     /// The accurate real-time setting, the plugin's for lattice bodies: one step of
     /// 1/60 s, one substep, gravity −9.81 m/s² along y; lattice bodies by
     /// Newton–multigrid, 2 Newton iterations (each one V-cycle and an energy line
-    /// search), every step each body's own; the paper's clusters by 10 Gauss–Seidel iterations (the remaining 8
-    /// iterations only project contacts, colliders and pins on lattice bodies).
+    /// search), every step each body's own; the paper's clusters by 10 Gauss–Seidel
+    /// iterations (the remaining 8 iterations only project contacts, colliders and pins
+    /// on lattice bodies).
     fn default() -> Self {
         Self {
             dt: 1.0 / 60.0,
@@ -1321,18 +1322,15 @@ impl Solver {
         // falls.
         let mut bound = vec![1.0f32; bodies];
         let fall = self.settings.gravity.length() * h2;
+        // Each body's fastest touching collider's step; particles near something (a
+        // collider contact, or another body's particle in their contact list) keep to
+        // half a spacing (and that step).
         let mut tool = vec![0.0f32; bodies];
+        let mut near = vec![false; n];
         for c in &contacts {
             if let ContactWith::Collider(k) = c.other {
                 let b = model.particle_body[c.node] as usize;
                 tool[b] = tool[b].max(control.colliders[k].velocity.length() * self.h);
-            }
-        }
-        // Particles near something (a collider contact, or another body's particle in
-        // their contact list) keep to half a spacing.
-        let mut near = vec![false; n];
-        for c in &contacts {
-            if let ContactWith::Collider(_) = c.other {
                 near[c.node] = true;
             }
         }

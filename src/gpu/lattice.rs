@@ -36,9 +36,7 @@ use glam::{Quat, Vec3};
 const PASS_STRIDE: u64 = 256;
 /// Levels the parameter block holds.
 const MAX_LEVELS: usize = 8;
-/// Floats of `red` before the partial sums (see `lattice.wgsl`).
-const RED_BASE: usize = 16;
-/// Floats per workgroup's partial sums.
+/// Floats per workgroup's partial sums (at the start of `red`; see `lattice.wgsl`).
 const RED_STRIDE: usize = 16;
 /// Most workgroups of the collider forces' reduction (see [`reduction_groups`]).
 const MAX_PARTIALS: u32 = 1024;
@@ -151,6 +149,12 @@ impl Default for LatticeOptions {
     }
 }
 
+/// Workgroups of a `pick`: one per body, striding over the bodies past the most one
+/// dispatch takes.
+fn pick_groups(shape: &Shape) -> u32 {
+    shape.bodies.clamp(1, MAX_PICK_GROUPS)
+}
+
 fn groups(count: u32) -> u32 {
     count.div_ceil(WORKGROUP)
 }
@@ -181,8 +185,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
             });
         }
     };
-    // Each body's step from its chunks' sums (`pick` strides over the bodies).
-    let picks = shape.bodies.clamp(1, MAX_PICK_GROUPS);
+    let picks = pick_groups(shape);
     let [e0, ec] = shape.tables[0];
     let [n0, nc] = shape.tables[1];
     push(Kernel::Predict, 0, n, 0, 0, groups(n));
@@ -301,8 +304,7 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
     let [c0, cn] = shape.tables[1 + l];
     push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
-    let picks = shape.bodies.clamp(1, MAX_PICK_GROUPS);
-    push(Kernel::Pick, 0, cn, ll, 3, picks);
+    push(Kernel::Pick, 0, cn, ll, 3, pick_groups(shape));
     push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
     sweeps(shape, l, post, push);
 }
@@ -521,9 +523,8 @@ fn pack(
             colour_table[i / 4][i % 4] = v;
         }
     }
-    // `red`: scalars, the reductions' partial sums (a chunk's each), each body's
-    // scalars, the collider forces' partial sums, their totals.
-    let body_base = (RED_BASE + RED_STRIDE * most_chunks) as u32;
+    // `red`: the reductions' partial sums (a chunk's each), each body's scalars, the collider forces' partial sums, their totals.
+    let body_base = (RED_STRIDE * most_chunks) as u32;
     let force_base = body_base + (BODY_SLOTS * bodies) as u32;
     let force_partials = 4 * MAX_COLLIDERS as u32 * MAX_PARTIALS;
     let params = Params {

@@ -12,10 +12,8 @@ const GRASPER: u32 = 4u;
 const LINE_CANDIDATES: u32 = 13u;
 // First iterate: y = x + s (y − x) for s = 1, ½, ¼, 0.
 const FIRST_CANDIDATES: u32 = 4u;
-// Partial sums per workgroup in `red`, after the scalars.
+// Partial sums per workgroup (a reduction's chunk) at the start of `red`.
 const RED_STRIDE: u32 = 16u;
-const RED_BASE: u32 = 16u;
-// Scalars in `red`.
 // Per-body scalars in `red` (`body_slot`): every step the Newton iteration takes is
 // each body's own, so that a body steps as it would alone.
 const BODY_SLOTS: u32 = 16u;
@@ -272,7 +270,7 @@ fn reduce_partials(lid: u32, wid: u32, count: u32) {
     }
     if (lid == 0u) {
         for (var k = 0u; k < count; k = k + 1u) {
-            red[RED_BASE + wid * RED_STRIDE + k] = wsum[0][k];
+            red[wid * RED_STRIDE + k] = wsum[0][k];
         }
     }
 }
@@ -543,7 +541,7 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
         let r = body_chunks(table, b);
         var acc: array<f32, 16>;
         for (var w = r.x + lid; w < r.y; w = w + LWG) {
-            let o = RED_BASE + w * RED_STRIDE;
+            let o = w * RED_STRIDE;
             for (var k = 0u; k < used; k = k + 1u) {
                 acc[k] = acc[k] + red[o + k];
             }
