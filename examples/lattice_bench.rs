@@ -33,8 +33,9 @@
 //! conjugate gradients; default 1),
 //! `--smoother hybrid|chebyshev|gs`, `--first N,...` (speed only: line-search candidates
 //! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
-//! default the library's), `--profile` (GPU time per kernel: every dispatch in its own
-//! timed pass).
+//! default the library's), `--room R` (speed only: the worlds made with room for bodies
+//! appended later, `LatticeOptions::room`; default none), `--profile` (GPU time per
+//! kernel: every dispatch in its own timed pass).
 //!
 //! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
 //! guarantees; the tests run the example so).
@@ -153,10 +154,12 @@ fn time(
     s: &SolverSettings,
     steps: u32,
     first: u32,
+    room: f32,
 ) -> (Option<f64>, f64, usize) {
     let state = State::new(model);
     let options = LatticeOptions {
         first_candidates: first,
+        room,
     };
     let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
@@ -231,6 +234,7 @@ fn profile(g: &Gpu, name: &str, model: &Model, s: &SolverSettings) {
     println!("| sum | {sum:.4} | |");
 }
 
+#[allow(clippy::too_many_arguments)]
 fn speed(
     g: &Gpu,
     quick: bool,
@@ -238,6 +242,7 @@ fn speed(
     profile_kernels: bool,
     smoothers: &[Smoother],
     firsts: &[u32],
+    room: f32,
     cycles: &[u32],
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
@@ -280,7 +285,7 @@ fn speed(
                         newton_cycles: c,
                         ..settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0, sm)
                     };
-                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, first);
+                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, first, room);
                     println!(
                         "| {name} | {} | {} | {sm:?} | {first} | {it} × {c} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
@@ -480,6 +485,7 @@ fn main() {
             a.flag("--profile"),
             &smoothers,
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
+            a.num("--room", LatticeOptions::default().room),
             &cycles,
         );
     }

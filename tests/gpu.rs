@@ -1150,6 +1150,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             &s,
             LatticeOptions {
                 first_candidates: first,
+                ..Default::default()
             },
         )
         .unwrap();
@@ -1249,6 +1250,130 @@ fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
     .expect("another model's levels refused")
     .to_string();
     assert!(err.contains("levels"), "{err}");
+}
+
+/// A lattice body appended into a world's room (`GpuLattice::append`, what the plugin
+/// does when a body spawns) steps to the bit as a world made with it from the start (the
+/// same levels, the Chebyshev estimates the larger of the world's and the body's); a
+/// world with room steps to the bit as one without; appending past the room refuses and
+/// changes nothing.
+#[test]
+fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
+    let Some(g) = gpu() else {
+        return;
+    };
+    let kernels = LatticeKernels::new(&g.device).unwrap();
+    let bodies = [
+        lattice_bar(0.0075),
+        lattice_box_at(Vec3::splat(0.02), Vec3::new(0.0, 0.2, 0.0)),
+        lattice_box_at(Vec3::new(0.03, 0.015, 0.02), Vec3::new(0.3, 0.1, 0.0)),
+    ];
+    let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
+    let model_of = |n: usize| {
+        let mut m = Model::new();
+        for b in &bodies[..n] {
+            m.append(b);
+        }
+        m
+    };
+    let (two, three) = (model_of(2), model_of(3));
+    let refs: Vec<&BodyLevels> = parts.iter().collect();
+    let depth = LatticeMultigrid::depth_of(&refs[..2], MIN_NODES, MAX_LEVELS);
+    assert!(depth >= 2);
+    let s = lattice_settings();
+    let room = LatticeOptions {
+        room: 1.5,
+        ..Default::default()
+    };
+    let run = |world: &GpuLattice, model: &Model| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &kernels, 10, None);
+        g.queue.submit([enc.finish()]);
+        let mut state = State::new(model);
+        world.download(&g.device, &g.queue, &mut state);
+        state.x
+    };
+    let make = |model: &Model, mg: LatticeMultigrid, options: LatticeOptions| {
+        GpuLattice::with_levels(
+            &g.device,
+            &kernels,
+            model,
+            mg,
+            &State::new(model),
+            &s,
+            options,
+        )
+        .unwrap()
+    };
+    // Room changes nothing.
+    let tight = make(
+        &two,
+        LatticeMultigrid::joined(&refs[..2], depth),
+        LatticeOptions::default(),
+    );
+    let roomy = make(&two, LatticeMultigrid::joined(&refs[..2], depth), room);
+    let (a, b) = (run(&tight, &two), run(&roomy, &two));
+    assert!(max_dist(&a, &two.rest) > 1e-3, "the bodies fell");
+    assert!(a == b, "room steps differently: {} m", max_dist(&a, &b));
+    // No room: refused, nothing changed.
+    let mut tight = make(
+        &two,
+        LatticeMultigrid::joined(&refs[..2], depth),
+        LatticeOptions::default(),
+    );
+    let third = State::new(&bodies[2]);
+    assert!(
+        !tight
+            .append(&g.queue, &bodies[2], &parts[2], &third, &s)
+            .unwrap()
+    );
+    assert_eq!(
+        (tight.body_count(), tight.particle_count()),
+        (2, two.particle_count())
+    );
+    // Appended, against made with it.
+    let mut grown = make(&two, LatticeMultigrid::joined(&refs[..2], depth), room);
+    assert!(
+        grown
+            .append(&g.queue, &bodies[2], &parts[2], &third, &s)
+            .unwrap()
+    );
+    assert_eq!(
+        (grown.body_count(), grown.particle_count()),
+        (3, three.particle_count())
+    );
+    let mut whole = LatticeMultigrid::joined(&refs, depth);
+    let before = LatticeMultigrid::joined(&refs[..2], depth).chebyshev;
+    let own = LatticeMultigrid::joined(&refs[2..], depth).chebyshev;
+    for (l, c) in whole.chebyshev.iter_mut().enumerate() {
+        *c = if own[l][0] < before[l][0] {
+            own[l]
+        } else {
+            before[l]
+        };
+    }
+    let made = make(&three, whole, LatticeOptions::default());
+    let (a, b) = (run(&grown, &three), run(&made, &three));
+    assert!(
+        max_dist(
+            &a[two.particle_count()..],
+            &three.rest[two.particle_count()..]
+        ) > 1e-3
+    );
+    assert!(
+        a == b,
+        "the appended body steps differently: {} m",
+        max_dist(&a, &b)
+    );
+    // A model of two bodies is not one body to append.
+    assert!(
+        grown
+            .append(&g.queue, &two, &parts[0], &State::new(&two), &s)
+            .is_err()
+    );
 }
 
 /// A lattice box of half extents `half` (8 mm spacing, E = 20 kPa, ν = 0.3) centred at

@@ -348,6 +348,11 @@ impl LatticeMultigrid {
     /// than `min_nodes` nodes each on average, and the level shrinks by half, at most
     /// `max_levels` deep).
     pub fn from_bodies(parts: &[&BodyLevels], min_nodes: usize, max_levels: usize) -> Self {
+        Self::joined(parts, Self::depth_of(parts, min_nodes, max_levels))
+    }
+
+    /// How many levels [`LatticeMultigrid::from_bodies`] makes for `parts`.
+    pub fn depth_of(parts: &[&BodyLevels], min_nodes: usize, max_levels: usize) -> usize {
         let nodes_at = |l: usize| -> usize {
             parts
                 .iter()
@@ -374,6 +379,14 @@ impl LatticeMultigrid {
                 break;
             }
         }
+        depth
+    }
+
+    /// `parts`' levels joined `depth` deep (at most [`MAX_LEVELS`]; a body with fewer
+    /// levels has no nodes on the deeper ones), with their Chebyshev estimates: what a
+    /// body appended to a hierarchy of that depth brings.
+    pub fn joined(parts: &[&BodyLevels], depth: usize) -> Self {
+        let depth = depth.clamp(1, MAX_LEVELS);
         let levels = (0..depth)
             .map(|l| join_level(parts, l, l + 1 < depth))
             .collect();

@@ -51,6 +51,10 @@ use std::sync::Arc;
 /// near enough for `f32` to keep its shape (about 0.1 mm of rounding).
 pub const RETIRED_DEPTH: f32 = 1000.0;
 
+/// Room the batch's GPU world leaves for bodies spawned later: half as much again as
+/// its bodies take, and one more of its largest.
+const ROOM: f32 = 1.5;
+
 /// Whether a built body steps on the CPU: every body under [`TissueBackend::Cpu`], and
 /// lattice bodies (hexahedral elements) under [`TissueBackend::Auto`].
 pub fn runs_on_cpu(model: &Model, settings: &TissueSettings) -> bool {
@@ -106,6 +110,11 @@ pub struct CpuWorld {
     pending: Option<PendingBatch>,
     /// Rebuilds made on a worker thread.
     off_thread: u64,
+    /// Bodies appended in place ([`CpuWorld::appended_in_place`]).
+    appended: u64,
+    /// Bodies were appended in place since the solver was made: it is made again
+    /// before a CPU step.
+    solver_stale: bool,
 }
 
 /// The CPU world's lattice bodies on the GPU.
@@ -147,6 +156,13 @@ impl CpuWorld {
     /// GPU; the bodies join it when it is ready, some frames later).
     pub fn rebuilds_off_thread(&self) -> u64 {
         self.off_thread
+    }
+
+    /// How many bodies were appended to the batch in place: spawned while the batch
+    /// stepped on the GPU, into the room of its GPU world, without a rebuild (the other
+    /// bodies kept their state; see [`GpuLattice::append`]).
+    pub fn appended_in_place(&self) -> u64 {
+        self.appended
     }
 
     /// How many bodies' multigrid levels this world has coarsened itself. A lattice body
@@ -198,16 +214,87 @@ impl CpuWorld {
         self.retired.get(index).copied().unwrap_or(false)
     }
 
-    /// Whether the batch's bodies still in the scene are `keys`, in that order.
+    /// Whether the batch's bodies still in the scene are `keys` (in any order: bodies
+    /// appended in place come after the others).
     fn holds_exactly(&self, keys: &[(Entity, u64)]) -> bool {
         keys.len() == self.slots.len()
-            && self
-                .keys
+            && keys
                 .iter()
-                .zip(&self.retired)
-                .filter(|(_, r)| !**r)
-                .map(|(k, _)| k)
-                .eq(keys)
+                .all(|k| self.slots.get(&k.0).is_some_and(|&i| self.keys[i] == *k))
+    }
+
+    /// Appends the bodies of `bodies` the batch does not have yet to it in place, without
+    /// a rebuild: into the room of its GPU world ([`GpuLattice::append`]) and onto its
+    /// model and state. Possible where the batch steps on the GPU, holds its latest state,
+    /// every other body of `bodies` is in it unchanged, and every new one is a lattice
+    /// body that brought its levels. True where the batch now holds exactly `bodies`;
+    /// false where a rebuild is needed (the bodies appended before the one that did not
+    /// fit stay, consistently on the CPU and the GPU).
+    fn append_new(&mut self, bodies: &[(Entity, &BuiltBody)], queue: &RenderQueue) -> bool {
+        if !self.on_gpu_now() {
+            return false;
+        }
+        let changed = bodies.iter().any(|(e, b)| {
+            self.slots
+                .get(e)
+                .is_some_and(|&i| self.keys[i].1 != b.generation)
+        });
+        let new: Vec<&(Entity, &BuiltBody)> = bodies
+            .iter()
+            .filter(|(e, _)| !self.slots.contains_key(e))
+            .collect();
+        if changed
+            || new.is_empty()
+            || self.slots.len() + new.len() != bodies.len()
+            || new
+                .iter()
+                .any(|(_, b)| b.levels.is_none() || !gpu_can_step(&b.model))
+        {
+            return false;
+        }
+        for &&(entity, built) in &new {
+            let (Some(levels), Some(settings), Some(state), Some(g)) = (
+                built.levels.as_ref(),
+                self.settings.as_ref(),
+                self.state.as_mut(),
+                self.gpu.as_mut(),
+            ) else {
+                return false;
+            };
+            let Some(world) = g.world.as_mut() else {
+                return false;
+            };
+            let fresh = State::new(&built.model);
+            match world.append(queue, &built.model, levels, &fresh, settings) {
+                Ok(true) => {}
+                Ok(false) => return false,
+                Err(e) => {
+                    warn!("bevy_tissue: {e}");
+                    return false;
+                }
+            }
+            // The new body meets the others at the next step's contact search.
+            g.lists = false;
+            let (p0, e0) = (self.model.particle_count(), self.model.elements.len());
+            self.model.append(&built.model);
+            state.x.extend_from_slice(&fresh.x);
+            state.v.extend_from_slice(&fresh.v);
+            state.rot.extend_from_slice(&fresh.rot);
+            state.element_rot.extend_from_slice(&fresh.element_rot);
+            state.pin_targets.extend_from_slice(&fresh.pin_targets);
+            state.grab.extend_from_slice(&fresh.grab);
+            self.ranges.push((
+                p0..self.model.particle_count(),
+                e0..self.model.elements.len(),
+            ));
+            self.slots.insert(entity, self.keys.len());
+            self.keys.push((entity, built.generation));
+            self.retired.push(false);
+            // The CPU's solver is made again before it steps this batch.
+            self.solver_stale = true;
+            self.appended += 1;
+        }
+        true
     }
 
     /// The model index of `entity`'s body (not retired).
@@ -366,6 +453,7 @@ impl CpuWorld {
         self.state = Some(state);
         self.ranges = ranges;
         self.gpu_failed = false;
+        self.solver_stale = false;
         self.rebuilds += 1;
         if let Some(g) = self.gpu.as_mut() {
             g.world = None;
@@ -416,7 +504,10 @@ impl CpuWorld {
                     mg,
                     state,
                     settings,
-                    LatticeOptions::default(),
+                    LatticeOptions {
+                        room: ROOM,
+                        ..Default::default()
+                    },
                 ),
                 None => GpuLattice::new(device, &g.kernels, &self.model, state, settings),
             };
@@ -655,7 +746,13 @@ pub fn step_cpu_bodies(
                 .1
                 .as_ref()
                 .is_some_and(|queue| world.retire_gone(&keys, queue));
-        let now = !retired || (!world.holds_exactly(&keys) && !world.rebuild_soon(&cpu, &core));
+        let now = !retired
+            || (!world.holds_exactly(&keys)
+                && !render
+                    .1
+                    .as_ref()
+                    .is_some_and(|queue| world.append_new(&cpu, queue))
+                && !world.rebuild_soon(&cpu, &core));
         if now && let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();
             warn!("bevy_tissue: the CPU bodies cannot be simulated: {error}");
@@ -724,7 +821,7 @@ pub fn step_cpu_bodies(
         None => {
             // Retired bodies are held only on the GPU: the CPU steps a batch without them.
             if clock.steps_this_frame > 0
-                && w.retired.contains(&true)
+                && (w.retired.contains(&true) || w.solver_stale)
                 && let Some(settings) = w.settings.clone()
             {
                 if w.rebuild(&cpu, settings).is_err() {

@@ -64,20 +64,24 @@ struct LatticeParams {
     h2: f32,                 // s²
     keep: f32,               // velocity kept after damping
     rot_iters: u32,
-    n: u32,                  // level-0 nodes
-    ne: u32,                 // level-0 elements
+    n: u32,                  // level-0 node slots (the stride of per-particle regions;
+                             // the nodes in use end at lv[0].y)
+    ne: u32,                 // level-0 element slots (element items of the energy table
+                             // are below it, node items from it; in use: lv[0].w)
     levels: u32,
-    n_total: u32,            // nodes of all levels
+    n_total: u32,            // node slots of all levels (the stride of `vecs` regions)
     order_base: u32,         // start of the colour orders in `topo`
     prol_base: u32,          // start of the prolongation lists in `topo`
     restr_base: u32,         // start of the restriction lists in `topo`
     child_base: u32,         // start of the child element lists in `topo`
-    lv: array<vec4<u32>, 8>, // per level: first node, end node, first element, end element
+    lv: array<vec4<u32>, 8>, // per level: first node, end of its nodes in use, first
+                             // element, end of its elements in use (slots past an end are
+                             // room for bodies appended later)
     sweeps: vec4<u32>,       // smoothing sweeps: before and after the coarse
                              // correction, on the coarsest level; w: the line search's
                              // candidates in its first pass
-    colours: array<vec4<u32>, 18>, // per level, where its 8 colours start in `topo` and
-                             // where the last ends (9 entries a level)
+    colours: array<vec4<u32>, 32>, // per level and colour, where its nodes start and end
+                             // in `topo` (16 entries a level)
     misc: vec4<u32>,         // x: colliders; y: substeps; z, w: where the collider
                              // forces' partial sums and totals start in `red`
     cheb: array<vec4<f32>, 8>, // per level: the Chebyshev smoother's 1/θ and ρ²; z: 1 if
@@ -86,8 +90,10 @@ struct LatticeParams {
                              // contacts' Jacobi relaxation ω_c (f32 bits)
     chunks: vec4<u32>,       // the reductions' chunks: x: where their records start in
                              // `elems`; y: where each table's per-body chunk ranges start
-                             // in `elems` (u32s, 4 a vec4); z: bodies; w: where the
-                             // per-body scalars start in `red`
+                             // in `elems` (u32s, 4 a vec4); z: body slots (the stride
+                             // of per-body regions); w: where the per-body scalars start
+                             // in `red`
+    count: vec4<u32>,        // x: bodies in use
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -108,6 +114,17 @@ fn corner_sign(j: u32) -> vec3<f32> {
 
 fn corner(e: u32, k: u32) -> u32 {
     return elems[3u * e + k / 4u][k % 4u];
+}
+
+// Whether node slot j (any level) holds a node, not room for bodies appended later.
+fn in_use(j: u32) -> bool {
+    var l = 0u;
+    for (var k = 1u; k < params.levels; k = k + 1u) {
+        if (j >= params.lv[k].x) {
+            l = k;
+        }
+    }
+    return j < params.lv[l].y;
 }
 
 // Held out of the V-cycle: pinned nodes and nodes outside the lattice.
@@ -304,7 +321,7 @@ fn body_chunks(t: u32, b: u32) -> vec2<u32> {
 @compute @workgroup_size(64)
 fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n) {
+    if (j >= params.lv[0].y) {
         return;
     }
     let n = params.n;
@@ -537,7 +554,7 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
     } else {
         table = 1u + pc.level;
     }
-    for (var b = wg.x; b < params.chunks.z; b = b + nwg.x) {
+    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
         let r = body_chunks(table, b);
         var acc: array<f32, 16>;
         for (var w = r.x + lid; w < r.y; w = w + LWG) {
@@ -629,7 +646,7 @@ fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
         atomicStore(&bodyt[j], bitcast<u32>(1.0));
         atomicStore(&bodyt[params.chunks.z + j], 0u);
     }
-    if (j >= params.n || held_now(j)) {
+    if (j >= params.lv[0].y || held_now(j)) {
         return;
     }
     let a = red[body_slot(node_body(j), B_ALPHA)];
@@ -644,7 +661,7 @@ fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
     let e = gid.x;
-    if (e >= params.ne) {
+    if (e >= params.lv[0].w) {
         return;
     }
     let x = load_x(e, R_Y);
@@ -692,7 +709,7 @@ fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n) {
+    if (j >= params.lv[0].y) {
         return;
     }
     var f = vec3<f32>(0.0);
@@ -844,6 +861,9 @@ fn diag(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let j = pc.first + gid.x;
+    if (!in_use(j)) {
+        return;
+    }
     let m = nodes[j].x / params.h2;
     var d = mat3x3<f32>(vec3<f32>(m, 0.0, 0.0), vec3<f32>(0.0, m, 0.0), vec3<f32>(0.0, 0.0, m));
     d = d + extra_block(j);
@@ -966,8 +986,9 @@ fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 // Colour c of level l: its range in `topo` (absolute).
 fn colour_range(l: u32, c: u32) -> vec2<u32> {
-    let i = l * 9u + c;
-    return vec2<u32>(params.colours[i / 4u][i % 4u], params.colours[(i + 1u) / 4u][(i + 1u) % 4u]);
+    let i = l * 16u + 2u * c;
+    let v = params.colours[i / 4u];
+    return select(v.xy, v.zw, (i % 4u) != 0u);
 }
 
 var<workgroup> part: array<vec3<f32>, 64>;
@@ -1119,7 +1140,7 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n || held_now(j)) {
+    if (j >= params.lv[0].y || held_now(j)) {
         return;
     }
     let d = vecs[V_DELTA * params.n_total + j].xyz;
@@ -1145,7 +1166,7 @@ fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn trust_scale(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n || held_now(j)) {
+    if (j >= params.lv[0].y || held_now(j)) {
         return;
     }
     let t = bitcast<f32>(atomicLoad(&bodyt[node_body(j)]));
@@ -1161,7 +1182,7 @@ fn trust_scale(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n) {
+    if (j >= params.lv[0].y) {
         return;
     }
     let n = params.n;
@@ -1191,7 +1212,7 @@ fn contact_scale(j: u32) -> vec2<f32> {
 @compute @workgroup_size(64)
 fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n) {
+    if (j >= params.lv[0].y) {
         return;
     }
     let n = params.n;
@@ -1288,7 +1309,7 @@ fn pair_inv_mass(j: u32) -> f32 {
 @compute @workgroup_size(64)
 fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n) {
+    if (j >= params.lv[0].y) {
         return;
     }
     let n = params.n;
@@ -1327,7 +1348,7 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n || held(j)) {
+    if (j >= params.lv[0].y || held(j)) {
         return;
     }
     let n = params.n;
@@ -1408,7 +1429,7 @@ fn force_partials(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_
                   @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     for (var k = 0u; k < params.misc.x; k = k + 1u) {
         var f = vec3<f32>(0.0);
-        for (var j = gid.x; j < params.n; j = j + nwg.x * LWG) {
+        for (var j = gid.x; j < params.lv[0].y; j = j + nwg.x * LWG) {
             f = f + node_force(j, f32(k));
         }
         fsum[lid] = f;
@@ -1486,7 +1507,7 @@ fn cg_dots(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg:
 @compute @workgroup_size(64)
 fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n) {
+    if (j >= params.lv[0].y) {
         return;
     }
     var p = vec4<f32>(0.0, 0.0, 0.0, 1.0);
@@ -1528,7 +1549,7 @@ fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
 @compute @workgroup_size(64)
 fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.n) {
+    if (j >= params.lv[0].y) {
         return;
     }
     let a = red[body_slot(node_body(j), B_CG_ALPHA)];

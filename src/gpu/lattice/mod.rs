@@ -20,7 +20,7 @@ use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{
-    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother,
+    BodyLevels, COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother,
 };
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
@@ -30,6 +30,9 @@ use bevy::render::render_resource::{
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bytemuck::{Pod, Zeroable};
 use glam::{Quat, Vec3};
+use layout::{Buf, Layout, Writes};
+
+mod layout;
 
 /// Byte stride of the per-dispatch records (the minimum uniform offset alignment
 /// WebGPU guarantees).
@@ -71,11 +74,12 @@ struct Params {
     child_base: u32,
     lv: [[u32; 4]; MAX_LEVELS],
     sweeps: [u32; 4],
-    colours: [[u32; 4]; 18],
+    colours: [[u32; 4]; 2 * MAX_LEVELS * COLOURS / 4],
     misc: [u32; 4],
     cheb: [[f32; 4]; MAX_LEVELS],
     pair: [u32; 4],
     chunks: [u32; 4],
+    count: [u32; 4],
 }
 
 /// Byte offset of `misc` (the collider count first) in the parameter block.
@@ -114,9 +118,9 @@ pub struct Dispatch {
 pub struct Shape {
     /// Per level: first node, node count, first element, element count.
     pub levels: Vec<[u32; 4]>,
-    /// Per level: where each colour starts in the concatenated colour order (absolute
-    /// position in the topology buffer) and ends.
-    pub colours: Vec<[u32; COLOURS + 1]>,
+    /// Per level and colour: where its nodes start and end in the colour order
+    /// (absolute positions in the topology buffer).
+    pub colours: Vec<[[u32; 2]; COLOURS]>,
     /// The reductions' tables (0: the energy's elements and nodes; 1 + l: level l's
     /// nodes): each one's first chunk and chunk count. Every workgroup of a reduction sums
     /// one chunk, a run of one body's items.
@@ -134,17 +138,22 @@ pub struct Shape {
 }
 
 /// How [`GpuLattice`] schedules its work (the answer is the same either way).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LatticeOptions {
     /// Line-search candidates (of 13) tried in the first energy pass; the rest in a
     /// second pass only for the bodies none of these lowers the energy of. Default 4.
     pub first_candidates: u32,
+    /// Room for bodies appended later ([`GpuLattice::append`]), as a multiple of what
+    /// the world's bodies take, plus one more of their largest; at most 1: none.
+    /// Default 1.
+    pub room: f32,
 }
 
 impl Default for LatticeOptions {
     fn default() -> Self {
         Self {
             first_candidates: 4,
+            room: 1.0,
         }
     }
 }
@@ -280,10 +289,10 @@ fn sweeps(
     }
     let c = &shape.colours[l];
     for _ in 0..count {
-        for k in 0..COLOURS {
-            let len = c[k + 1] - c[k];
+        for [start, end] in c {
+            let len = end - start;
             // Eight threads a node (see `smooth_colour`).
-            push(Kernel::Smooth, c[k], len, l as u32, 0, len.div_ceil(8));
+            push(Kernel::Smooth, *start, len, l as u32, 0, len.div_ceil(8));
         }
     }
 }
@@ -309,17 +318,6 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     sweeps(shape, l, post, push);
 }
 
-/// The flattened hierarchy: every buffer's initial contents.
-struct Packed {
-    params: Params,
-    shape: Shape,
-    elems: Vec<[u32; 4]>,
-    kmat: Vec<[f32; 4]>,
-    topo: Vec<u32>,
-    nodes: Vec<[f32; 4]>,
-    mats: Vec<[f32; 4]>,
-}
-
 /// The `nodes` record of particle `j` (a level-0 node): mass (kg), held, the trust
 /// region's reach (half its body's lattice spacing, m), body.
 fn particle_node(model: &Model, j: usize, held: bool) -> [f32; 4] {
@@ -332,218 +330,52 @@ fn vec4(v: Vec3) -> [f32; 4] {
     v.extend(0.0).to_array()
 }
 
-fn pack(
-    model: &Model,
-    mg: &LatticeMultigrid,
+/// The parameter block of `layout` as packed so far: `cheb` each level's Chebyshev
+/// `1/θ` and `ρ²`, `pairs` whether `ccol` holds particle-contact lists.
+fn params_of(
+    layout: &Layout,
     settings: &SolverSettings,
     options: LatticeOptions,
-) -> Packed {
-    let nl = mg.levels.len().min(MAX_LEVELS);
-    let levels = &mg.levels[..nl];
-    let pairs = pair_capacity(model, settings) > 0;
-    let mut node_off = vec![0u32];
-    let mut elem_off = vec![0u32];
-    for lv in levels {
-        node_off.push(node_off.last().copied().unwrap_or(0) + lv.nodes as u32);
-        elem_off.push(elem_off.last().copied().unwrap_or(0) + lv.elements.len() as u32);
-    }
-    let n_total = node_off[nl];
-    // Stiffness blocks: each body's unit cube (64 blocks), then the coarse elements'.
-    let mut kmat: Vec<[f32; 4]> = Vec::new();
-    let mut unit_base = vec![0u32; model.bodies.len()];
-    for (b, blocks) in mg.unit_blocks.iter().enumerate() {
-        if let Some(k) = blocks {
-            unit_base[b] = (kmat.len() / 3) as u32;
-            for m in k {
-                kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
-            }
-        }
-    }
-    let mut elems = Vec::with_capacity(3 * elem_off[nl] as usize);
-    for (l, lv) in levels.iter().enumerate() {
-        for (e, el) in lv.elements.iter().enumerate() {
-            let c = el.map(|j| j + node_off[l]);
-            elems.push([c[0], c[1], c[2], c[3]]);
-            elems.push([c[4], c[5], c[6], c[7]]);
-            if l == 0 {
-                let r = &model.element_rest[e];
-                elems.push([
-                    unit_base[lv.body[e] as usize],
-                    lv.body[e],
-                    r.size.to_bits(),
-                    r.volume.to_bits(),
-                ]);
-            } else {
-                let base = (kmat.len() / 3) as u32;
-                for m in &lv.blocks[64 * e..64 * (e + 1)] {
-                    kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
-                }
-                elems.push([base, lv.body[e], 0, 0]);
-            }
-        }
-    }
-    // Topology: inverse element lists of every node, colour orders, prolongation,
-    // restriction and child lists, each with absolute offsets.
-    let mut topo: Vec<u32> = vec![0; n_total as usize + 1];
-    for (l, lv) in levels.iter().enumerate() {
-        for j in 0..lv.nodes {
-            topo[node_off[l] as usize + j] = topo.len() as u32;
-            for &ec in &lv.inv[lv.inv_start[j] as usize..lv.inv_start[j + 1] as usize] {
-                topo.push((((ec >> 3) + elem_off[l]) << 3) | (ec & 7));
-            }
-        }
-    }
-    topo[n_total as usize] = topo.len() as u32;
-    let order_base = topo.len() as u32;
-    let mut colours = Vec::with_capacity(nl);
-    for (l, lv) in levels.iter().enumerate() {
-        let at = topo.len() as u32;
-        topo.extend(lv.order.iter().map(|&j| j + node_off[l]));
-        colours.push(lv.colour_start.map(|c| at + c));
-    }
-    // Prolongation lists of the nodes of every level but the coarsest.
-    let fine_nodes = node_off[nl - 1] as usize;
-    let prol_base = topo.len() as u32;
-    topo.resize(topo.len() + fine_nodes + 1, 0);
-    let mut restr: Vec<Vec<(u32, f32)>> = vec![Vec::new(); (n_total - node_off[1]) as usize];
-    for (l, lv) in levels.iter().enumerate().take(nl - 1) {
-        for j in 0..lv.nodes {
-            let g = node_off[l] as usize + j;
-            topo[prol_base as usize + g] = topo.len() as u32;
-            for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
-                let c = lv.prolong_node[s] + node_off[l + 1];
-                let w = lv.prolong_weight[s];
-                topo.extend([c, w.to_bits()]);
-                restr[(c - node_off[1]) as usize].push((g as u32, w));
-            }
-        }
-    }
-    topo[prol_base as usize + fine_nodes] = topo.len() as u32;
-    let restr_base = topo.len() as u32;
-    topo.resize(topo.len() + restr.len() + 1, 0);
-    for (c, list) in restr.iter().enumerate() {
-        topo[restr_base as usize + c] = topo.len() as u32;
-        for &(f, w) in list {
-            topo.extend([f, w.to_bits()]);
-        }
-    }
-    topo[restr_base as usize + restr.len()] = topo.len() as u32;
-    // Children of every coarse element.
-    let coarse_elems = (elem_off[nl] - elem_off[1]) as usize;
-    let child_base = topo.len() as u32;
-    topo.resize(topo.len() + coarse_elems + 1, 0);
-    let mut c = 0usize;
-    for (l, lv) in levels.iter().enumerate().take(nl - 1) {
-        for k in 0..lv.child_start.len().saturating_sub(1) {
-            topo[child_base as usize + c] = topo.len() as u32;
-            for &e in &lv.child[lv.child_start[k] as usize..lv.child_start[k + 1] as usize] {
-                topo.push(e + elem_off[l]);
-            }
-            c += 1;
-        }
-    }
-    topo[child_base as usize + coarse_elems] = topo.len() as u32;
-    let mut nodes = Vec::with_capacity(n_total as usize);
-    for (l, lv) in levels.iter().enumerate() {
-        for (b, w) in lv.body_start.windows(2).enumerate() {
-            for j in w[0] as usize..w[1] as usize {
-                nodes.push(if l == 0 {
-                    particle_node(model, j, lv.fixed[j])
-                } else {
-                    [lv.mass[j], lv.fixed[j] as u32 as f32, 0.0, b as f32]
-                });
-            }
-        }
-    }
-    // The reductions' chunks, after the elements' records: the energy's table (each
-    // body's elements, then its nodes, as items `e` and `ne + j`), then every level's
-    // nodes; then each table's per-body chunk ranges.
-    let bodies = model.bodies.len();
-    let ne = levels[0].elements.len() as u32;
-    let mut element_start = vec![0u32; bodies + 1];
-    for &b in &levels[0].body {
-        element_start[b as usize + 1] += 1;
-    }
-    for b in 0..bodies {
-        element_start[b + 1] += element_start[b];
-    }
-    let node_runs = |l: usize, b: usize| {
-        let bs = &levels[l].body_start;
-        node_off[l] + bs[b]..node_off[l] + bs[b + 1]
-    };
-    let mut tables = vec![chunk_table(bodies, |b| {
-        let n = node_runs(0, b);
-        [
-            element_start[b]..element_start[b + 1],
-            ne + n.start..ne + n.end,
-        ]
-    })];
-    for l in 0..nl {
-        tables.push(chunk_table(bodies, |b| [node_runs(l, b), 0..0]));
-    }
-    let chunk_base = elems.len() as u32;
-    let mut table_range = Vec::with_capacity(tables.len());
-    for (records, _) in &tables {
-        table_range.push([elems.len() as u32 - chunk_base, records.len() as u32]);
-        elems.extend_from_slice(records);
-    }
-    let starts: Vec<u32> = tables.iter().flat_map(|(_, s)| s.iter().copied()).collect();
-    let starts_base = 4 * elems.len() as u32;
-    elems.extend(
-        starts
-            .chunks(4)
-            .map(|c| std::array::from_fn(|i| c.get(i).copied().unwrap_or(0))),
-    );
-    let most_chunks = table_range.iter().map(|t| t[1]).max().unwrap_or(0) as usize;
-    let mut mats = Vec::new();
-    for (m, body) in mg.material.iter().zip(&model.bodies) {
-        let mut rec = vec![[0.0f32; 4]; 100];
-        if let Some((mat, modes)) = m {
-            rec[0] = [mat.mu, mat.lambda, body.radius, body.spacing];
-            for (i, k) in modes.stiffness.iter().enumerate() {
-                rec[1 + i / 4][i % 4] = *k;
-            }
-            for (m, v) in modes.vectors.iter().enumerate() {
-                for (q, g) in v.iter().enumerate() {
-                    rec[4 + m * 8 + q] = vec4(*g);
-                }
-            }
-        }
-        mats.extend(rec);
-    }
+    cheb: &[[f32; 2]],
+    smoother: Smoother,
+    pairs: bool,
+) -> Params {
+    let nl = layout.levels();
     let h = settings.dt / settings.substeps as f32;
     let mut lv = [[0u32; 4]; MAX_LEVELS];
-    for l in 0..nl {
-        lv[l] = [node_off[l], node_off[l + 1], elem_off[l], elem_off[l + 1]];
+    for (out, (n, e)) in lv.iter_mut().zip(layout.nodes.iter().zip(&layout.elems)) {
+        *out = [n.start, n.end(), e.start, e.end()];
     }
-    let mut colour_table = [[0u32; 4]; 18];
-    for (l, c) in colours.iter().enumerate() {
-        for (k, &v) in c.iter().enumerate() {
-            let i = l * (COLOURS + 1) + k;
-            colour_table[i / 4][i % 4] = v;
+    let mut colours = [[0u32; 4]; 2 * MAX_LEVELS * COLOURS / 4];
+    for (l, segs) in layout.order.iter().enumerate() {
+        for (k, c) in segs.iter().enumerate() {
+            let i = l * 2 * COLOURS + 2 * k;
+            colours[i / 4][i % 4] = c.start;
+            colours[i / 4][i % 4 + 1] = c.end();
         }
     }
-    // `red`: the reductions' partial sums (a chunk's each), each body's scalars, the collider forces' partial sums, their totals.
-    let body_base = (RED_STRIDE * most_chunks) as u32;
-    let force_base = body_base + (BODY_SLOTS * bodies) as u32;
+    // `red`: the reductions' partial sums (a chunk's each), each body's scalars, the
+    // collider forces' partial sums, their totals.
+    let body_base = RED_STRIDE as u32 * layout.most_chunks();
+    let force_base = body_base + BODY_SLOTS as u32 * layout.bodies.cap;
     let force_partials = 4 * MAX_COLLIDERS as u32 * MAX_PARTIALS;
-    let params = Params {
+    Params {
         gravity: vec4(settings.gravity),
         h,
         h2: h * h,
         keep: (1.0 - settings.damping * h).max(0.0),
         rot_iters: settings.rotation_iterations,
-        n: levels[0].nodes as u32,
-        ne: levels[0].elements.len() as u32,
+        n: layout.n_slots(),
+        ne: layout.ne_slots(),
         levels: nl as u32,
-        n_total,
-        order_base,
-        prol_base,
-        restr_base,
-        child_base,
+        n_total: layout.node_slots(),
+        order_base: layout.order[0][0].start,
+        prol_base: layout.prol_base,
+        restr_base: layout.restr_base,
+        child_base: layout.child_base,
         lv,
         sweeps: [SWEEPS.0, SWEEPS.1, SWEEPS.2, options.first_candidates],
-        colours: colour_table,
+        colours,
         misc: [
             0,
             settings.substeps,
@@ -551,8 +383,8 @@ fn pack(
             force_base + force_partials,
         ],
         cheb: std::array::from_fn(|l| {
-            let [inv_theta, rho2] = mg.chebyshev.get(l).copied().unwrap_or([1.0, 0.0]);
-            let chebyshev = mg.smoother.on_level(l) == Smoother::Chebyshev;
+            let [inv_theta, rho2] = cheb.get(l).copied().unwrap_or([1.0, 0.0]);
+            let chebyshev = smoother.on_level(l) == Smoother::Chebyshev;
             [inv_theta, rho2, chebyshev as u32 as f32, 0.0]
         }),
         // The contacts' relaxation, never above 1 on lattice bodies (core::solver's rule).
@@ -562,79 +394,79 @@ fn pack(
             settings.contact_relaxation.min(1.0).to_bits(),
             0,
         ],
-        chunks: [chunk_base, starts_base, bodies as u32, body_base],
-    };
-    let shape = Shape {
-        levels: (0..nl)
-            .map(|l| {
-                [
-                    node_off[l],
-                    node_off[l + 1] - node_off[l],
-                    elem_off[l],
-                    elem_off[l + 1] - elem_off[l],
-                ]
-            })
-            .collect(),
-        tables: table_range,
-        bodies: bodies as u32,
-        colours,
-        smoother: mg.smoother,
-        pairs: pairs.then_some(settings.contact_every),
-        cycles: settings.newton_cycles.max(1),
-    };
-    Packed {
-        params,
-        shape,
-        elems,
-        kmat,
-        topo,
-        nodes,
-        mats,
+        chunks: [
+            layout.chunk_base,
+            layout.starts_base,
+            layout.bodies.cap,
+            body_base,
+        ],
+        count: [layout.bodies.used, 0, 0, 0],
     }
 }
 
-/// A reduction table of `bodies` bodies whose items are, for body `b`, the two runs
-/// `runs(b)` (either may be empty): its chunks (first item, item count, body, 0), each a
-/// run of at most one body's items and as few per body as [`MAX_BODY_CHUNKS`] allows in
-/// multiples of [`WORKGROUP`], and where each body's chunks start (bodies + 1 entries,
-/// from the table's first chunk).
-fn chunk_table(
-    bodies: usize,
-    runs: impl Fn(usize) -> [std::ops::Range<u32>; 2],
-) -> (Vec<[u32; 4]>, Vec<u32>) {
-    let mut records = Vec::new();
-    let mut starts = Vec::with_capacity(bodies + 1);
-    for b in 0..bodies {
-        starts.push(records.len() as u32);
-        let rs = runs(b);
-        let items: u32 = rs.iter().map(|r| r.len() as u32).sum();
-        let per = (WORKGROUP as usize * MAX_BODY_CHUNKS) as u32;
-        let len = WORKGROUP * items.div_ceil(per).max(1);
-        for r in rs {
-            let mut at = r.start;
-            while at < r.end {
-                let count = len.min(r.end - at);
-                records.push([at, count, b as u32, 0]);
-                at += count;
-            }
-        }
+/// The shape the plan needs of `layout` as packed so far.
+fn shape_of(layout: &Layout, smoother: Smoother, pairs: Option<u32>, cycles: u32) -> Shape {
+    Shape {
+        levels: layout
+            .nodes
+            .iter()
+            .zip(&layout.elems)
+            .map(|(n, e)| [n.start, n.used, e.start, e.used])
+            .collect(),
+        colours: layout
+            .order
+            .iter()
+            .map(|segs| segs.map(|c| [c.start, c.end()]))
+            .collect(),
+        tables: layout.tables.iter().map(|t| [t.start, t.used]).collect(),
+        bodies: layout.bodies.used,
+        smoother,
+        pairs,
+        cycles: cycles.max(1),
     }
-    starts.push(records.len() as u32);
-    (records, starts)
 }
 
 /// Entries each of the particle-contact lists (a node's candidates, and the nodes that
-/// list it) can hold: the contact neighbours per node when the world has particle
-/// contacts between bodies, else 0.
-fn pair_capacity(model: &Model, settings: &SolverSettings) -> usize {
+/// list it) can hold for `slots` level-0 node slots: the contact neighbours per node when
+/// the world has particle contacts between bodies, else 0.
+fn pair_capacity(model: &Model, settings: &SolverSettings, slots: usize) -> usize {
     let n = model.particle_count();
     if !settings.particle_contacts || model.bodies.len() < 2 {
         return 0;
     }
-    n * (settings.contact_neighbours as usize).min(n.saturating_sub(1))
+    slots * (settings.contact_neighbours as usize).min(n.saturating_sub(1))
 }
 
-/// Floats of the reduction buffer for `misc` (see `pack`).
+/// The dispatches of one substep of `shape` with `newton` Newton iterations, their
+/// distinct pass records, and each dispatch's record.
+fn passes_of(shape: &Shape, newton: u32) -> (Vec<Dispatch>, Vec<PassRecord>, Vec<u32>) {
+    let dispatches = plan(shape, newton);
+    let mut records: Vec<PassRecord> = Vec::new();
+    let mut index = Vec::with_capacity(dispatches.len());
+    for d in &dispatches {
+        let i = match records.iter().position(|r| *r == d.pass) {
+            Some(i) => i,
+            None => {
+                records.push(d.pass);
+                records.len() - 1
+            }
+        };
+        index.push(i as u32);
+    }
+    (dispatches, records, index)
+}
+
+/// The pass buffer's bytes: `records` at [`PASS_STRIDE`], `room` records long.
+fn pass_bytes(records: &[PassRecord], room: usize) -> Vec<u8> {
+    let mut bytes = vec![0u8; room.max(records.len()).max(1) * PASS_STRIDE as usize];
+    for (i, r) in records.iter().enumerate() {
+        let at = i * PASS_STRIDE as usize;
+        bytes[at..at + 16].copy_from_slice(bytemuck::bytes_of(r));
+    }
+    bytes
+}
+
+/// Floats of the reduction buffer for `misc` (see `params_of`).
 fn red_floats(misc: [u32; 4]) -> usize {
     misc[3] as usize + 4 * MAX_COLLIDERS
 }
@@ -651,19 +483,29 @@ pub fn newton_count(settings: &SolverSettings) -> u32 {
 
 /// Lattice bodies stepped by Newton–multigrid on the GPU.
 pub struct GpuLattice {
-    n: u32,
-    ne: u32,
+    /// Where everything is in the buffers, and how much room is left.
+    layout: Layout,
+    /// The parameter block as last written.
+    params_now: Params,
+    /// Each level's Chebyshev `1/θ` and `ρ²`.
+    cheb: Vec<[f32; 2]>,
+    shape: Shape,
+    newton: u32,
     substeps: u32,
     /// The substep, s.
     h: f32,
     dispatches: Vec<Dispatch>,
     pass_index: Vec<u32>,
+    /// Pass records the pass buffer holds.
+    pass_room: usize,
     groups: Vec<BindGroup>,
-    /// Positions, iterate, target, velocity and pin targets (5 regions of `n` vec4).
+    /// Positions, iterate, target, velocity and pin targets (5 regions of
+    /// `layout.n_slots()` vec4).
     pos: Buffer,
     /// Element rotations of every level (quaternions; level 0 first).
     rot: Buffer,
     params: Buffer,
+    passes: Buffer,
     cols: Buffer,
     /// Collider state per node: corrections, touched colliders and contacts, grasps,
     /// Newton forces.
@@ -679,6 +521,11 @@ pub struct GpuLattice {
     pair_capacity: usize,
     /// Per node of every level: mass, held, reach, body.
     nodes: Buffer,
+    elems: Buffer,
+    kmat: Buffer,
+    topo: Buffer,
+    mats: Buffer,
+    bodyt: Buffer,
     _keep: Vec<Buffer>,
 }
 
@@ -774,7 +621,64 @@ impl GpuLattice {
             });
         }
         mg.smoother = settings.smoother;
-        let packed = pack(model, &mg, settings, options);
+        let mut layout = Layout::new(&mg, options.room);
+        let mut writes = Writes::default();
+        if !layout.pack_all(model, &mg, state, &mut writes) {
+            return Err(TissueError::InvalidParameter {
+                name: "levels",
+                value: "a hierarchy whose bodies do not fit their own layout".into(),
+                expected: "the hierarchy of this model (LatticeMultigrid::new or from_bodies)",
+            });
+        }
+        let pair_capacity = pair_capacity(model, settings, layout.n_slots() as usize);
+        let params = params_of(
+            &layout,
+            settings,
+            options,
+            &mg.chebyshev,
+            mg.smoother,
+            pair_capacity > 0,
+        );
+        let shape = shape_of(
+            &layout,
+            mg.smoother,
+            (pair_capacity > 0).then_some(settings.contact_every),
+            settings.newton_cycles,
+        );
+        // Every buffer's contents: zero, then the bodies' writes.
+        let (n, nt) = (layout.n_slots() as usize, layout.node_slots() as usize);
+        let bodies = layout.bodies.cap as usize;
+        let words = |buf: Buf| -> usize {
+            match buf {
+                Buf::Elems => 4 * layout.elems_len as usize,
+                Buf::Kmat => 12 * layout.kmat.cap as usize,
+                Buf::Topo => layout.topo_len as usize,
+                Buf::Nodes => 4 * nt,
+                Buf::Mats => 4 * bodies * layout::MAT_RECORD,
+                Buf::Rot => 4 * layout.elem_slots() as usize,
+                Buf::Pos => 4 * 5 * n,
+                // Region 4 (every node's list ranges) and the lists (both of them, four
+                // u32 a vec4) where there are particle contacts.
+                Buf::Ccol if pair_capacity > 0 => 4 * (5 * n + (2 * pair_capacity).div_ceil(4)),
+                Buf::Ccol => 4 * 4 * n,
+                Buf::Bodyt => 2 * bodies,
+            }
+        };
+        let image = |buf: Buf| -> Vec<u32> {
+            let mut v = vec![0u32; words(buf)];
+            if buf == Buf::Rot {
+                // Rotations at rest where nothing is.
+                for q in v.chunks_exact_mut(4) {
+                    q[3] = 1.0f32.to_bits();
+                }
+            }
+            for (b, at, data) in &writes.0 {
+                if *b == buf {
+                    v[*at as usize..*at as usize + data.len()].copy_from_slice(data);
+                }
+            }
+            v
+        };
         let limit = device.limits().max_storage_buffer_binding_size;
         let st = BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC;
         let make =
@@ -796,84 +700,33 @@ impl GpuLattice {
                     },
                 ))
             };
-        let nt = packed.params.n_total as usize;
-        let pos = make(
-            "tissue lattice pos",
-            bytemuck::cast_slice(&pos_regions(model, state)),
-            st,
-        )?;
-        let mut rots: Vec<[f32; 4]> = state.element_rot.iter().map(|q| q.to_array()).collect();
-        rots.resize(
-            packed.params.lv[packed.params.levels as usize - 1][3] as usize,
-            [0.0, 0.0, 0.0, 1.0],
-        );
-        let rot = make("tissue lattice rot", bytemuck::cast_slice(&rots), st)?;
+        let made = |label: &str, buf: Buf| make(label, bytemuck::cast_slice(&image(buf)), st);
+        let pos = made("tissue lattice pos", Buf::Pos)?;
+        let rot = made("tissue lattice rot", Buf::Rot)?;
         let ef = make(
             "tissue lattice forces",
-            &vec![0u8; model.elements.len() * 8 * 16],
+            &vec![0u8; layout.ne_slots() as usize * 8 * 16],
             st,
         )?;
         // The V-cycle's 4 regions of every level's nodes, then with conjugate gradients
         // their iterate, direction and product (level 0's nodes each).
-        let cg = if packed.shape.cycles > 1 {
-            3 * packed.params.n as usize
-        } else {
-            0
-        };
+        let cg = if shape.cycles > 1 { 3 * n } else { 0 };
         let vecs = make("tissue lattice vectors", &vec![0u8; (nt * 4 + cg) * 16], st)?;
         let nblk = make("tissue lattice blocks", &vec![0u8; nt * 6 * 16], st)?;
         let red = make(
             "tissue lattice reductions",
-            &vec![0u8; red_floats(packed.params.misc) * 4],
+            &vec![0u8; red_floats(params.misc) * 4],
             st,
         )?;
-        let elems = make(
-            "tissue lattice elements",
-            bytemuck::cast_slice(&packed.elems),
-            st,
-        )?;
-        let kmat = make(
-            "tissue lattice stiffness",
-            bytemuck::cast_slice(&packed.kmat),
-            st,
-        )?;
-        let topo = make(
-            "tissue lattice topology",
-            bytemuck::cast_slice(&packed.topo),
-            st,
-        )?;
-        let nodes = make(
-            "tissue lattice nodes",
-            bytemuck::cast_slice(&packed.nodes),
-            st,
-        )?;
+        let elems = made("tissue lattice elements", Buf::Elems)?;
+        let kmat = made("tissue lattice stiffness", Buf::Kmat)?;
+        let topo = made("tissue lattice topology", Buf::Topo)?;
+        let nodes = made("tissue lattice nodes", Buf::Nodes)?;
         // Each body's trust-region bound (f32 bits), 1 between iterations; then each
         // body's fastest touching collider's step (m, f32 bits), 0 between iterations.
-        let bodies = model.bodies.len();
-        let mut trust_init = vec![1.0f32; bodies];
-        trust_init.resize(2 * bodies, 0.0);
-        let bodyt = make(
-            "tissue lattice body trust",
-            bytemuck::cast_slice(&trust_init),
-            st,
-        )?;
-        let mats = make(
-            "tissue lattice materials",
-            bytemuck::cast_slice(&packed.mats),
-            st,
-        )?;
-        let mut ccol_init = ccol_regions(state);
-        let pair_capacity = pair_capacity(model, settings);
-        if pair_capacity > 0 {
-            // Region 4 (every node's list ranges, empty) and the lists (both of them,
-            // four u32 a vec4).
-            ccol_init.resize(5 * n + (2 * pair_capacity).div_ceil(4), [0.0; 4]);
-        }
-        let ccol = make(
-            "tissue lattice collider state",
-            bytemuck::cast_slice(&ccol_init),
-            st,
-        )?;
+        let bodyt = made("tissue lattice body trust", Buf::Bodyt)?;
+        let mats = made("tissue lattice materials", Buf::Mats)?;
+        let ccol = made("tissue lattice collider state", Buf::Ccol)?;
         let args = make(
             "tissue lattice indirect",
             bytemuck::cast_slice(&[0u32, 1, 1, 0]),
@@ -884,37 +737,23 @@ impl GpuLattice {
             &vec![0u8; MAX_COLLIDERS * std::mem::size_of::<GpuCollider>()],
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
         )?;
-        let params = make(
+        let params_buf = make(
             "tissue lattice params",
-            bytemuck::bytes_of(&packed.params),
+            bytemuck::bytes_of(&params),
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
         )?;
-        let dispatches = plan(&packed.shape, newton_count(settings));
-        let mut records: Vec<PassRecord> = Vec::new();
-        let mut pass_index = Vec::with_capacity(dispatches.len());
-        for d in &dispatches {
-            let i = match records.iter().position(|r| *r == d.pass) {
-                Some(i) => i,
-                None => {
-                    records.push(d.pass);
-                    records.len() - 1
-                }
-            };
-            pass_index.push(i as u32);
-        }
-        let mut pass_bytes = vec![0u8; records.len().max(1) * PASS_STRIDE as usize];
-        for (i, r) in records.iter().enumerate() {
-            let at = i * PASS_STRIDE as usize;
-            pass_bytes[at..at + 16].copy_from_slice(bytemuck::bytes_of(r));
-        }
+        let newton = newton_count(settings);
+        let (dispatches, records, pass_index) = passes_of(&shape, newton);
+        // Room for records that an appended body makes distinct.
+        let pass_room = records.len().max(1) * 2 + 16;
         let passes = make(
             "tissue lattice passes",
-            &pass_bytes,
+            &pass_bytes(&records, pass_room),
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
         )?;
         let by_name = |name: &str| -> &Buffer {
             match name {
-                "params" => &params,
+                "params" => &params_buf,
                 "pc" => &passes,
                 "cols" => &cols,
                 "ccol" => &ccol,
@@ -958,33 +797,160 @@ impl GpuLattice {
             bind_groups.push(device.create_bind_group(entry.name, layout, &entries));
         }
         Ok(Self {
-            n: n as u32,
-            ne: model.elements.len() as u32,
+            layout,
+            params_now: params,
+            cheb: mg.chebyshev.clone(),
+            shape,
+            newton,
             substeps: settings.substeps,
-            h: packed.params.h,
+            h: params.h,
             dispatches,
             pass_index,
+            pass_room,
             groups: bind_groups,
             pos,
             rot,
-            params,
+            params: params_buf,
+            passes,
             cols,
             ccol,
             args,
-            force_out: packed.params.misc[3],
+            force_out: params.misc[3],
             red,
             colliders: 0,
             pair_capacity,
             nodes,
-            _keep: vec![ef, vecs, nblk, elems, kmat, topo, mats, passes, bodyt],
+            elems,
+            kmat,
+            topo,
+            mats,
+            bodyt,
+            _keep: vec![ef, vecs, nblk],
         })
+    }
+
+    /// Appends `model`'s body (one hyperelastic lattice body, its own model, in
+    /// `state`; `levels` its hierarchy from [`BodyLevels::new`]) as the world's next
+    /// body, into the room the world was made with ([`LatticeOptions::room`]): its
+    /// particles and elements numbered on from the world's, every other body's state
+    /// left as it is. The levels' Chebyshev estimates become the larger of the world's
+    /// and the body's. `Ok(false)` (nothing changed) where the room is too small, or the
+    /// world has no particle-contact lists and `settings` asks for particle contacts
+    /// (make the world again then); an error for a model that is not one such body.
+    pub fn append(
+        &mut self,
+        queue: &RenderQueue,
+        model: &Model,
+        levels: &BodyLevels,
+        state: &State,
+        settings: &SolverSettings,
+    ) -> Result<bool, TissueError> {
+        let lattice = model.bodies.len() == 1
+            && model.bodies[0].discretisation == Discretisation::Lattice
+            && matches!(model.bodies[0].material, Material::Hyperelastic { .. });
+        let fine = levels.levels.first();
+        if !lattice
+            || fine.is_none_or(|f| {
+                f.nodes != model.particle_count() || f.elements.len() != model.elements.len()
+            })
+            || state.x.len() != model.particle_count()
+            || state.element_rot.len() != model.elements.len()
+        {
+            return Err(TissueError::InvalidParameter {
+                name: "appended body",
+                value: format!("{} bodies", model.bodies.len()),
+                expected: "one hyperelastic lattice body with its own levels and state",
+            });
+        }
+        if self.pair_capacity == 0 && settings.particle_contacts {
+            return Ok(false);
+        }
+        let mut mg = LatticeMultigrid::joined(&[levels], self.layout.levels());
+        mg.smoother = self.shape.smoother;
+        let mut layout = self.layout.clone();
+        let mut writes = Writes::default();
+        if !layout.pack_all(model, &mg, state, &mut writes) {
+            return Ok(false);
+        }
+        let shape = shape_of(
+            &layout,
+            self.shape.smoother,
+            self.shape.pairs,
+            self.shape.cycles,
+        );
+        let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
+        if records.len() > self.pass_room {
+            return Ok(false);
+        }
+        for (b, at, data) in &writes.0 {
+            let buffer = match b {
+                Buf::Elems => &self.elems,
+                Buf::Kmat => &self.kmat,
+                Buf::Topo => &self.topo,
+                Buf::Nodes => &self.nodes,
+                Buf::Mats => &self.mats,
+                Buf::Rot => &self.rot,
+                Buf::Pos => &self.pos,
+                Buf::Ccol => &self.ccol,
+                Buf::Bodyt => &self.bodyt,
+            };
+            queue.write_buffer(buffer, 4 * *at as u64, bytemuck::cast_slice(data));
+        }
+        // The larger largest eigenvalue (the smaller 1/θ).
+        for (c, new) in self.cheb.iter_mut().zip(&mg.chebyshev) {
+            if new[0] < c[0] {
+                *c = *new;
+            }
+        }
+        self.layout = layout;
+        self.shape = shape;
+        self.dispatches = dispatches;
+        self.pass_index = pass_index;
+        queue.write_buffer(&self.passes, 0, &pass_bytes(&records, self.pass_room));
+        self.write_params(queue);
+        Ok(true)
+    }
+
+    /// Writes the parameter block for the layout as it is now (the colliders, gravity
+    /// and damping as last set).
+    fn write_params(&mut self, queue: &RenderQueue) {
+        let mut p = self.params_now;
+        let fresh = params_of(
+            &self.layout,
+            &SolverSettings::default(),
+            LatticeOptions::default(),
+            &self.cheb,
+            self.shape.smoother,
+            p.pair[0] != 0,
+        );
+        p.lv = fresh.lv;
+        p.colours = fresh.colours;
+        p.count = fresh.count;
+        for (c, f) in p.cheb.iter_mut().zip(fresh.cheb) {
+            c[0] = f[0];
+            c[1] = f[1];
+        }
+        self.params_now = p;
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&p));
+    }
+
+    /// Bodies of the world (appended ones included).
+    pub fn body_count(&self) -> usize {
+        self.layout.bodies.used as usize
+    }
+
+    /// Particles of the world (appended bodies' included).
+    pub fn particle_count(&self) -> usize {
+        self.layout.nodes[0].used as usize
     }
 
     /// Sets gravity (m/s²) and velocity damping (1/s) for the steps recorded from now on,
     /// without rebuilding anything (a parameter write).
-    pub fn set_forces(&self, queue: &RenderQueue, gravity: Vec3, damping: f32) {
+    pub fn set_forces(&mut self, queue: &RenderQueue, gravity: Vec3, damping: f32) {
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&vec4(gravity)));
         let keep = (1.0 - damping * self.h).max(0.0);
+        self.params_now.gravity = vec4(gravity);
+        self.params_now.keep = keep;
         queue.write_buffer(
             &self.params,
             std::mem::offset_of!(Params, keep) as u64,
@@ -1137,6 +1103,7 @@ impl GpuLattice {
             bytemuck::bytes_of(&(colliders.len() as u32)),
         );
         self.colliders = colliders.len();
+        self.params_now.misc[0] = colliders.len() as u32;
         Ok(())
     }
 
@@ -1161,7 +1128,8 @@ impl GpuLattice {
         start: &[u32],
         list: &[u32],
     ) -> Result<(), TissueError> {
-        let n = self.n as usize;
+        let n = self.particle_count();
+        let slots = self.layout.n_slots() as usize;
         if self.pair_capacity == 0 {
             return Err(TissueError::InvalidParameter {
                 name: "particle contacts",
@@ -1217,12 +1185,12 @@ impl GpuLattice {
             .collect();
         queue.write_buffer(
             &self.ccol,
-            (4 * n * 16) as u64,
+            (4 * slots * 16) as u64,
             bytemuck::cast_slice(&ranges),
         );
         // The lists after the regions: each node's candidates, then the reverse lists.
         if !list.is_empty() {
-            let at = (5 * n * 16) as u64;
+            let at = (5 * slots * 16) as u64;
             queue.write_buffer(&self.ccol, at, bytemuck::cast_slice(list));
             let at = at + 4 * list.len() as u64;
             queue.write_buffer(&self.ccol, at, bytemuck::cast_slice(&rev));
@@ -1242,8 +1210,11 @@ impl GpuLattice {
         range: std::ops::Range<usize>,
         at: &[Vec3],
     ) {
-        let n = self.n as usize;
-        if range.end > n || range.end > model.particle_count() || at.len() != range.len() {
+        let n = self.layout.n_slots() as usize;
+        if range.end > self.particle_count()
+            || range.end > model.particle_count()
+            || at.len() != range.len()
+        {
             return;
         }
         let put = |region: usize, values: Vec<[f32; 4]>| {
@@ -1268,14 +1239,29 @@ impl GpuLattice {
     /// Writes `state`'s positions, velocities, pin targets, element rotations and grasps
     /// (the colliders touched in the last substep are forgotten).
     pub fn upload(&mut self, queue: &RenderQueue, model: &Model, state: &State) {
-        queue.write_buffer(
-            &self.pos,
-            0,
-            bytemuck::cast_slice(&pos_regions(model, state)),
-        );
+        let n = state.x.len();
+        if n != self.particle_count() {
+            return;
+        }
+        let slots = self.layout.n_slots() as u64 * 16;
+        let regions = pos_regions(model, state);
+        for r in [0, 3, 4] {
+            queue.write_buffer(
+                &self.pos,
+                r as u64 * slots,
+                bytemuck::cast_slice(&regions[r * n..(r + 1) * n]),
+            );
+        }
         let rots: Vec<[f32; 4]> = state.element_rot.iter().map(|q| q.to_array()).collect();
         queue.write_buffer(&self.rot, 0, bytemuck::cast_slice(&rots));
-        queue.write_buffer(&self.ccol, 0, bytemuck::cast_slice(&ccol_regions(state)));
+        let ccol = ccol_regions(state);
+        for r in 0..4 {
+            queue.write_buffer(
+                &self.ccol,
+                r as u64 * slots,
+                bytemuck::cast_slice(&ccol[r * n..(r + 1) * n]),
+            );
+        }
     }
 
     /// Blocking read of the force (N) the bodies put on each collider set by
@@ -1306,15 +1292,17 @@ impl GpuLattice {
         queue: &RenderQueue,
         state: &mut State,
     ) -> Vec<Vec3> {
-        let n = self.n as u64 * 16;
+        let n = self.particle_count() as u64 * 16;
+        let slots = self.layout.n_slots() as u64 * 16;
+        let ne = self.layout.elems[0].used as u64 * 16;
         let parts = super::world::read_buffers(
             device,
             queue,
             &[
                 (&self.pos, 0, n),
-                (&self.pos, 3 * n, n),
-                (&self.rot, 0, self.ne as u64 * 16),
-                (&self.ccol, 2 * n, n),
+                (&self.pos, 3 * slots, n),
+                (&self.rot, 0, ne),
+                (&self.ccol, 2 * slots, n),
                 (
                     &self.red,
                     self.force_out as u64 * 4,
@@ -1398,11 +1386,14 @@ mod tests {
     fn shape() -> Shape {
         Shape {
             levels: vec![[0, 100, 0, 60], [100, 20, 60, 8], [120, 8, 68, 1]],
-            colours: vec![
+            colours: [
                 [0, 13, 26, 39, 52, 65, 78, 91, 100],
                 [100, 103, 106, 109, 112, 115, 118, 118, 120],
                 [120, 121, 122, 123, 124, 125, 126, 127, 128],
-            ],
+            ]
+            .iter()
+            .map(|c| std::array::from_fn(|k| [c[k], c[k + 1]]))
+            .collect(),
             // The energy's table, then each level's (3 bodies).
             tables: vec![[0, 5], [5, 3], [8, 3], [11, 3]],
             bodies: 3,
@@ -1630,8 +1621,12 @@ mod tests {
             [10..10 + big, 0..0],
             [10 + big..10 + big + 64, 400..401],
         ];
-        let (records, starts) = chunk_table(runs.len(), |b| runs[b].clone());
-        assert_eq!(starts.len(), runs.len() + 1);
+        let mut records = Vec::new();
+        let mut starts = vec![0u32];
+        for (b, r) in runs.iter().enumerate() {
+            records.extend(layout::body_chunks(b as u32, r.clone()));
+            starts.push(records.len() as u32);
+        }
         for (b, r) in runs.iter().enumerate() {
             let own = &records[starts[b] as usize..starts[b + 1] as usize];
             assert!(own.iter().all(|c| c[2] == b as u32));
