@@ -1322,9 +1322,11 @@ fn despawning_or_spawning_a_body_does_not_rebuild_the_world() {
 }
 
 /// Lattice bodies step from the main world, batched into one `GpuLattice`. A body
-/// coming rebuilds that batch, on a worker thread while the batch steps on, and from
-/// each body's own multigrid levels, made when the body was built: nobody's levels are
-/// coarsened again (`CpuWorld::coarsened_bodies` stays 0). A body going is retired in place: held still, far out of reach, with no
+/// coming is appended into the room of that batch in place (`GpuLattice::append`, no
+/// rebuild); past the room the batch is made again, on a worker thread while it steps
+/// on, from each body's own multigrid levels, made when the body was built: nobody's
+/// levels are coarsened again (`CpuWorld::coarsened_bodies` stays 0). A body going is
+/// retired in place: held still, far out of reach, with no
 /// rebuild, until retired bodies would hold more than a quarter of the particles (then
 /// the batch is made again without them). Through all of it the bodies already there
 /// keep their pose and step on, on the GPU, and a new one steps with them.
@@ -1363,18 +1365,31 @@ fn lattice_bodies_come_and_go_without_coarsening_or_rebuilding_the_others() {
     let rebuilds = cpu(&app).rebuilds();
     let sagged = pose(&app, a);
     let step = cpu(&app).state().unwrap().step;
-    // Three more bodies, spawned while the clock is paused: the batch is rebuilt for
-    // each, A's pose carried over exactly.
+    // Three more bodies, spawned while the clock is paused. The batch of two has room
+    // for four: the first two are appended in place, A's pose untouched.
     let c = spawn(&mut app, 1.0);
-    let more = [spawn(&mut app, 1.5), spawn(&mut app, 2.0)];
-    assert_eq!(cpu(&app).rebuilds(), rebuilds + 3, "one rebuild a spawn");
-    // The first into a batch that has stepped on the GPU is made on a worker thread;
-    // the next two find no GPU batch yet (the clock is paused) and are made at once.
+    let more0 = spawn(&mut app, 1.5);
+    assert_eq!(
+        cpu(&app).rebuilds(),
+        rebuilds,
+        "a spawn into the room rebuilt"
+    );
+    assert_eq!(cpu(&app).appended_in_place(), 2);
+    assert_eq!(pose(&app, a), sagged, "the first body lost its pose");
+    // The third finds no room: the batch is made again on a worker thread, A's pose
+    // carried over exactly.
+    let more = [more0, spawn(&mut app, 2.0)];
+    assert_eq!(
+        cpu(&app).rebuilds(),
+        rebuilds + 1,
+        "past the room: one rebuild"
+    );
     assert_eq!(
         cpu(&app).rebuilds_off_thread(),
         1,
         "the batch stepping on the GPU is rebuilt on a worker thread"
     );
+    assert_eq!(cpu(&app).appended_in_place(), 2);
     assert_eq!(cpu(&app).coarsened_bodies(), 0, "levels coarsened again");
     assert_eq!(pose(&app, a), sagged, "the first body lost its pose");
     step_frames(&mut app, 10);
