@@ -37,6 +37,10 @@
 //! appended later, `LatticeOptions::room`; default none), `--profile` (GPU time per
 //! kernel: every dispatch in its own timed pass).
 //!
+//! `--changes` (what changing a world of `--bodies` touching cubes costs: made again
+//! for one more body, one appended into its room, one retired, gravity; and the step's
+//! GPU time with room).
+//!
 //! `--webgpu-limits` holds the device to WebGPU's default limits (what every browser
 //! guarantees; the tests run the example so).
 #[path = "support/accuracy.rs"]
@@ -501,4 +505,132 @@ fn main() {
     if a.flag("--organs") {
         organs(&g, quick);
     }
+    if a.flag("--changes") {
+        changes(
+            &g,
+            if quick {
+                20
+            } else {
+                a.num("--bodies", 1000u32)
+            },
+        );
+    }
+}
+
+/// Milliseconds `f` takes, the GPU's work it queued finished.
+fn timed<T>(g: &Gpu, world: &mut GpuLattice, f: impl FnOnce(&mut GpuLattice) -> T) -> (T, f64) {
+    let t = Instant::now();
+    let out = f(world);
+    g.queue.submit([]);
+    wait(g, world);
+    (out, t.elapsed().as_secs_f64() * 1e3)
+}
+
+/// What changing a world of `bodies` touching cubes costs (`--changes`): making it again
+/// for one more body (the join of the bodies' levels, then the GPU world, as the plugin's
+/// rebuild does), appending one into its room (`GpuLattice::append`), retiring one
+/// (`GpuLattice::hold`), changing gravity (`GpuLattice::set_forces`); and the GPU time
+/// of a step with and without room, before and after the appends.
+fn changes(g: &Gpu, bodies: u32) {
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    let s = SolverSettings {
+        particle_contacts: true,
+        contact_every: 1,
+        ..settings(2, Vec3::new(0.0, -9.81, 0.0), 0.0, Smoother::Hybrid)
+    };
+    eprintln!("changes: {bodies} touching cubes ...");
+    let model = cubes_at(bodies, 0.057);
+    // Every cube is the same body moved: one body's levels stand for each.
+    let one = cubes_at(1, 0.057);
+    let part = BodyLevels::new(&one, 0);
+    let parts: Vec<&BodyLevels> = (0..bodies + 1).map(|_| &part).collect();
+    let state = State::new(&model);
+    let room = LatticeOptions {
+        room: 1.5,
+        ..Default::default()
+    };
+    let make = |options: LatticeOptions| {
+        let mg = LatticeMultigrid::from_bodies(&parts[..bodies as usize], MIN_NODES, MAX_LEVELS);
+        GpuLattice::with_levels(&g.device, &g.kernels, &model, mg, &state, &s, options)
+            .unwrap_or_else(|e| fail("GPU lattice", e))
+    };
+    let step_ms = |world: &GpuLattice| -> f64 {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &g.kernels, 5, None);
+        g.queue.submit([enc.finish()]);
+        wait(g, world);
+        GpuProfiler::new(&g.device, &g.queue, 1).map_or(f64::NAN, |mut prof| {
+            let mut enc = g.device.create_command_encoder(&Default::default());
+            let ts = prof.timestamps("lattice");
+            world.record(&mut enc, &g.kernels, 30, ts.as_ref().map(|(q, i)| (q, *i)));
+            prof.resolve(&mut enc);
+            g.queue.submit([enc.finish()]);
+            let t = prof.read(&g.device, &g.queue);
+            t.get("lattice").map_or(f64::NAN, |v| v.0 / 30.0)
+        })
+    };
+    println!("\n{bodies} touching cubes × 512, 2 Newton iterations:\n");
+    println!("| change | ms (median of 5) |\n|---|---|");
+    let tight = make(LatticeOptions::default());
+    let tight_step = step_ms(&tight);
+    drop(tight);
+    let mut world = make(room);
+    let room_step = step_ms(&world);
+    // Making the world again for one more body: the join, then the GPU world.
+    let mut plus = model.clone();
+    plus.append(&cubes_at(1, 0.057));
+    let plus_state = State::new(&plus);
+    let mut join = Vec::new();
+    let mut remake = Vec::new();
+    for _ in 0..5 {
+        let t = Instant::now();
+        let mg = LatticeMultigrid::from_bodies(&parts, MIN_NODES, MAX_LEVELS);
+        join.push(t.elapsed().as_secs_f64() * 1e3);
+        let (made, ms) = timed(g, &mut world, |_| {
+            GpuLattice::with_levels(&g.device, &g.kernels, &plus, mg, &plus_state, &s, room)
+        });
+        drop(made.unwrap_or_else(|e| fail("GPU lattice", e)));
+        remake.push(ms);
+    }
+    println!("| remake: join the levels | {:.3} |", bench::median(join));
+    println!("| remake: the GPU world | {:.3} |", bench::median(remake));
+    // Appending: a cube at a time, into the room.
+    let cube = cubes_at(1, 0.057);
+    let cube_state = State::new(&cube);
+    let mut grown = model.clone();
+    let mut appends = Vec::new();
+    for _ in 0..5 {
+        let (ok, ms) = timed(g, &mut world, |w| {
+            w.append(&g.queue, &cube, &part, &cube_state, &s)
+        });
+        if !ok.unwrap_or_else(|e| fail("append", e)) {
+            fail("append", "no room");
+        }
+        grown.append(&cube);
+        appends.push(ms);
+    }
+    println!("| append one body | {:.3} |", bench::median(appends));
+    let appended_step = step_ms(&world);
+    // Retiring one (held still where it is), and gravity.
+    let mut holds = Vec::new();
+    for b in 0..5 {
+        let r = grown.bodies[b].range();
+        let at: Vec<Vec3> = grown.rest[r.clone()].to_vec();
+        holds.push(timed(g, &mut world, |w| w.hold(&g.queue, &grown, r, &at)).1);
+    }
+    println!("| retire one body | {:.3} |", bench::median(holds));
+    let mut gravity = Vec::new();
+    for k in 0..5 {
+        let gy = if k % 2 == 0 { -4.9 } else { -9.81 };
+        gravity.push(
+            timed(g, &mut world, |w| {
+                w.set_forces(&g.queue, Vec3::new(0.0, gy, 0.0), 0.0)
+            })
+            .1,
+        );
+    }
+    println!("| gravity | {:.3} |", bench::median(gravity));
+    println!(
+        "\nGPU ms per step: no room {tight_step:.3}; room 1.5 {room_step:.3}; after 5 appended {appended_step:.3}"
+    );
 }

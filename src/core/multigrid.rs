@@ -226,6 +226,10 @@ pub struct BodyLevels {
     pub unit_blocks: Option<Vec<Mat3>>,
     /// The material's Lamé parameters and hourglass modes.
     pub material: Option<(Hyperelastic, HexModes)>,
+    /// Per level: the Chebyshev smoother's `1/θ` and `ρ²` for this body alone (see
+    /// [`LatticeMultigrid::chebyshev`]), estimated with the levels, so that appending
+    /// the body to a world costs no power iteration.
+    pub chebyshev: Vec<[f32; 2]>,
 }
 
 impl BodyLevels {
@@ -322,12 +326,15 @@ impl BodyLevels {
             lv.blocks = to_blocks(&lv.stiffness);
             lv.body_start = vec![0, lv.nodes as u32];
         }
-        Self {
+        let mut out = Self {
             levels,
             unit,
             unit_blocks,
             material,
-        }
+            chebyshev: Vec::new(),
+        };
+        out.chebyshev = LatticeMultigrid::joined(&[&out], out.levels.len()).chebyshev;
+        out
     }
 }
 
@@ -382,23 +389,28 @@ impl LatticeMultigrid {
         depth
     }
 
-    /// `parts`' levels joined `depth` deep (at most [`MAX_LEVELS`]; a body with fewer
-    /// levels has no nodes on the deeper ones), with their Chebyshev estimates: what a
-    /// body appended to a hierarchy of that depth brings.
-    pub fn joined(parts: &[&BodyLevels], depth: usize) -> Self {
+    /// [`LatticeMultigrid::joined`] without the Chebyshev estimates (`chebyshev` empty:
+    /// the caller's to give, say from the parts' own [`BodyLevels::chebyshev`]).
+    pub fn join(parts: &[&BodyLevels], depth: usize) -> Self {
         let depth = depth.clamp(1, MAX_LEVELS);
-        let levels = (0..depth)
-            .map(|l| join_level(parts, l, l + 1 < depth))
-            .collect();
-        let mut mg = Self {
-            levels,
+        Self {
+            levels: (0..depth)
+                .map(|l| join_level(parts, l, l + 1 < depth))
+                .collect(),
             unit: parts.iter().map(|p| p.unit.clone()).collect(),
             unit_blocks: parts.iter().map(|p| p.unit_blocks.clone()).collect(),
             material: parts.iter().map(|p| p.material.clone()).collect(),
             smoother: Smoother::default(),
             chebyshev: Vec::new(),
-        };
-        mg.chebyshev = (0..depth)
+        }
+    }
+
+    /// `parts`' levels joined `depth` deep (at most [`MAX_LEVELS`]; a body with fewer
+    /// levels has no nodes on the deeper ones), with their Chebyshev estimates: what a
+    /// body appended to a hierarchy of that depth brings.
+    pub fn joined(parts: &[&BodyLevels], depth: usize) -> Self {
+        let mut mg = Self::join(parts, depth);
+        mg.chebyshev = (0..mg.levels.len())
             .map(|l| {
                 let b = CHEBYSHEV_MARGIN * mg.lambda_max(l).max(1.0);
                 let a = b / CHEBYSHEV_RATIO;

@@ -833,8 +833,8 @@ impl GpuLattice {
     /// `state`; `levels` its hierarchy from [`BodyLevels::new`]) as the world's next
     /// body, into the room the world was made with ([`LatticeOptions::room`]): its
     /// particles and elements numbered on from the world's, every other body's state
-    /// left as it is. The levels' Chebyshev estimates become the larger of the world's
-    /// and the body's. `Ok(false)` (nothing changed) where the room is too small, or the
+    /// left as it is. Each level's Chebyshev estimate becomes the larger of the world's
+    /// and the body's own ([`BodyLevels::chebyshev`], made with its levels). `Ok(false)` (nothing changed) where the room is too small, or the
     /// world has no particle-contact lists and `settings` asks for particle contacts
     /// (make the world again then); an error for a model that is not one such body.
     pub fn append(
@@ -865,7 +865,14 @@ impl GpuLattice {
         if self.pair_capacity == 0 && settings.particle_contacts {
             return Ok(false);
         }
-        let mut mg = LatticeMultigrid::joined(&[levels], self.layout.levels());
+        let depth = self.layout.levels();
+        let mut mg = if levels.chebyshev.len() >= depth.min(levels.levels.len()) {
+            let mut mg = LatticeMultigrid::join(&[levels], depth);
+            mg.chebyshev = levels.chebyshev.clone();
+            mg
+        } else {
+            LatticeMultigrid::joined(&[levels], depth)
+        };
         mg.smoother = self.shape.smoother;
         let mut layout = self.layout.clone();
         let mut writes = Writes::default();
