@@ -601,7 +601,7 @@ fn changes(g: &Gpu, bodies: u32) {
     let mut appends = Vec::new();
     for _ in 0..5 {
         let (ok, ms) = timed(g, &mut world, |w| {
-            w.append(&g.queue, &cube, &part, &cube_state, &s)
+            w.append(&g.device, &g.queue, &cube, &part, &cube_state, &s)
         });
         if !ok.unwrap_or_else(|e| fail("append", e)) {
             fail("append", "no room");

@@ -1327,7 +1327,7 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
     let third = State::new(&bodies[2]);
     assert!(
         !tight
-            .append(&g.queue, &bodies[2], &parts[2], &third, &s)
+            .append(&g.device, &g.queue, &bodies[2], &parts[2], &third, &s)
             .unwrap()
     );
     assert_eq!(
@@ -1338,7 +1338,7 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
     let mut grown = make(&two, LatticeMultigrid::joined(&refs[..2], depth), room);
     assert!(
         grown
-            .append(&g.queue, &bodies[2], &parts[2], &third, &s)
+            .append(&g.device, &g.queue, &bodies[2], &parts[2], &third, &s)
             .unwrap()
     );
     assert_eq!(
@@ -1371,7 +1371,7 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
     // A model of two bodies is not one body to append.
     assert!(
         grown
-            .append(&g.queue, &two, &parts[0], &State::new(&two), &s)
+            .append(&g.device, &g.queue, &two, &parts[0], &State::new(&two), &s)
             .is_err()
     );
 }

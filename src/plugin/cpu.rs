@@ -230,7 +230,12 @@ impl CpuWorld {
     /// body that brought its levels. True where the batch now holds exactly `bodies`;
     /// false where a rebuild is needed (the bodies appended before the one that did not
     /// fit stay, consistently on the CPU and the GPU).
-    fn append_new(&mut self, bodies: &[(Entity, &BuiltBody)], queue: &RenderQueue) -> bool {
+    fn append_new(
+        &mut self,
+        bodies: &[(Entity, &BuiltBody)],
+        device: &RenderDevice,
+        queue: &RenderQueue,
+    ) -> bool {
         if !self.on_gpu_now() {
             return false;
         }
@@ -265,7 +270,7 @@ impl CpuWorld {
                 return false;
             };
             let fresh = State::new(&built.model);
-            match world.append(queue, &built.model, levels, &fresh, settings) {
+            match world.append(device, queue, &built.model, levels, &fresh, settings) {
                 Ok(true) => {}
                 Ok(false) => return false,
                 Err(e) => {
@@ -748,10 +753,8 @@ pub fn step_cpu_bodies(
                 .is_some_and(|queue| world.retire_gone(&keys, queue));
         let now = !retired
             || (!world.holds_exactly(&keys)
-                && !render
-                    .1
-                    .as_ref()
-                    .is_some_and(|queue| world.append_new(&cpu, queue))
+                && !matches!(&render, (Some(device), Some(queue))
+                    if world.append_new(&cpu, device, queue))
                 && !world.rebuild_soon(&cpu, &core));
         if now && let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();

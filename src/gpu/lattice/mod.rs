@@ -672,10 +672,8 @@ impl GpuLattice {
                     q[3] = 1.0f32.to_bits();
                 }
             }
-            for (b, at, data) in &writes.0 {
-                if *b == buf {
-                    v[*at as usize..*at as usize + data.len()].copy_from_slice(data);
-                }
+            for (_, at, data) in writes.0.iter().filter(|w| w.0 == buf) {
+                v[*at as usize..*at as usize + data.len()].copy_from_slice(data);
             }
             v
         };
@@ -690,33 +688,51 @@ impl GpuLattice {
                         limit,
                     });
                 }
-                let mut data = bytes.to_vec();
-                data.resize(data.len().max(16), 0);
+                let padded;
+                let contents = if bytes.len() < 16 {
+                    padded = [bytes, &[0u8; 16][bytes.len()..]].concat();
+                    &padded
+                } else {
+                    bytes
+                };
                 Ok(device.create_buffer_with_data(
                     &bevy::render::render_resource::BufferInitDescriptor {
                         label: Some(label),
-                        contents: &data,
+                        contents,
                         usage,
                     },
                 ))
             };
         let made = |label: &str, buf: Buf| make(label, bytemuck::cast_slice(&image(buf)), st);
+        // Scratch: zeroed by the device, nothing uploaded.
+        let zeroed = |label: &str, bytes: u64| -> Result<Buffer, TissueError> {
+            if bytes > limit {
+                return Err(TissueError::GpuUnsupported {
+                    what: "bytes per storage buffer binding",
+                    needed: bytes,
+                    limit,
+                });
+            }
+            Ok(
+                device.create_buffer(&bevy::render::render_resource::BufferDescriptor {
+                    label: Some(label),
+                    size: bytes.max(16),
+                    usage: st,
+                    mapped_at_creation: false,
+                }),
+            )
+        };
         let pos = made("tissue lattice pos", Buf::Pos)?;
         let rot = made("tissue lattice rot", Buf::Rot)?;
-        let ef = make(
-            "tissue lattice forces",
-            &vec![0u8; layout.ne_slots() as usize * 8 * 16],
-            st,
-        )?;
+        let ef = zeroed("tissue lattice forces", layout.ne_slots() as u64 * 8 * 16)?;
         // The V-cycle's 4 regions of every level's nodes, then with conjugate gradients
         // their iterate, direction and product (level 0's nodes each).
         let cg = if shape.cycles > 1 { 3 * n } else { 0 };
-        let vecs = make("tissue lattice vectors", &vec![0u8; (nt * 4 + cg) * 16], st)?;
-        let nblk = make("tissue lattice blocks", &vec![0u8; nt * 6 * 16], st)?;
-        let red = make(
+        let vecs = zeroed("tissue lattice vectors", ((nt * 4 + cg) * 16) as u64)?;
+        let nblk = zeroed("tissue lattice blocks", (nt * 6 * 16) as u64)?;
+        let red = zeroed(
             "tissue lattice reductions",
-            &vec![0u8; red_floats(params.misc) * 4],
-            st,
+            (red_floats(params.misc) * 4) as u64,
         )?;
         let elems = made("tissue lattice elements", Buf::Elems)?;
         let kmat = made("tissue lattice stiffness", Buf::Kmat)?;
@@ -839,6 +855,7 @@ impl GpuLattice {
     /// (make the world again then); an error for a model that is not one such body.
     pub fn append(
         &mut self,
+        device: &RenderDevice,
         queue: &RenderQueue,
         model: &Model,
         levels: &BodyLevels,
@@ -889,7 +906,21 @@ impl GpuLattice {
         if records.len() > self.pass_room {
             return Ok(false);
         }
+        // One staging buffer with every write, copied into place in one submission.
+        let mut staged: Vec<u32> = Vec::new();
+        let mut copies = Vec::with_capacity(writes.0.len());
         for (b, at, data) in &writes.0 {
+            copies.push((*b, *at, staged.len(), data.len()));
+            staged.extend_from_slice(data);
+        }
+        let staging =
+            device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
+                label: Some("tissue lattice append"),
+                contents: bytemuck::cast_slice(&staged),
+                usage: BufferUsages::COPY_SRC,
+            });
+        let mut enc = device.create_command_encoder(&Default::default());
+        for (b, at, from, len) in copies {
             let buffer = match b {
                 Buf::Elems => &self.elems,
                 Buf::Kmat => &self.kmat,
@@ -901,8 +932,15 @@ impl GpuLattice {
                 Buf::Ccol => &self.ccol,
                 Buf::Bodyt => &self.bodyt,
             };
-            queue.write_buffer(buffer, 4 * *at as u64, bytemuck::cast_slice(data));
+            enc.copy_buffer_to_buffer(
+                &staging,
+                4 * from as u64,
+                buffer,
+                4 * at as u64,
+                4 * len as u64,
+            );
         }
+        queue.submit([enc.finish()]);
         // The larger largest eigenvalue (the smaller 1/θ).
         for (c, new) in self.cheb.iter_mut().zip(&mg.chebyshev) {
             if new[0] < c[0] {
