@@ -517,7 +517,8 @@ fn main() {
     }
 }
 
-/// Milliseconds `f` takes, the GPU's work it queued finished.
+/// Milliseconds `f` takes, the GPU's work it queued finished (what an empty
+/// submission and wait take is printed as a row of its own).
 fn timed<T>(g: &Gpu, world: &mut GpuLattice, f: impl FnOnce(&mut GpuLattice) -> T) -> (T, f64) {
     let t = Instant::now();
     let out = f(world);
@@ -610,6 +611,11 @@ fn changes(g: &Gpu, bodies: u32) {
         appends.push(ms);
     }
     println!("| append one body | {:.3} |", bench::median(appends));
+    let empty: Vec<f64> = (0..5).map(|_| timed(g, &mut world, |_| ()).1).collect();
+    println!(
+        "| (an empty submission and wait) | {:.3} |",
+        bench::median(empty)
+    );
     let appended_step = step_ms(&world);
     // Retiring one (held still where it is), and gravity.
     let mut holds = Vec::new();

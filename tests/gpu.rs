@@ -1376,6 +1376,63 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
     );
 }
 
+/// A GPU lattice takes a new time step, substeps and iteration counts in place
+/// (`GpuLattice::set_steps`) and then steps to the bit as one made with them; a change it
+/// cannot take (another smoother) is refused, nothing changed.
+#[test]
+fn a_lattice_takes_new_steps_in_place_as_one_made_with_them() {
+    use bevy_tissue::core::multigrid::Smoother;
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::GpuLattice;
+    let Some(g) = gpu() else {
+        return;
+    };
+    let kernels = LatticeKernels::new(&g.device).unwrap();
+    let model = lattice_bar(0.0075);
+    let start = State::new(&model);
+    let before = lattice_settings();
+    let after = SolverSettings {
+        dt: 1.0 / 90.0,
+        substeps: 2,
+        iterations: 3,
+        newton_iterations: 3,
+        gravity: Vec3::new(0.0, -4.0, 0.0),
+        damping: 0.5,
+        ..before.clone()
+    };
+    let run = |world: &GpuLattice| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &kernels, 5, None);
+        g.queue.submit([enc.finish()]);
+        let mut state = start.clone();
+        world.download(&g.device, &g.queue, &mut state);
+        state.x
+    };
+    let mut changed = GpuLattice::new(&g.device, &kernels, &model, &start, &before).unwrap();
+    let other = SolverSettings {
+        smoother: if before.smoother == Smoother::Chebyshev {
+            Smoother::GaussSeidel
+        } else {
+            Smoother::Chebyshev
+        },
+        ..after.clone()
+    };
+    assert!(
+        !changed.set_steps(&g.queue, &other),
+        "another smoother taken in place"
+    );
+    assert!(changed.set_steps(&g.queue, &after));
+    let made = GpuLattice::new(&g.device, &kernels, &model, &start, &after).unwrap();
+    let (a, b) = (run(&changed), run(&made));
+    assert!(max_dist(&a, &model.rest) > 1e-4, "the bar moved");
+    assert!(
+        a == b,
+        "new steps in place step differently: {} m",
+        max_dist(&a, &b)
+    );
+    assert_eq!(changed.dispatch_count(), made.dispatch_count());
+}
+
 /// A lattice box of half extents `half` (8 mm spacing, E = 20 kPa, ν = 0.3) centred at
 /// height `y`.
 fn lattice_box(half: Vec3, y: f32) -> Model {

@@ -1110,9 +1110,10 @@ fn a_lattice_body_steps_on_the_gpu_like_the_core() {
 /// Changing gravity rebuilds neither world: the render graph's (a cluster body) and the
 /// main world's (a lattice body on the GPU) take it as a parameter. The bodies feel it:
 /// with gravity turned upwards, both rise above where they hung, which they cannot do
-/// under the old gravity.
+/// under the old gravity. A new time step and substeps rebuild neither either, and the
+/// lattice body steps on, on the GPU.
 #[test]
-fn gravity_changes_without_a_rebuild() {
+fn gravity_and_the_time_step_change_without_a_rebuild() {
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
     if !gpu_available() {
         return;
@@ -1191,6 +1192,40 @@ fn gravity_changes_without_a_rebuild() {
         gpu.rebuilds(),
         gpu_rebuilds,
         "the render graph's world was rebuilt"
+    );
+    // A new time step and substeps: parameters and plans too, in both worlds.
+    let step = |app: &App| {
+        app.world()
+            .resource::<bevy_tissue::plugin::cpu::CpuWorld>()
+            .state()
+            .map_or(0, |s| s.step)
+    };
+    let before = step(&app);
+    {
+        let mut s = app.world_mut().resource_mut::<TissueSettings>();
+        s.dt = 1.0 / 90.0;
+        s.substeps = 2;
+    }
+    for _ in 0..20 {
+        app.update();
+    }
+    let world = app.world().resource::<bevy_tissue::plugin::cpu::CpuWorld>();
+    assert!(world.stepped_on_gpu(), "the lattice body left the GPU");
+    assert!(step(&app) >= before + 10, "the lattice body stopped");
+    assert_eq!(
+        world.rebuilds(),
+        cpu_rebuilds,
+        "a new dt rebuilt the lattice world"
+    );
+    assert!(
+        world.state().unwrap().x.iter().all(|p| p.is_finite()),
+        "the lattice body diverged"
+    );
+    let gpu = app.sub_app(RenderApp).world().resource::<TissueGpu>();
+    assert_eq!(
+        gpu.rebuilds(),
+        gpu_rebuilds,
+        "a new dt rebuilt the render graph's world"
     );
 }
 

@@ -252,6 +252,28 @@ impl SolverSettings {
         same_rest == *other
     }
 
+    /// Whether `other` differs from these settings only in what [`Self::differs_only_in_forces`]
+    /// names and in the step's schedule: `dt`, `substeps`, `iterations`,
+    /// `newton_iterations`, `contact_relaxation`, `contact_every` and `knn_every` (what
+    /// the GPU lattice world takes without being made again,
+    /// `gpu::lattice::GpuLattice::set_steps`).
+    pub fn differs_only_in_steps(&self, other: &SolverSettings) -> bool {
+        let same_rest = SolverSettings {
+            gravity: other.gravity,
+            damping: other.damping,
+            max_speed: other.max_speed,
+            dt: other.dt,
+            substeps: other.substeps,
+            iterations: other.iterations,
+            newton_iterations: other.newton_iterations,
+            contact_relaxation: other.contact_relaxation,
+            contact_every: other.contact_every,
+            knn_every: other.knn_every,
+            ..self.clone()
+        };
+        same_rest == *other
+    }
+
     /// Checks every field.
     pub fn validate(&self) -> Result<(), TissueError> {
         positive("dt", self.dt)?;

@@ -174,13 +174,24 @@ impl CpuWorld {
     }
 
     /// Takes `settings` in place where they differ from the current ones only in
-    /// gravity, damping and the divergence speed; false (nothing changed) otherwise.
-    fn apply_forces(&mut self, settings: &SolverSettings) -> bool {
+    /// gravity, damping and the divergence speed, or, while the batch steps on the GPU,
+    /// also in the step's schedule (time step, substeps, iterations, contact relaxation
+    /// and schedule: [`GpuLattice::set_steps`]; the CPU's solver is then made again
+    /// before it steps); false (nothing changed) otherwise.
+    fn apply_in_place(&mut self, settings: &SolverSettings, queue: Option<&RenderQueue>) -> bool {
+        let on_gpu = self.on_gpu_now();
         let (Some(old), Some(solver)) = (self.settings.as_mut(), self.solver.as_mut()) else {
             return false;
         };
         if !old.differs_only_in_forces(settings) {
-            return false;
+            let world = self.gpu.as_mut().and_then(|g| g.world.as_mut());
+            let (true, Some(queue), Some(world)) = (on_gpu, queue, world) else {
+                return false;
+            };
+            if !world.set_steps(queue, settings) {
+                return false;
+            }
+            self.solver_stale = true;
         }
         *old = settings.clone();
         solver.settings = settings.clone();
@@ -738,8 +749,9 @@ pub fn step_cpu_bodies(
     // Whether the particles may differ from what the meshes show (a rebuild or a step).
     let mut dirty = clock.steps_this_frame > 0;
     let same_bodies = world.holds_exactly(&keys);
-    let in_place =
-        same_bodies && world.settings.as_ref() != Some(&core) && world.apply_forces(&core);
+    let in_place = same_bodies
+        && world.settings.as_ref() != Some(&core)
+        && world.apply_in_place(&core, render.1.as_deref());
     if !in_place && (!same_bodies || world.settings.as_ref() != Some(&core)) {
         dirty = true;
         // Bodies gone are retired in place, and bodies new or rebuilt made into a batch

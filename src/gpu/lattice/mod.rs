@@ -490,6 +490,8 @@ pub struct GpuLattice {
     /// Each level's Chebyshev `1/θ` and `ρ²`.
     cheb: Vec<[f32; 2]>,
     shape: Shape,
+    /// The settings the world steps with.
+    settings: SolverSettings,
     newton: u32,
     substeps: u32,
     /// The substep, s.
@@ -817,6 +819,7 @@ impl GpuLattice {
             params_now: params,
             cheb: mg.chebyshev.clone(),
             shape,
+            settings: settings.clone(),
             newton,
             substeps: settings.substeps,
             h: params.h,
@@ -956,6 +959,49 @@ impl GpuLattice {
         Ok(true)
     }
 
+    /// Takes `settings` for the steps recorded from now on without making anything
+    /// again, where they differ from the world's only in gravity, damping, the time step,
+    /// substeps, iterations, Newton iterations and the particle contacts' relaxation and
+    /// schedule ([`SolverSettings::differs_only_in_steps`]): parameter writes and a new
+    /// plan. False (nothing changed) otherwise, or for settings that do not validate.
+    pub fn set_steps(&mut self, queue: &RenderQueue, settings: &SolverSettings) -> bool {
+        if !self.settings.differs_only_in_steps(settings) || settings.validate().is_err() {
+            return false;
+        }
+        let newton = newton_count(settings);
+        let mut shape = self.shape.clone();
+        shape.pairs = shape.pairs.map(|_| settings.contact_every);
+        let (dispatches, records, pass_index) = passes_of(&shape, newton);
+        if records.len() > self.pass_room {
+            return false;
+        }
+        let fresh = params_of(
+            &self.layout,
+            settings,
+            LatticeOptions::default(),
+            &self.cheb,
+            self.shape.smoother,
+            self.params_now.pair[0] != 0,
+        );
+        let p = &mut self.params_now;
+        p.gravity = fresh.gravity;
+        p.h = fresh.h;
+        p.h2 = fresh.h2;
+        p.keep = fresh.keep;
+        p.misc[1] = fresh.misc[1];
+        p.pair[2] = fresh.pair[2];
+        self.h = fresh.h;
+        self.substeps = settings.substeps;
+        self.newton = newton;
+        self.settings = settings.clone();
+        self.shape = shape;
+        self.dispatches = dispatches;
+        self.pass_index = pass_index;
+        queue.write_buffer(&self.passes, 0, &pass_bytes(&records, self.pass_room));
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&self.params_now));
+        true
+    }
+
     /// Writes the parameter block for the layout as it is now (the colliders, gravity
     /// and damping as last set).
     fn write_params(&mut self, queue: &RenderQueue) {
@@ -996,6 +1042,8 @@ impl GpuLattice {
         let keep = (1.0 - damping * self.h).max(0.0);
         self.params_now.gravity = vec4(gravity);
         self.params_now.keep = keep;
+        self.settings.gravity = gravity;
+        self.settings.damping = damping;
         queue.write_buffer(
             &self.params,
             std::mem::offset_of!(Params, keep) as u64,
