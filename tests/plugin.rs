@@ -1360,7 +1360,8 @@ fn despawning_or_spawning_a_body_does_not_rebuild_the_world() {
 /// coming is appended into the room of that batch in place (`GpuLattice::append`, no
 /// rebuild); past the room the batch is made again, on a worker thread while it steps
 /// on, from each body's own multigrid levels, made when the body was built: nobody's
-/// levels are coarsened again (`CpuWorld::coarsened_bodies` stays 0). A body going is
+/// levels are coarsened again (`CpuWorld::coarsened_bodies` stays 0). A body rebuilt
+/// (a new material) is appended anew in place, keeping its pose. A body going is
 /// retired in place: held still, far out of reach, with no
 /// rebuild, until retired bodies would hold more than a quarter of the particles (then
 /// the batch is made again without them). Through all of it the bodies already there
@@ -1491,6 +1492,29 @@ fn lattice_bodies_come_and_go_without_coarsening_or_rebuilding_the_others() {
     step_frames(&mut app, 5);
     assert!(cpu(&app).stepped_on_gpu());
     assert!(pose(&app, more[1]).iter().all(|p| p.is_finite()));
+    // C's material changes: C is rebuilt and appended anew in place, starting from its
+    // pose (the same particles), its old slot retired; no rebuild of the batch.
+    let (rebuilds, appended) = (cpu(&app).rebuilds(), cpu(&app).appended_in_place());
+    let (c_old, c_held) = (marker(&app, c).index, pose(&app, c));
+    if let Some(mut body) = app.world_mut().get_mut::<SoftBody>(c) {
+        body.material = TissueMaterial::Hyperelastic {
+            youngs_modulus: 80_000.0,
+            poisson_ratio: 0.4,
+        };
+    }
+    let moved = until(&mut app, 600, |app| marker(app, c).index != c_old);
+    assert!(moved, "the rebuilt body never joined the batch");
+    assert_eq!(
+        cpu(&app).rebuilds(),
+        rebuilds,
+        "a material change rebuilt the batch"
+    );
+    assert_eq!(cpu(&app).appended_in_place(), appended + 1);
+    assert!(cpu(&app).is_retired(c_old));
+    assert_eq!(pose(&app, c), c_held, "the rebuilt body lost its pose");
+    step_frames(&mut app, 5);
+    assert!(cpu(&app).stepped_on_gpu());
+    assert!(pose(&app, c).iter().all(|p| p.is_finite()));
 }
 
 /// Bodies the render graph's world has room for.

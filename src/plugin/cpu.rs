@@ -18,10 +18,12 @@
 //! Bodies coming and going: each lattice body brings its multigrid levels from its build
 //! ([`BuiltBody::levels`]) and a new batch joins them. While the batch steps on the
 //! GPU, a body gone is retired in place ([`CpuWorld::is_retired`]: held still, out of
-//! reach, until retired bodies hold a quarter of the particles), and a batch with new
-//! or rebuilt bodies is made on a worker thread while the old one steps on; they join
-//! when it is ready. Anything else (a settings change beyond gravity and damping, the
-//! CPU path) makes the batch again at once.
+//! reach, until retired bodies hold a quarter of the particles), a new body is appended
+//! in place into the room of the batch's GPU world ([`CpuWorld::appended_in_place`]),
+//! and a batch with rebuilt bodies, or new ones past the room, is made on a worker
+//! thread while the old one steps on; they join when it is ready. Gravity, damping and
+//! the step's schedule (time step, substeps, iterations) change in place. Anything else
+//! (other settings changes, the CPU path) makes the batch again at once.
 //!
 //! Not done on this path (yet): sleeping, and [`ColliderForce`] while some bodies are
 //! stepped by the render graph (it is written when every built body is in this world).
@@ -218,7 +220,8 @@ impl CpuWorld {
     }
 
     /// Whether body `index` of the model is retired: it left the scene while the batch
-    /// stepped on the GPU, and instead of a rebuild it was held still, out of everyone's
+    /// stepped on the GPU (or was rebuilt and appended anew in place),
+    /// and instead of a rebuild it was held still, out of everyone's
     /// reach, until the batch is made again (when retired bodies hold a quarter of its
     /// particles, or for any other change).
     pub fn is_retired(&self, index: usize) -> bool {
@@ -234,13 +237,17 @@ impl CpuWorld {
                 .all(|k| self.slots.get(&k.0).is_some_and(|&i| self.keys[i] == *k))
     }
 
-    /// Appends the bodies of `bodies` the batch does not have yet to it in place, without
-    /// a rebuild: into the room of its GPU world ([`GpuLattice::append`]) and onto its
-    /// model and state. Possible where the batch steps on the GPU, holds its latest state,
-    /// every other body of `bodies` is in it unchanged, and every new one is a lattice
-    /// body that brought its levels. True where the batch now holds exactly `bodies`;
-    /// false where a rebuild is needed (the bodies appended before the one that did not
-    /// fit stay, consistently on the CPU and the GPU).
+    /// Appends the bodies of `bodies` the batch does not have yet, and the ones rebuilt
+    /// since it was made (a new material, say), to it in place, without a rebuild: into
+    /// the room of its GPU world ([`GpuLattice::append`]) and onto its model and state.
+    /// A rebuilt body's old slot is retired (as a body gone, [`CpuWorld::is_retired`]);
+    /// the new one starts from the old one's pose where they have the same particles and
+    /// elements and it does not ask to start at rest. Possible where the batch steps on
+    /// the GPU, holds its latest state, every body coming is a lattice body that brought
+    /// its levels, and retired bodies would then hold at most a quarter of the
+    /// particles. True where the batch now holds exactly `bodies`; false where a rebuild
+    /// is needed (the bodies appended before the one that did not fit stay, consistently
+    /// on the CPU and the GPU).
     fn append_new(
         &mut self,
         bodies: &[(Entity, &BuiltBody)],
@@ -250,25 +257,37 @@ impl CpuWorld {
         if !self.on_gpu_now() {
             return false;
         }
-        let changed = bodies.iter().any(|(e, b)| {
-            self.slots
-                .get(e)
-                .is_some_and(|&i| self.keys[i].1 != b.generation)
-        });
-        let new: Vec<&(Entity, &BuiltBody)> = bodies
+        // Each body coming, with the slot it replaces (a rebuilt body).
+        let coming: Vec<(Entity, &BuiltBody, Option<usize>)> = bodies
             .iter()
-            .filter(|(e, _)| !self.slots.contains_key(e))
+            .filter_map(|&(e, b)| match self.slots.get(&e) {
+                None => Some((e, b, None)),
+                Some(&i) if self.keys[i].1 != b.generation => Some((e, b, Some(i))),
+                Some(_) => None,
+            })
             .collect();
-        if changed
-            || new.is_empty()
-            || self.slots.len() + new.len() != bodies.len()
-            || new
+        let fresh_count = coming.iter().filter(|c| c.2.is_none()).count();
+        let retiring: usize = coming
+            .iter()
+            .filter_map(|c| c.2)
+            .chain((0..self.keys.len()).filter(|&i| self.retired[i]))
+            .map(|i| self.ranges[i].0.len())
+            .sum();
+        let total = self.model.particle_count()
+            + coming
                 .iter()
-                .any(|(_, b)| b.levels.is_none() || !gpu_can_step(&b.model))
+                .map(|c| c.1.model.particle_count())
+                .sum::<usize>();
+        if coming.is_empty()
+            || self.slots.len() + fresh_count != bodies.len()
+            || 4 * retiring > total
+            || coming
+                .iter()
+                .any(|(_, b, _)| b.levels.is_none() || !gpu_can_step(&b.model))
         {
             return false;
         }
-        for &&(entity, built) in &new {
+        for (entity, built, old) in coming {
             let (Some(levels), Some(settings), Some(state), Some(g)) = (
                 built.levels.as_ref(),
                 self.settings.as_ref(),
@@ -280,7 +299,18 @@ impl CpuWorld {
             let Some(world) = g.world.as_mut() else {
                 return false;
             };
-            let fresh = State::new(&built.model);
+            let mut fresh = State::new(&built.model);
+            // A rebuilt body with the same particles keeps its pose.
+            if let Some(i) = old {
+                let (p, e) = self.ranges[i].clone();
+                if !built.reset && p.len() == fresh.x.len() && e.len() == fresh.element_rot.len() {
+                    fresh.x.copy_from_slice(&state.x[p.clone()]);
+                    fresh.v.copy_from_slice(&state.v[p.clone()]);
+                    fresh.rot.copy_from_slice(&state.rot[p.clone()]);
+                    fresh.grab.copy_from_slice(&state.grab[p]);
+                    fresh.element_rot.copy_from_slice(&state.element_rot[e]);
+                }
+            }
             match world.append(device, queue, &built.model, levels, &fresh, settings) {
                 Ok(true) => {}
                 Ok(false) => return false,
@@ -303,6 +333,17 @@ impl CpuWorld {
                 p0..self.model.particle_count(),
                 e0..self.model.elements.len(),
             ));
+            // The old slot of a rebuilt body is held still out of reach.
+            if let Some(i) = old {
+                let p = self.ranges[i].0.clone();
+                let below = Vec3::new(0.0, -RETIRED_DEPTH, 0.0);
+                for j in p.clone() {
+                    state.x[j] = self.model.rest[j] + below;
+                    state.v[j] = Vec3::ZERO;
+                }
+                world.hold(queue, &self.model, p.clone(), &state.x[p]);
+                self.retired[i] = true;
+            }
             self.slots.insert(entity, self.keys.len());
             self.keys.push((entity, built.generation));
             self.retired.push(false);
