@@ -335,13 +335,7 @@ impl CpuWorld {
             ));
             // The old slot of a rebuilt body is held still out of reach.
             if let Some(i) = old {
-                let p = self.ranges[i].0.clone();
-                let below = Vec3::new(0.0, -RETIRED_DEPTH, 0.0);
-                for j in p.clone() {
-                    state.x[j] = self.model.rest[j] + below;
-                    state.v[j] = Vec3::ZERO;
-                }
-                world.hold(queue, &self.model, p.clone(), &state.x[p]);
+                park(world, queue, &self.model, state, self.ranges[i].0.clone());
                 self.retired[i] = true;
             }
             self.slots.insert(entity, self.keys.len());
@@ -400,13 +394,7 @@ impl CpuWorld {
             return false;
         }
         for &b in &gone {
-            let p = self.ranges[b].0.clone();
-            let below = Vec3::new(0.0, -RETIRED_DEPTH, 0.0);
-            for i in p.clone() {
-                state.x[i] = self.model.rest[i] + below;
-                state.v[i] = Vec3::ZERO;
-            }
-            world.hold(queue, &self.model, p.clone(), &state.x[p]);
+            park(world, queue, &self.model, state, self.ranges[b].0.clone());
             self.retired[b] = true;
             self.slots.remove(&self.keys[b].0);
         }
@@ -665,6 +653,24 @@ impl CpuWorld {
             g.synced = false;
         }
     }
+}
+
+/// Holds `model`'s particles `range` still on the GPU at their rest shape
+/// [`RETIRED_DEPTH`] below where they were built, at rest in `state` too: a retired body,
+/// out of everyone's reach.
+fn park(
+    world: &GpuLattice,
+    queue: &RenderQueue,
+    model: &Model,
+    state: &mut State,
+    range: Range<usize>,
+) {
+    let below = Vec3::new(0.0, -RETIRED_DEPTH, 0.0);
+    for i in range.clone() {
+        state.x[i] = model.rest[i] + below;
+        state.v[i] = Vec3::ZERO;
+    }
+    world.hold(queue, model, range.clone(), &state.x[range]);
 }
 
 /// What making a batch takes from each body: entity, generation, whether it starts at
