@@ -1056,8 +1056,9 @@ impl GpuLattice {
         self.dispatches.len() * self.substeps as usize
     }
 
-    /// The buffer of positions and velocities (`n` vec4 each of positions, iterate,
-    /// inertial target, velocity, pin target).
+    /// The buffer of positions and velocities: five regions (positions, iterate,
+    /// inertial target, velocity, pin target), each a vec4 per particle slot (the world's
+    /// particles first, then the room for bodies appended later).
     pub fn pos_buffer(&self) -> &Buffer {
         &self.pos
     }
