@@ -291,6 +291,25 @@ fn vec4(v: Vec3) -> [f32; 4] {
     v.extend(0.0).to_array()
 }
 
+/// Empty segments of capacities `caps` one after another from 0, each followed by
+/// `spare` items; and where the last ends.
+fn back_to_back(caps: Vec<u32>, spare: u32) -> (Vec<Seg>, u32) {
+    let mut at = 0;
+    let segs = caps
+        .into_iter()
+        .map(|cap| {
+            let s = Seg {
+                start: at,
+                cap,
+                used: 0,
+            };
+            at += cap + spare;
+            s
+        })
+        .collect();
+    (segs, at)
+}
+
 /// The room a segment of `used` items gets: `room` times as many and `one` more, or
 /// exactly `used` where `room` is at most 1.
 fn room_for(used: u32, one: u32, room: f32) -> u32 {
@@ -323,28 +342,8 @@ impl Layout {
                 .collect()
         };
         // Node and element slots, each level's ending in a spare.
-        let mut at = 0u32;
-        let mut nodes = Vec::with_capacity(nl);
-        for cap in caps(&total.nodes, &most.nodes) {
-            nodes.push(Seg {
-                start: at,
-                cap,
-                used: 0,
-            });
-            at += cap + 1;
-        }
-        let node_slots = at;
-        at = 0;
-        let mut elems = Vec::with_capacity(nl);
-        for cap in caps(&total.elems, &most.elems) {
-            elems.push(Seg {
-                start: at,
-                cap,
-                used: 0,
-            });
-            at += cap + 1;
-        }
-        let elem_slots = at;
+        let (nodes, node_slots) = back_to_back(caps(&total.nodes, &most.nodes), 1);
+        let (elems, elem_slots) = back_to_back(caps(&total.elems, &most.elems), 1);
         // `topo`: the inverse lists' heads (one per node slot, and one more), lists,
         // colour orders, the transfers' and children's heads and lists.
         let mut at = node_slots + 1;
@@ -392,20 +391,8 @@ impl Layout {
         };
         let body_cap = room_for(bodies as u32, 1, room);
         let chunk_base = 3 * elem_slots;
-        let mut at = 0u32;
-        let tables: Vec<Seg> = caps(&total.chunks, &most.chunks)
-            .into_iter()
-            .map(|cap| {
-                let s = Seg {
-                    start: at,
-                    cap,
-                    used: 0,
-                };
-                at += cap;
-                s
-            })
-            .collect();
-        let starts_base = 4 * (chunk_base + at);
+        let (tables, chunks) = back_to_back(caps(&total.chunks, &most.chunks), 0);
+        let starts_base = 4 * (chunk_base + chunks);
         let starts_words = tables.len() as u32 * (body_cap + 1);
         let elems_len = starts_base / 4 + starts_words.div_ceil(4);
         Self {

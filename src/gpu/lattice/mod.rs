@@ -975,22 +975,7 @@ impl GpuLattice {
         if records.len() > self.pass_room {
             return false;
         }
-        let fresh = params_of(
-            &self.layout,
-            settings,
-            LatticeOptions::default(),
-            &self.cheb,
-            self.shape.smoother,
-            self.params_now.pair[0] != 0,
-        );
-        let p = &mut self.params_now;
-        p.gravity = fresh.gravity;
-        p.h = fresh.h;
-        p.h2 = fresh.h2;
-        p.keep = fresh.keep;
-        p.misc[1] = fresh.misc[1];
-        p.pair[2] = fresh.pair[2];
-        self.h = fresh.h;
+        self.h = settings.dt / settings.substeps as f32;
         self.substeps = settings.substeps;
         self.newton = newton;
         self.settings = settings.clone();
@@ -998,31 +983,30 @@ impl GpuLattice {
         self.dispatches = dispatches;
         self.pass_index = pass_index;
         queue.write_buffer(&self.passes, 0, &pass_bytes(&records, self.pass_room));
-        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&self.params_now));
+        self.write_params(queue);
         true
     }
 
-    /// Writes the parameter block for the layout as it is now (the colliders, gravity
-    /// and damping as last set).
+    /// Writes the parameter block for the layout and the settings as they are now (the
+    /// colliders as last set).
     fn write_params(&mut self, queue: &RenderQueue) {
-        let mut p = self.params_now;
+        let now = self.params_now;
         let fresh = params_of(
             &self.layout,
-            &SolverSettings::default(),
+            &self.settings,
             LatticeOptions::default(),
             &self.cheb,
             self.shape.smoother,
-            p.pair[0] != 0,
+            now.pair[0] != 0,
         );
-        p.lv = fresh.lv;
-        p.colours = fresh.colours;
-        p.count = fresh.count;
-        for (c, f) in p.cheb.iter_mut().zip(fresh.cheb) {
-            c[0] = f[0];
-            c[1] = f[1];
-        }
-        self.params_now = p;
-        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&p));
+        // What is not the layout's or the settings': the colliders set, the line
+        // search's first-pass candidates.
+        self.params_now = Params {
+            misc: [now.misc[0], fresh.misc[1], fresh.misc[2], fresh.misc[3]],
+            sweeps: now.sweeps,
+            ..fresh
+        };
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&self.params_now));
     }
 
     /// Bodies of the world (appended ones included).
