@@ -1575,6 +1575,7 @@ fn lattice_colliders_match_the_cpu() {
         return;
     };
     let mut run = Lockstep::new(g, lattice_box(Vec3::new(0.03, 0.02, 0.02), 0.03));
+    let mut pressed = 0;
     for step in 0..40u32 {
         let mut sphere = Collider::new(
             ColliderShape::Sphere { radius: 0.02 },
@@ -1586,6 +1587,17 @@ fn lattice_colliders_match_the_cpu() {
             colliders: vec![Collider::ground(0.0), sphere],
         };
         let c = run.step(g, &control);
+        // The colliders' forces (the reactions of the particles touching them) agree
+        // while the runs agree to a micrometre.
+        if c.diff <= 1e-6 {
+            for (k, (gf, cf)) in c.gpu_forces.iter().zip(&c.cpu_forces).enumerate() {
+                assert!(
+                    gf.distance(*cf) <= 1e-3 * cf.length() + 1e-4,
+                    "step {step}, collider {k}: GPU {gf} N, CPU {cf} N"
+                );
+            }
+            pressed += (c.cpu_forces[0].y < 0.0) as u32;
+        }
         let bound = if step < 5 {
             1e-5 * c.moved + 1e-7
         } else {
@@ -1599,6 +1611,10 @@ fn lattice_colliders_match_the_cpu() {
             c.own
         );
     }
+    assert!(
+        pressed >= 3,
+        "forces compared on the ground at {pressed} steps"
+    );
     let lowest = run.cpu.1.x.iter().fold(f32::MAX, |a, p| a.min(p.y));
     let r = run.model.bodies[0].radius;
     assert!(

@@ -749,12 +749,24 @@ impl Solver {
                 self.iterate(model, state, control, &consts);
                 trace(self, it + 1, &state.rot);
             }
-            // Collider forces: momentum the colliders removed over the substep.
+            // Collider forces: momentum the colliders removed over the substep; on
+            // lattice particles stepped by Newton–multigrid, the reaction a collider
+            // holds each particle touching it with (graspers as below).
             let t = std::time::Instant::now();
+            let reactions = self.lattice_reactions(model, state, control);
+            for (k, f) in reactions.iter().enumerate() {
+                stats.collider_forces[k] += *f / s.substeps as f32;
+            }
             for i in 0..n {
                 let (dp, id) = self.col[i];
                 self.touched[i] = id;
-                if id != u32::MAX {
+                let reacted = !reactions.is_empty()
+                    && !model.elements_of(i).is_empty()
+                    && control
+                        .colliders
+                        .get(id as usize)
+                        .is_some_and(|c| !matches!(c.shape, ColliderShape::Grasper { .. }));
+                if id != u32::MAX && !reacted {
                     let f = -dp * model.mass[i] / (h * h);
                     stats.collider_forces[id as usize] += f / s.substeps as f32;
                 }
@@ -1405,17 +1417,6 @@ impl Solver {
             let a = alpha[model.particle_body[j] as usize].unwrap_or(0.0);
             if !held[j] && a > 0.0 {
                 self.p[j] += *dj * a;
-            }
-        }
-        // The colliders' penalty forces at the new positions: the tissue presses on a
-        // collider with `−k depth n`.
-        for c in &contacts {
-            if let ContactWith::Collider(k) = c.other {
-                let p = &self.p;
-                let depth = c.depth(model, control, &|j| p[j]);
-                if depth > 0.0 {
-                    self.newton_force[c.node] = (-c.normal * (c.stiffness * depth), k as u32);
-                }
             }
         }
         self.mg = Some(mg);
@@ -2125,6 +2126,105 @@ impl NewtonContact {
             }
         }
     }
+}
+
+/// How far beyond its radius (a fraction of it) a lattice particle still touches a
+/// collider for the collider's force: the substep's projection leaves a pressed
+/// particle at its radius, the Newton iterate a little either side of it.
+const TOUCH_TOLERANCE: f32 = 0.05;
+
+impl Solver {
+    /// The force on each collider (N, by collider; empty where no lattice body stepped
+    /// by Newton–multigrid): every free lattice particle touching a collider (within
+    /// [`TOUCH_TOLERANCE`] of its radius; of several, the one it is deepest in; not a
+    /// grasper) at the substep's end puts on it the reaction of
+    /// [`reaction_on_collider`].
+    fn lattice_reactions(&self, model: &Model, state: &State, control: &Control) -> Vec<Vec3> {
+        let n = model.particle_count();
+        let Some(mg) = self.mg.as_deref() else {
+            return Vec::new();
+        };
+        if control.colliders.is_empty()
+            || self.target.len() != n
+            || mg.levels[0].nodes != n
+            || self.settings.newton_iterations == 0
+        {
+            return Vec::new();
+        }
+        let h2 = self.h * self.h;
+        let fixed = &mg.levels[0].fixed;
+        let mut out = vec![Vec3::ZERO; control.colliders.len()];
+        for j in 0..n {
+            if fixed[j]
+                || self.pin_slot[j] != u32::MAX
+                || state.grab[j].collider != u32::MAX
+                || model.elements_of(j).is_empty()
+            {
+                continue;
+            }
+            let r = model.bodies[model.particle_body[j] as usize].radius;
+            let mut best: Option<(f32, usize, Vec3)> = None;
+            for (k, c) in control.colliders.iter().enumerate() {
+                if matches!(c.shape, ColliderShape::Grasper { .. }) {
+                    continue;
+                }
+                let (d, normal) = c.distance(self.p[j]);
+                if d < r * (1.0 + TOUCH_TOLERANCE) && best.is_none_or(|b| d < b.0) {
+                    best = Some((d, k, normal));
+                }
+            }
+            if let Some((_, k, normal)) = best {
+                out[k] += reaction_on_collider(
+                    model,
+                    mg,
+                    &state.element_rot,
+                    &self.p,
+                    j,
+                    (self.target[j], h2),
+                    normal,
+                );
+            }
+        }
+        out
+    }
+}
+
+/// The force a lattice particle `j` at `p[j]` puts on a collider whose outward normal
+/// there is `normal`: the particle's residual force without the contact, its inertia
+/// `m (x̃ − p) / h²` (`target` = (x̃, h²)) plus its elements' elastic forces (their
+/// rotations `rot` held), which the collider balances at equilibrium (the reaction at
+/// a constrained node, as in FEM); its part along the normal where it presses on the
+/// collider, zero where it pulls away.
+fn reaction_on_collider(
+    model: &Model,
+    mg: &super::multigrid::LatticeMultigrid,
+    rot: &[Quat],
+    p: &[Vec3],
+    j: usize,
+    target: (Vec3, f32),
+    normal: Vec3,
+) -> Vec3 {
+    let mut r = (target.0 - p[j]) * (model.mass[j] / target.1);
+    for &ec in model.elements_of(j) {
+        let (e, corner) = ((ec >> 3) as usize, (ec & 7) as usize);
+        let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
+            continue;
+        };
+        let nodes = &model.elements[e];
+        let rest = &model.element_rest[e];
+        let mut q = rot[e];
+        let f = super::multigrid::element_forces(
+            &nodes.map(|i| p[i as usize]),
+            rest.size,
+            rest.volume,
+            mat,
+            modes,
+            &mut q,
+            0,
+        );
+        r += f[corner];
+    }
+    normal * r.dot(normal).min(0.0)
 }
 
 /// Steps the lattice line search tries: 1, ½, ¼, … down to 2⁻¹²; none lowering the

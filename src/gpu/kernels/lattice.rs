@@ -223,7 +223,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Forces,
         name: "forces",
-        uses: &["params", "pos", "rot", "ef", "elems", "mats"],
+        uses: &["params", "pc", "pos", "rot", "ef", "elems", "mats"],
     },
     Entry {
         kernel: Kernel::Residual,
@@ -298,7 +298,9 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Finish,
         name: "finish",
-        uses: &["params", "pos", "ccol"],
+        uses: &[
+            "params", "cols", "pos", "ef", "ccol", "topo", "nodes", "mats",
+        ],
     },
     Entry {
         kernel: Kernel::Contacts,
@@ -322,7 +324,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::ForcePartials,
         name: "force_partials",
-        uses: &["params", "red", "ccol", "nodes"],
+        uses: &["params", "cols", "red", "ccol", "nodes"],
     },
     Entry {
         kernel: Kernel::ForceTotal,

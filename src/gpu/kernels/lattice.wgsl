@@ -47,9 +47,9 @@ const C_TOUCH: u32 = 1u;
 // Region 2 of `ccol`: the grasp of each node (the offset in the grasper's frame, m; w:
 // the grasper's index + 1, 0: free).
 const C_GRAB: u32 = 2u;
-// Region 3 of `ccol`: the force a node puts on a collider or grasper in this Newton
-// iteration (xyz, N; w: the collider, −1: none): a grasped node's residual, or the
-// penalty of its last collider contact.
+// Region 3 of `ccol`: the force a node puts on a collider or grasper in this substep
+// (xyz, N; w: the collider, −1: none): a grasped node's residual in the last Newton
+// iteration, or the reaction of the collider it touches at the substep's end.
 const C_NF: u32 = 3u;
 // Region 4 of `ccol` (present when the world has particle contacts): per node, where
 // its particle-contact candidates (other bodies' nodes) are, as u32 indices into the
@@ -57,6 +57,9 @@ const C_NF: u32 = 3u;
 const C_PAIR: u32 = 4u;
 // Penalty stiffness over a particle's own stiffness scale m/h² + (λ + 2μ) s.
 const PENALTY: f32 = 1.0e3;
+// How far beyond its radius (a fraction of it) a node still touches a collider for the
+// collider's force (core::solver's TOUCH_TOLERANCE).
+const TOUCH_TOLERANCE: f32 = 0.05;
 
 struct LatticeParams {
     gravity: vec4<f32>,      // m/s²
@@ -657,11 +660,13 @@ fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     pos[R_Y * params.n + j] = vec4<f32>(y + direction(j, pc.mode) * a, 0.0);
 }
 
-// Element forces at the iterate (core::multigrid::element_forces), rotations refined.
+// Element forces at the iterate (core::multigrid::element_forces): pc.mode 0, the
+// rotations refined; pc.mode 1 (the substep's end, for the colliders' reactions, only
+// where there are colliders), the rotations held.
 @compute @workgroup_size(64)
 fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
     let e = gid.x;
-    if (e >= params.lv[0].w) {
+    if (e >= params.lv[0].w || (pc.mode == 1u && params.misc.x == 0u)) {
         return;
     }
     let x = load_x(e, R_Y);
@@ -671,8 +676,11 @@ fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
     let volume = bitcast<f32>(info.w);
     let lame = mats[b * MAT_STRIDE];
     let f = element_gradient(x, size);
-    let q = extract_rotation(f, rot[e], params.rot_iters);
-    rot[e] = q;
+    var q = rot[e];
+    if (pc.mode == 0u) {
+        q = extract_rotation(f, q, params.rot_iters);
+        rot[e] = q;
+    }
     let r = quat_mat(q);
     let rtf = transpose(r) * f;
     let s = (rtf + transpose(rtf)) * 0.5 - identity3();
@@ -1178,7 +1186,39 @@ fn trust_scale(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[i] = vec4<f32>(d, 0.0);
 }
 
-// Finish: v = (y − x)/h, damped; x = y.
+// The force free node j at y puts on the collider it touches (within
+// TOUCH_TOLERANCE of its radius; of several, the one it is deepest in), as the node's
+// Newton force (core::solver's lattice_reactions): its residual without the contact,
+// inertia M/h² (x̃ − y) plus its elements' forces at y (the `forces` pass of mode 1),
+// along the collider's normal where it presses on it.
+fn reaction(j: u32, y: vec3<f32>) {
+    let n = params.n;
+    if (params.misc.x == 0u || held(j) || ccol[C_GRAB * n + j].w > 0.5) {
+        return;
+    }
+    let r = mats[u32(nodes[j].w) * MAT_STRIDE].z;
+    var best = vec4<f32>(0.0, 0.0, 0.0, r * (1.0 + TOUCH_TOLERANCE));
+    var k_best = -1.0;
+    for (var k = 0u; k < params.misc.x; k = k + 1u) {
+        let dn = collider_sdf(cols[k], y);
+        if (dn.w < best.w) {
+            best = dn;
+            k_best = f32(k);
+        }
+    }
+    if (k_best < 0.0) {
+        return;
+    }
+    var f = (pos[R_T * n + j].xyz - y) * (nodes[j].x / params.h2);
+    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
+        let ec = topo[s];
+        f = f + ef[8u * (ec >> 3u) + (ec & 7u)].xyz;
+    }
+    ccol[C_NF * n + j] = vec4<f32>(best.xyz * min(dot(f, best.xyz), 0.0), k_best);
+}
+
+// Finish: each touching node's force on its collider (`reaction`); v = (y − x)/h,
+// damped; x = y.
 @compute @workgroup_size(64)
 fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -1188,6 +1228,7 @@ fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
     let n = params.n;
     let x = pos[R_X * n + j].xyz;
     let y = pos[R_Y * n + j].xyz;
+    reaction(j, y);
     pos[R_V * n + j] = vec4<f32>((y - x) / params.h * params.keep, 0.0);
     pos[R_X * n + j] = vec4<f32>(y, 0.0);
     let t = ccol[C_TOUCH * n + j];
@@ -1369,24 +1410,8 @@ fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
         pos[R_Y * n + j] = vec4<f32>(gt.xyz, 0.0);
         return;
     }
-    let sc = contact_scale(j);
-    let r = sc.x;
+    let r = contact_scale(j).x;
     let x = pos[R_X * n + j].xyz;
-    // The penalty forces at the Newton iterate: the tissue presses on a collider with
-    // −k depth n (the last of its contacts reported).
-    let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
-    if (mask != 0u) {
-        for (var k = 0u; k < params.misc.x; k = k + 1u) {
-            if ((mask & (1u << k)) == 0u) {
-                continue;
-            }
-            let dn = collider_sdf(cols[k], y);
-            let depth = r - dn.w;
-            if (depth > 0.0) {
-                ccol[C_NF * n + j] = vec4<f32>(-dn.xyz * (sc.y * depth), f32(k));
-            }
-        }
-    }
     var total = vec3<f32>(0.0);
     var id = -1.0;
     for (var k = 0u; k < params.misc.x; k = k + 1u) {
@@ -1404,14 +1429,14 @@ fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
     pos[R_Y * n + j] = vec4<f32>(q, 0.0);
 }
 
-// The forces a node put on the colliders in this substep: −m/h² times its projection's
-// correction, and its Newton force, each for its collider (core::solver's collider
-// forces).
+// The forces a node put on the colliders in this substep: its Newton force (the
+// reaction of a collider it touches, or a grasped node's pull), and on a grasper −m/h²
+// times its correction (core::solver's collider forces).
 fn node_force(j: u32, k: f32) -> vec3<f32> {
     let n = params.n;
     var f = vec3<f32>(0.0);
     let c = ccol[C_COL * n + j];
-    if (c.w == k) {
+    if (c.w == k && cols[u32(k)].kind_fr.x == 4.0) {
         f = f - c.xyz * (nodes[j].x / params.h2);
     }
     let nf = ccol[C_NF * n + j];

@@ -256,6 +256,8 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         }
         push(Kernel::Boundary, 0, n, 0, pairs as u32, groups(n));
     }
+    // The element forces at the substep's end, for the colliders' reactions.
+    push(Kernel::Forces, 0, ne, 0, 1, groups(ne));
     push(Kernel::Finish, 0, n, 0, 0, groups(n));
     push(Kernel::ForcePartials, 0, n, 0, 0, reduction_groups(n));
     push(Kernel::ForceTotal, 0, reduction_groups(n), 0, 0, 1);
@@ -1644,7 +1646,17 @@ mod tests {
         let count = |k: Kernel| p.iter().filter(|d| d.kernel == k).count();
         assert_eq!(count(Kernel::Predict), 1);
         assert_eq!(count(Kernel::Finish), 1);
-        assert_eq!(count(Kernel::Forces), 2);
+        // One per Newton iteration, and one (rotations held) for the colliders'
+        // reactions at the substep's end, just before `finish`.
+        assert_eq!(count(Kernel::Forces), 3);
+        let last = p.len()
+            - 1
+            - p.iter()
+                .rev()
+                .position(|d| d.kernel == Kernel::Forces)
+                .unwrap();
+        assert_eq!(p[last].pass.mode, 1);
+        assert_eq!(p[last + 1].kernel, Kernel::Finish);
         // Every level's diagonal blocks in one dispatch, over all 128 nodes.
         assert_eq!(count(Kernel::Diag), 2);
         assert!(
