@@ -2154,8 +2154,8 @@ impl Solver {
         let h2 = self.h * self.h;
         let fixed = &mg.levels[0].fixed;
         let mut out = vec![Vec3::ZERO; control.colliders.len()];
-        for j in 0..n {
-            if fixed[j]
+        for (j, &fixed_j) in fixed.iter().enumerate().take(n) {
+            if fixed_j
                 || self.pin_slot[j] != u32::MAX
                 || state.grab[j].collider != u32::MAX
                 || model.elements_of(j).is_empty()
