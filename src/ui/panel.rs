@@ -323,9 +323,9 @@ pub(crate) fn settings_widgets(
         "V-cycles / Newton iteration",
     ));
     e.add(&r.on_hover_text(
-        "Multigrid V-cycles per Newton iteration of lattice bodies (default 1; more than \
+        "Multigrid V-cycles per Newton iteration of lattice bodies (default 2; more than \
          one solve the Newton step by conjugate gradients: with 1 Newton iteration, \
-         faster for the same accuracy, but finely sampled bodies fall too slowly)",
+         faster for the same accuracy)",
     ));
     ui.horizontal(|ui| {
         let r = ui.radio_value(&mut s.backend, TissueBackend::Auto, "GPU")
