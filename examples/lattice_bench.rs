@@ -611,6 +611,42 @@ fn changes(g: &Gpu, bodies: u32) {
         appends.push(ms);
     }
     println!("| append one body | {:.3} |", bench::median(appends));
+    // The same in two parts, as the plugin does: packed (and staged on the device) on a
+    // worker thread, then committed on the frame's thread.
+    let (mut packs, mut commits, mut waited) = (Vec::new(), Vec::new(), Vec::new());
+    let mut bytes = 0;
+    for _ in 0..5 {
+        let t = Instant::now();
+        let mut prepared = world
+            .append_basis()
+            .prepare(&cube, &part, &cube_state, &s)
+            .unwrap_or_else(|e| fail("append", e))
+            .unwrap_or_else(|| fail("append", "no room"));
+        prepared.stage(&g.device);
+        packs.push(t.elapsed().as_secs_f64() * 1e3);
+        bytes = prepared.bytes();
+        let t = Instant::now();
+        let ok = world.commit_append(&g.device, &g.queue, prepared);
+        commits.push(t.elapsed().as_secs_f64() * 1e3);
+        wait(g, &world);
+        waited.push(t.elapsed().as_secs_f64() * 1e3);
+        if !ok {
+            fail("commit", "a stale packing");
+        }
+        grown.append(&cube);
+    }
+    println!(
+        "| append: pack and stage ({bytes} bytes; any thread) | {:.3} |",
+        bench::median(packs)
+    );
+    println!(
+        "| append: commit (the frame's thread) | {:.3} |",
+        bench::median(commits)
+    );
+    println!(
+        "| append: commit and wait for the GPU | {:.3} |",
+        bench::median(waited)
+    );
     let empty: Vec<f64> = (0..5).map(|_| timed(g, &mut world, |_| ()).1).collect();
     println!(
         "| (an empty submission and wait) | {:.3} |",
@@ -637,6 +673,6 @@ fn changes(g: &Gpu, bodies: u32) {
     }
     println!("| gravity | {:.3} |", bench::median(gravity));
     println!(
-        "\nGPU ms per step: no room {tight_step:.3}; room 1.5 {room_step:.3}; after 5 appended {appended_step:.3}"
+        "\nGPU ms per step: no room {tight_step:.3}; room 1.5 {room_step:.3}; after 10 appended {appended_step:.3}"
     );
 }

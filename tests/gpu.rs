@@ -1376,6 +1376,110 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
     );
 }
 
+/// Bodies packed on another thread against a snapshot of a GPU lattice
+/// (`AppendBasis::prepare`, the second behind the first with `AppendBasis::after`), then
+/// committed in order, make the world that appending them one by one makes, to the bit.
+/// A packing committed out of order, or into another world, is refused with nothing
+/// changed.
+#[test]
+fn bodies_packed_on_another_thread_commit_as_appended_here() {
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid};
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
+    let Some(g) = gpu() else {
+        return;
+    };
+    let kernels = LatticeKernels::new(&g.device).unwrap();
+    let bodies = [
+        lattice_bar(0.0075),
+        lattice_box_at(Vec3::splat(0.02), Vec3::new(0.0, 0.2, 0.0)),
+        lattice_box_at(Vec3::new(0.03, 0.015, 0.02), Vec3::new(0.3, 0.1, 0.0)),
+    ];
+    let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
+    let s = lattice_settings();
+    let make = || {
+        GpuLattice::with_levels(
+            &g.device,
+            &kernels,
+            &bodies[0],
+            LatticeMultigrid::joined(&[&parts[0]], parts[0].levels.len()),
+            &State::new(&bodies[0]),
+            &s,
+            LatticeOptions {
+                room: 4.0,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+    };
+    let mut here = make();
+    for b in 1..3 {
+        let state = State::new(&bodies[b]);
+        assert!(
+            here.append(&g.device, &g.queue, &bodies[b], &parts[b], &state, &s)
+                .unwrap()
+        );
+    }
+    let mut there = make();
+    let basis = there.append_basis();
+    let (first, second) = std::thread::scope(|scope| {
+        scope
+            .spawn(|| {
+                let pack = |basis: &bevy_tissue::gpu::lattice::AppendBasis, b: usize| {
+                    let mut p = basis
+                        .prepare(&bodies[b], &parts[b], &State::new(&bodies[b]), &s)
+                        .unwrap()
+                        .expect("room for it");
+                    p.stage(&g.device);
+                    p
+                };
+                let first = pack(&basis, 1);
+                let second = pack(&basis.after(&first), 2);
+                (first, second)
+            })
+            .join()
+            .unwrap()
+    });
+    // Into another world made the same way: refused.
+    let mut other = make();
+    let stray = there
+        .append_basis()
+        .prepare(&bodies[1], &parts[1], &State::new(&bodies[1]), &s)
+        .unwrap()
+        .unwrap();
+    assert!(!other.commit_append(&g.device, &g.queue, stray));
+    assert_eq!(other.body_count(), 1);
+    // Out of order: refused; in order: taken.
+    assert!(!there.commit_append(&g.device, &g.queue, second));
+    assert_eq!(there.body_count(), 1);
+    let second = basis
+        .after(&first)
+        .prepare(&bodies[2], &parts[2], &State::new(&bodies[2]), &s)
+        .unwrap()
+        .unwrap();
+    assert!(there.commit_append(&g.device, &g.queue, first));
+    assert!(there.commit_append(&g.device, &g.queue, second));
+    assert_eq!(
+        (there.body_count(), there.particle_count()),
+        (here.body_count(), here.particle_count())
+    );
+    let mut all = Model::new();
+    for b in &bodies {
+        all.append(b);
+    }
+    let run = |world: &GpuLattice| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &kernels, 10, None);
+        g.queue.submit([enc.finish()]);
+        let mut state = State::new(&all);
+        world.download(&g.device, &g.queue, &mut state);
+        state.x
+    };
+    let (a, b) = (run(&here), run(&there));
+    assert!(max_dist(&a, &all.rest) > 1e-3, "the bodies fell");
+    assert!(a == b, "committed differently: {} m", max_dist(&a, &b));
+}
+
 /// A GPU lattice takes a new time step, substeps and iteration counts in place
 /// (`GpuLattice::set_steps`) and then steps to the bit as one made with them; a change it
 /// cannot take (another smoother) is refused, nothing changed.

@@ -19,8 +19,10 @@
 //! ([`BuiltBody::levels`]) and a new batch joins them. While the batch steps on the
 //! GPU, a body gone is retired in place ([`CpuWorld::is_retired`]: held still, out of
 //! reach, until retired bodies hold a quarter of the particles), a new body is appended
-//! in place into the room of the batch's GPU world ([`CpuWorld::appended_in_place`]),
-//! and a batch with rebuilt bodies, or new ones past the room, is made on a worker
+//! in place into the room of the batch's GPU world ([`CpuWorld::appended_in_place`]:
+//! packed on a worker thread while the batch steps on, then written in the frame it is
+//! ready; a body rebuilt with a new material is packed in the frame, as it keeps its
+//! pose), and a batch with rebuilt bodies, or new ones past the room, is made on a worker
 //! thread while the old one steps on; they join when it is ready. Gravity, damping and
 //! the step's schedule (time step, substeps, iterations) change in place. Anything else
 //! (other settings changes, the CPU path) makes the batch again at once.
@@ -39,7 +41,7 @@ use crate::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES
 use crate::core::skin::{skin_normals, skin_positions};
 use crate::core::solver::{Control, Solver, SolverSettings, State};
 use crate::gpu::kernels::lattice::{LatticeKernels, MAX_COLLIDERS};
-use crate::gpu::lattice::{GpuLattice, LatticeOptions};
+use crate::gpu::lattice::{GpuLattice, LatticeOptions, PreparedAppend};
 use bevy::camera::primitives::Aabb;
 use bevy::mesh::VertexAttributeValues;
 use bevy::prelude::*;
@@ -110,6 +112,8 @@ pub struct CpuWorld {
     /// A batch being made on a worker thread for these bodies (the current one steps
     /// meanwhile).
     pending: Option<PendingBatch>,
+    /// New bodies being packed on a worker thread for the GPU world's room.
+    pending_append: Option<PendingAppend>,
     /// Rebuilds made on a worker thread.
     off_thread: u64,
     /// Bodies appended in place ([`CpuWorld::appended_in_place`]).
@@ -162,7 +166,8 @@ impl CpuWorld {
 
     /// How many bodies were appended to the batch in place: spawned while the batch
     /// stepped on the GPU, into the room of its GPU world, without a rebuild (the other
-    /// bodies kept their state; see [`GpuLattice::append`]).
+    /// bodies kept their state; see [`GpuLattice::append`] and
+    /// [`crate::gpu::lattice::AppendBasis`]).
     pub fn appended_in_place(&self) -> u64 {
         self.appended
     }
@@ -287,7 +292,24 @@ impl CpuWorld {
         {
             return false;
         }
-        for (entity, built, old) in coming {
+        // A rebuilt body keeps its pose from the state as it is now: packed here. New
+        // bodies are packed on a worker thread while the batch steps on.
+        if coming.iter().any(|c| c.2.is_some()) {
+            self.pending_append = None;
+            return self.append_now(&coming, device, queue);
+        }
+        self.append_soon(&coming, device, queue)
+    }
+
+    /// Appends `coming` (each body with the slot it replaces) now, packed on this
+    /// thread. False at the first that does not fit (those before it stay appended).
+    fn append_now(
+        &mut self,
+        coming: &[(Entity, &BuiltBody, Option<usize>)],
+        device: &RenderDevice,
+        queue: &RenderQueue,
+    ) -> bool {
+        for &(entity, built, old) in coming {
             let (Some(levels), Some(settings), Some(state), Some(g)) = (
                 built.levels.as_ref(),
                 self.settings.as_ref(),
@@ -319,33 +341,137 @@ impl CpuWorld {
                     return false;
                 }
             }
-            // The new body meets the others at the next step's contact search.
-            g.lists = false;
-            let (p0, e0) = (self.model.particle_count(), self.model.elements.len());
-            self.model.append(&built.model);
-            state.x.extend_from_slice(&fresh.x);
-            state.v.extend_from_slice(&fresh.v);
-            state.rot.extend_from_slice(&fresh.rot);
-            state.element_rot.extend_from_slice(&fresh.element_rot);
-            state.pin_targets.extend_from_slice(&fresh.pin_targets);
-            state.grab.extend_from_slice(&fresh.grab);
-            self.ranges.push((
-                p0..self.model.particle_count(),
-                e0..self.model.elements.len(),
-            ));
-            // The old slot of a rebuilt body is held still out of reach.
-            if let Some(i) = old {
-                park(world, queue, &self.model, state, self.ranges[i].0.clone());
-                self.retired[i] = true;
-            }
-            self.slots.insert(entity, self.keys.len());
-            self.keys.push((entity, built.generation));
-            self.retired.push(false);
-            // The CPU's solver is made again before it steps this batch.
-            self.solver_stale = true;
-            self.appended += 1;
+            self.took(entity, built, &fresh, old, queue);
         }
         true
+    }
+
+    /// Appends new bodies `coming` from packings made on a worker thread against the
+    /// GPU world as it is now ([`AppendBasis::prepare`]): starts them, or commits them
+    /// once ready, so that the frame pays only for the writes. True while they are
+    /// being packed and once committed; false (nothing changed) where they do not fit
+    /// (the caller rebuilds).
+    fn append_soon(
+        &mut self,
+        coming: &[(Entity, &BuiltBody, Option<usize>)],
+        device: &RenderDevice,
+        queue: &RenderQueue,
+    ) -> bool {
+        let keys: Vec<(Entity, u64)> = coming.iter().map(|c| (c.0, c.1.generation)).collect();
+        // A packing for bodies that are no longer all coming is dropped.
+        if self
+            .pending_append
+            .as_ref()
+            .is_some_and(|p| !p.0.iter().all(|k| keys.contains(k)))
+        {
+            self.pending_append = None;
+        }
+        if self.pending_append.is_none() {
+            let (Some(settings), Some(world)) = (
+                self.settings.clone(),
+                self.gpu.as_ref().and_then(|g| g.world.as_ref()),
+            ) else {
+                return false;
+            };
+            let mut basis = world.append_basis();
+            let inputs: Vec<(Arc<Model>, Arc<BodyLevels>)> = coming
+                .iter()
+                .filter_map(|c| Some((c.1.model.clone(), c.1.levels.clone()?)))
+                .collect();
+            let device = device.clone();
+            let task = AsyncComputeTaskPool::get().spawn(async move {
+                let mut out = Vec::with_capacity(inputs.len());
+                for (model, levels) in inputs {
+                    let state = State::new(&model);
+                    let Some(mut prepared) = basis.prepare(&model, &levels, &state, &settings)?
+                    else {
+                        return Ok(None);
+                    };
+                    prepared.stage(&device);
+                    basis = basis.after(&prepared);
+                    out.push(prepared);
+                }
+                Ok(Some(out))
+            });
+            self.pending_append = Some((keys, task));
+        }
+        let Some((_, task)) = self.pending_append.as_mut() else {
+            return false;
+        };
+        let ready = match block_on(future::poll_once(task)) {
+            None => return true,
+            Some(Ok(Some(ready))) => ready,
+            Some(Ok(None)) => {
+                self.pending_append = None;
+                return false;
+            }
+            Some(Err(e)) => {
+                warn!("bevy_tissue: {e}");
+                self.pending_append = None;
+                return false;
+            }
+        };
+        let Some((keys, _)) = self.pending_append.take() else {
+            return false;
+        };
+        for (key, prepared) in keys.into_iter().zip(ready) {
+            let Some(&(entity, built, _)) = coming.iter().find(|c| (c.0, c.1.generation) == key)
+            else {
+                break;
+            };
+            let Some(world) = self.gpu.as_mut().and_then(|g| g.world.as_mut()) else {
+                return false;
+            };
+            // The world changed since the packing began: the rest are packed again.
+            if !world.commit_append(device, queue, prepared) {
+                break;
+            }
+            let fresh = State::new(&built.model);
+            self.took(entity, built, &fresh, None, queue);
+        }
+        true
+    }
+
+    /// Takes `built` (as `entity`, from `fresh`), just appended to the GPU world, into
+    /// the model and the state; retires the slot `old` it replaces.
+    fn took(
+        &mut self,
+        entity: Entity,
+        built: &BuiltBody,
+        fresh: &State,
+        old: Option<usize>,
+        queue: &RenderQueue,
+    ) {
+        let (Some(state), Some(g)) = (self.state.as_mut(), self.gpu.as_mut()) else {
+            return;
+        };
+        // The new body meets the others at the next step's contact search.
+        g.lists = false;
+        let (p0, e0) = (self.model.particle_count(), self.model.elements.len());
+        self.model.append(&built.model);
+        state.x.extend_from_slice(&fresh.x);
+        state.v.extend_from_slice(&fresh.v);
+        state.rot.extend_from_slice(&fresh.rot);
+        state.element_rot.extend_from_slice(&fresh.element_rot);
+        state.pin_targets.extend_from_slice(&fresh.pin_targets);
+        state.grab.extend_from_slice(&fresh.grab);
+        self.ranges.push((
+            p0..self.model.particle_count(),
+            e0..self.model.elements.len(),
+        ));
+        // The old slot of a rebuilt body is held still out of reach.
+        if let Some(i) = old
+            && let Some(world) = g.world.as_ref()
+        {
+            park(world, queue, &self.model, state, self.ranges[i].0.clone());
+            self.retired[i] = true;
+        }
+        self.slots.insert(entity, self.keys.len());
+        self.keys.push((entity, built.generation));
+        self.retired.push(false);
+        // The CPU's solver is made again before it steps this batch.
+        self.solver_stale = true;
+        self.appended += 1;
     }
 
     /// The model index of `entity`'s body (not retired).
@@ -482,6 +608,7 @@ impl CpuWorld {
             }
             state.step = old.step;
         }
+        self.pending_append = None;
         self.solver = Some(solver);
         self.levels = levels;
         self.coarsened += coarsened;
@@ -679,6 +806,13 @@ type BatchInput = (Entity, u64, bool, Arc<Model>, Option<Arc<BodyLevels>>);
 
 /// A batch in the making: the bodies it is for, and the task making it.
 type PendingBatch = (Vec<(Entity, u64)>, Task<Result<Batch, TissueError>>);
+
+/// Bodies (their keys, in order) packed on a worker thread for the GPU world's room:
+/// each one's packing, or `None` where they do not all fit.
+type PendingAppend = (
+    Vec<(Entity, u64)>,
+    Task<Result<Option<Vec<PreparedAppend>>, TissueError>>,
+);
 
 /// A batch of bodies made ready to step (off the main thread where it can be).
 struct Batch {

@@ -20,7 +20,7 @@ use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{
-    BodyLevels, COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother,
+    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother,
 };
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
@@ -32,7 +32,10 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Quat, Vec3};
 use layout::{Buf, Layout, Writes};
 
+mod append;
 mod layout;
+
+pub use append::{AppendBasis, PreparedAppend};
 
 /// Byte stride of the per-dispatch records (the minimum uniform offset alignment
 /// WebGPU guarantees).
@@ -487,6 +490,11 @@ pub fn newton_count(settings: &SolverSettings) -> u32 {
 pub struct GpuLattice {
     /// Where everything is in the buffers, and how much room is left.
     layout: Layout,
+    /// This world among all made (what an append was packed against, with
+    /// `generation`: [`AppendBasis`]).
+    id: u64,
+    /// Counts the changes of layout and plan (appends, new steps).
+    generation: u64,
     /// The parameter block as last written.
     params_now: Params,
     /// Each level's Chebyshev `1/θ` and `ρ²`.
@@ -816,8 +824,12 @@ impl GpuLattice {
             }
             bind_groups.push(device.create_bind_group(entry.name, layout, &entries));
         }
+        /// Numbers the worlds made.
+        static WORLDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         Ok(Self {
             layout,
+            id: WORLDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            generation: 0,
             params_now: params,
             cheb: mg.chebyshev.clone(),
             shape,
@@ -850,117 +862,6 @@ impl GpuLattice {
         })
     }
 
-    /// Appends `model`'s body (one hyperelastic lattice body, its own model, in
-    /// `state`; `levels` its hierarchy from [`BodyLevels::new`]) as the world's next
-    /// body, into the room the world was made with ([`LatticeOptions::room`]): its
-    /// particles and elements numbered on from the world's, every other body's state
-    /// left as it is. Each level's Chebyshev estimate becomes the larger of the world's
-    /// and the body's own ([`BodyLevels::chebyshev`], made with its levels). `Ok(false)` (nothing changed) where the room is too small, or the
-    /// world has no particle-contact lists and `settings` asks for particle contacts
-    /// (make the world again then); an error for a model that is not one such body.
-    pub fn append(
-        &mut self,
-        device: &RenderDevice,
-        queue: &RenderQueue,
-        model: &Model,
-        levels: &BodyLevels,
-        state: &State,
-        settings: &SolverSettings,
-    ) -> Result<bool, TissueError> {
-        let lattice = model.bodies.len() == 1
-            && model.bodies[0].discretisation == Discretisation::Lattice
-            && matches!(model.bodies[0].material, Material::Hyperelastic { .. });
-        let fine = levels.levels.first();
-        if !lattice
-            || fine.is_none_or(|f| {
-                f.nodes != model.particle_count() || f.elements.len() != model.elements.len()
-            })
-            || state.x.len() != model.particle_count()
-            || state.element_rot.len() != model.elements.len()
-        {
-            return Err(TissueError::InvalidParameter {
-                name: "appended body",
-                value: format!("{} bodies", model.bodies.len()),
-                expected: "one hyperelastic lattice body with its own levels and state",
-            });
-        }
-        if self.pair_capacity == 0 && settings.particle_contacts {
-            return Ok(false);
-        }
-        let depth = self.layout.levels();
-        let mut mg = if levels.chebyshev.len() >= depth.min(levels.levels.len()) {
-            let mut mg = LatticeMultigrid::join(&[levels], depth);
-            mg.chebyshev = levels.chebyshev.clone();
-            mg
-        } else {
-            LatticeMultigrid::joined(&[levels], depth)
-        };
-        mg.smoother = self.shape.smoother;
-        let mut layout = self.layout.clone();
-        let mut writes = Writes::default();
-        if !layout.pack_all(model, &mg, state, &mut writes) {
-            return Ok(false);
-        }
-        let shape = shape_of(
-            &layout,
-            self.shape.smoother,
-            self.shape.pairs,
-            self.shape.cycles,
-        );
-        let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
-        if records.len() > self.pass_room {
-            return Ok(false);
-        }
-        // One staging buffer with every write, copied into place in one submission.
-        let mut staged: Vec<u32> = Vec::new();
-        let mut copies = Vec::with_capacity(writes.0.len());
-        for (b, at, data) in &writes.0 {
-            copies.push((*b, *at, staged.len(), data.len()));
-            staged.extend_from_slice(data);
-        }
-        let staging =
-            device.create_buffer_with_data(&bevy::render::render_resource::BufferInitDescriptor {
-                label: Some("tissue lattice append"),
-                contents: bytemuck::cast_slice(&staged),
-                usage: BufferUsages::COPY_SRC,
-            });
-        let mut enc = device.create_command_encoder(&Default::default());
-        for (b, at, from, len) in copies {
-            let buffer = match b {
-                Buf::Elems => &self.elems,
-                Buf::Kmat => &self.kmat,
-                Buf::Topo => &self.topo,
-                Buf::Nodes => &self.nodes,
-                Buf::Mats => &self.mats,
-                Buf::Rot => &self.rot,
-                Buf::Pos => &self.pos,
-                Buf::Ccol => &self.ccol,
-                Buf::Bodyt => &self.bodyt,
-            };
-            enc.copy_buffer_to_buffer(
-                &staging,
-                4 * from as u64,
-                buffer,
-                4 * at as u64,
-                4 * len as u64,
-            );
-        }
-        queue.submit([enc.finish()]);
-        // The larger largest eigenvalue (the smaller 1/θ).
-        for (c, new) in self.cheb.iter_mut().zip(&mg.chebyshev) {
-            if new[0] < c[0] {
-                *c = *new;
-            }
-        }
-        self.layout = layout;
-        self.shape = shape;
-        self.dispatches = dispatches;
-        self.pass_index = pass_index;
-        queue.write_buffer(&self.passes, 0, &pass_bytes(&records, self.pass_room));
-        self.write_params(queue);
-        Ok(true)
-    }
-
     /// Takes `settings` for the steps recorded from now on without making anything
     /// again, where they differ from the world's only in gravity, damping, the time step,
     /// substeps, iterations, Newton iterations and the particle contacts' relaxation and
@@ -984,6 +885,7 @@ impl GpuLattice {
         self.shape = shape;
         self.dispatches = dispatches;
         self.pass_index = pass_index;
+        self.generation += 1;
         queue.write_buffer(&self.passes, 0, &pass_bytes(&records, self.pass_room));
         self.write_params(queue);
         true
