@@ -363,7 +363,11 @@ pub struct Control {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct StepStats {
     /// Force each collider received from the tissue over the step, N (same order as
-    /// `Control::colliders`).
+    /// `Control::colliders`): the momentum its projection removed, or, on lattice bodies
+    /// stepped by Newton–multigrid, the reaction of the particles touching it at each
+    /// substep's end (what holds them against their inertia and their elements' forces:
+    /// a body at rest presses on the ground with its weight); on a grasper, the tissue's
+    /// pull on the particles it holds.
     pub collider_forces: Vec<Vec3>,
     /// Whether the particle-contact neighbours were refreshed this step.
     pub knn_refreshed: bool,

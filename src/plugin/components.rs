@@ -426,7 +426,8 @@ pub struct ResetSoftBody {
 
 /// The force (N, world frame) the tissue exerted on a [`TissueCollider`] over the last
 /// step read back; insert it on the collider to have it updated (async readback, a frame
-/// or two behind).
+/// or two behind). On lattice bodies it is the reaction of the particles touching the
+/// collider (see [`crate::core::solver::StepStats::collider_forces`]).
 #[derive(Component, Debug, Clone, Copy, Default, PartialEq, Reflect)]
 #[reflect(Component, Default)]
 pub struct ColliderForce(pub Vec3);
