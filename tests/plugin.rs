@@ -1425,6 +1425,11 @@ fn lattice_bodies_come_and_go_without_coarsening_or_rebuilding_the_others() {
         1,
         "the batch stepping on the GPU is rebuilt on a worker thread"
     );
+    assert_eq!(
+        cpu(&app).gpu_worlds_made_off_thread(),
+        1,
+        "its GPU world made with it there"
+    );
     assert_eq!(cpu(&app).appended_in_place(), 2);
     assert_eq!(cpu(&app).coarsened_bodies(), 0, "levels coarsened again");
     assert_eq!(pose(&app, a), sagged, "the first body lost its pose");

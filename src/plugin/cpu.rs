@@ -23,7 +23,8 @@
 //! packed on a worker thread while the batch steps on, then written in the frame it is
 //! ready; a body rebuilt with a new material is packed in the frame, as it keeps its
 //! pose), and a batch with rebuilt bodies, or new ones past the room, is made on a worker
-//! thread while the old one steps on; they join when it is ready. Gravity, damping and
+//! thread while the old one steps on, its GPU world with it; they join when it is ready
+//! (that frame uploads the state carried over). Gravity, damping and
 //! the step's schedule (time step, substeps, iterations) change in place. Anything else
 //! (other settings changes, the CPU path) makes the batch again at once.
 //!
@@ -116,6 +117,8 @@ pub struct CpuWorld {
     pending_append: Option<PendingAppend>,
     /// Rebuilds made on a worker thread.
     off_thread: u64,
+    /// GPU worlds made on a worker thread with their batch.
+    worlds_off_thread: u64,
     /// Bodies appended in place ([`CpuWorld::appended_in_place`]).
     appended: u64,
     /// Bodies were appended in place since the solver was made: it is made again
@@ -162,6 +165,12 @@ impl CpuWorld {
     /// GPU; the bodies join it when it is ready, some frames later).
     pub fn rebuilds_off_thread(&self) -> u64 {
         self.off_thread
+    }
+
+    /// How many of the batch's GPU worlds were made on a worker thread with their batch
+    /// (a rebuild while the batch stepped on the GPU), not in the frame that steps them.
+    pub fn gpu_worlds_made_off_thread(&self) -> u64 {
+        self.worlds_off_thread
     }
 
     /// How many bodies were appended to the batch in place: spawned while the batch
@@ -537,7 +546,7 @@ impl CpuWorld {
         settings: SolverSettings,
     ) -> Result<(), TissueError> {
         self.pending = None;
-        let batch = make_batch(batch_inputs(bodies), settings)?;
+        let batch = make_batch(batch_inputs(bodies), settings, None)?;
         self.install(batch);
         Ok(())
     }
@@ -547,7 +556,12 @@ impl CpuWorld {
     /// carrying their latest pose over, on the first call after it is ready. False where
     /// a rebuild is needed instead (no GPU batch yet, or a different set of bodies
     /// finished first and was dropped: the caller rebuilds or calls again).
-    fn rebuild_soon(&mut self, bodies: &[(Entity, &BuiltBody)], settings: &SolverSettings) -> bool {
+    fn rebuild_soon(
+        &mut self,
+        bodies: &[(Entity, &BuiltBody)],
+        settings: &SolverSettings,
+        device: Option<&RenderDevice>,
+    ) -> bool {
         let keys: Vec<(Entity, u64)> = bodies.iter().map(|(e, b)| (*e, b.generation)).collect();
         if !self.on_gpu_now() || self.settings.as_ref() != Some(settings) {
             return false;
@@ -555,8 +569,13 @@ impl CpuWorld {
         if self.pending.as_ref().is_none_or(|p| p.0 != keys) {
             let inputs = batch_inputs(bodies);
             let settings = settings.clone();
+            // Its GPU world is made on the worker thread too: the frame that installs it
+            // only uploads the latest state.
+            let gpu = device
+                .zip(self.gpu.as_ref())
+                .map(|(d, g)| (d.clone(), g.kernels.clone()));
             let task =
-                AsyncComputeTaskPool::get().spawn(async move { make_batch(inputs, settings) });
+                AsyncComputeTaskPool::get().spawn(async move { make_batch(inputs, settings, gpu) });
             self.pending = Some((keys, task));
         }
         let Some((_, task)) = self.pending.as_mut() else {
@@ -588,6 +607,7 @@ impl CpuWorld {
             levels,
             coarsened,
             settings,
+            world,
         } = batch;
         let mut state = State::new(&model);
         if let Some(old) = &self.state {
@@ -628,7 +648,12 @@ impl CpuWorld {
         self.solver_stale = false;
         self.rebuilds += 1;
         if let Some(g) = self.gpu.as_mut() {
-            g.world = None;
+            // A world made with the batch takes the state carried over at the next step.
+            g.synced = world.is_none();
+            self.worlds_off_thread += world.is_some() as u64;
+            g.world = world;
+            g.lists = false;
+            g.forces_dirty = false;
         }
     }
 
@@ -827,6 +852,9 @@ struct Batch {
     /// Bodies whose levels had to be coarsened here (they came without them).
     coarsened: u64,
     settings: SolverSettings,
+    /// The GPU world of `levels`, made with the batch (at rest; the installing frame
+    /// uploads the state it carries over).
+    world: Option<GpuLattice>,
 }
 
 fn batch_inputs(bodies: &[(Entity, &BuiltBody)]) -> Vec<BatchInput> {
@@ -838,7 +866,13 @@ fn batch_inputs(bodies: &[(Entity, &BuiltBody)]) -> Vec<BatchInput> {
 
 /// The batched model of `bodies` (in that order), its solver and, where the GPU can
 /// step every body, the bodies' own multigrid levels joined.
-fn make_batch(bodies: Vec<BatchInput>, settings: SolverSettings) -> Result<Batch, TissueError> {
+/// Makes the batch of `bodies`, and with `gpu` (a device and the lattice kernels) its GPU
+/// world where the GPU can step it.
+fn make_batch(
+    bodies: Vec<BatchInput>,
+    settings: SolverSettings,
+    gpu: Option<(RenderDevice, LatticeKernels)>,
+) -> Result<Batch, TissueError> {
     let mut model = Model::new();
     let mut ranges = Vec::with_capacity(bodies.len());
     for (_, _, _, m, _) in &bodies {
@@ -861,6 +895,20 @@ fn make_batch(bodies: Vec<BatchInput>, settings: SolverSettings) -> Result<Batch
         let parts: Vec<&BodyLevels> = own.iter().map(Arc::as_ref).collect();
         LatticeMultigrid::from_bodies(&parts, MIN_NODES, MAX_LEVELS)
     });
+    let (levels, world) = match (levels, gpu) {
+        (Some(mg), Some((device, kernels))) => {
+            let options = LatticeOptions {
+                room: ROOM,
+                ..Default::default()
+            };
+            let rest = State::new(&model);
+            // Where it cannot be made, the installing frame tries again (and says why).
+            let made =
+                GpuLattice::with_levels(&device, &kernels, &model, mg, &rest, &settings, options);
+            (None, made.ok())
+        }
+        (levels, _) => (levels, None),
+    };
     Ok(Batch {
         bodies: bodies.iter().map(|b| (b.0, b.1, b.2)).collect(),
         model,
@@ -869,6 +917,7 @@ fn make_batch(bodies: Vec<BatchInput>, settings: SolverSettings) -> Result<Batch
         levels,
         coarsened,
         settings,
+        world,
     })
 }
 
@@ -948,7 +997,7 @@ pub fn step_cpu_bodies(
             || (!world.holds_exactly(&keys)
                 && !matches!(&render, (Some(device), Some(queue))
                     if world.append_new(&cpu, device, queue))
-                && !world.rebuild_soon(&cpu, &core));
+                && !world.rebuild_soon(&cpu, &core, render.0.as_deref()));
         if now && let Err(e) = world.rebuild(&cpu, core) {
             let error = e.to_string();
             warn!("bevy_tissue: the CPU bodies cannot be simulated: {error}");

@@ -405,7 +405,9 @@ pub fn storage_count(entry: &Entry) -> u32 {
         .count() as u32
 }
 
-/// Compiled lattice pipelines with their layouts.
+/// Compiled lattice pipelines with their layouts (cheap to clone: the pipelines are
+/// shared).
+#[derive(Clone)]
 pub struct LatticeKernels {
     /// Per [`ENTRIES`] entry: its pipeline and the layout of its one bind group.
     pub pipelines: Vec<(ComputePipeline, BindGroupLayout)>,

@@ -1247,10 +1247,9 @@ impl GpuLattice {
     }
 
     /// Blocking read of the force (N) the bodies put on each collider set by
-    /// [`GpuLattice::set_colliders`] in the last recorded step: the penalties and
-    /// projections pressing on it, and for a grasper the pull of what it holds (as the
-    /// CPU solver's `StepStats::collider_forces`; a contact's normal is taken at the
-    /// iteration's end rather than its start).
+    /// [`GpuLattice::set_colliders`] in the last recorded step: the reactions of the
+    /// particles touching it at each substep's end, and for a grasper the pull of what
+    /// it holds (as the CPU solver's `StepStats::collider_forces`).
     pub fn read_forces(&self, device: &RenderDevice, queue: &RenderQueue) -> Vec<Vec3> {
         if self.colliders == 0 {
             return Vec::new();
