@@ -672,6 +672,27 @@ fn changes(g: &Gpu, bodies: u32) {
         );
     }
     println!("| gravity | {:.3} |", bench::median(gravity));
+    // What the frame that takes a world made again on a worker thread does with it:
+    // upload the state it carries over (on this thread, then with the GPU's copies).
+    let state = State::new(&grown);
+    let (mut uploads, mut uploaded) = (Vec::new(), Vec::new());
+    for _ in 0..5 {
+        let t = Instant::now();
+        world.upload(&g.queue, &grown, &state);
+        g.queue.submit([]);
+        uploads.push(t.elapsed().as_secs_f64() * 1e3);
+        wait(g, &world);
+        uploaded.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    println!(
+        "| upload the state ({} particles; the frame taking a world made again), this thread | {:.3} |",
+        grown.particle_count(),
+        bench::median(uploads)
+    );
+    println!(
+        "| upload the state, then wait for the GPU | {:.3} |",
+        bench::median(uploaded)
+    );
     println!(
         "\nGPU ms per step: no room {tight_step:.3}; room 1.5 {room_step:.3}; after 10 appended {appended_step:.3}"
     );
