@@ -1252,6 +1252,21 @@ fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
     assert!(err.contains("levels"), "{err}");
 }
 
+/// Three lattice bodies of different shapes (a bar, a cube, a box) apart, each with its
+/// own multigrid levels: what the append tests add to a world one by one.
+fn three_lattice_bodies() -> ([Model; 3], Vec<bevy_tissue::core::multigrid::BodyLevels>) {
+    let bodies = [
+        lattice_bar(0.0075),
+        lattice_box_at(Vec3::splat(0.02), Vec3::new(0.0, 0.2, 0.0)),
+        lattice_box_at(Vec3::new(0.03, 0.015, 0.02), Vec3::new(0.3, 0.1, 0.0)),
+    ];
+    let parts = bodies
+        .iter()
+        .map(|b| bevy_tissue::core::multigrid::BodyLevels::new(b, 0))
+        .collect();
+    (bodies, parts)
+}
+
 /// A lattice body appended into a world's room (`GpuLattice::append`, what the plugin
 /// does when a body spawns) steps to the bit as a world made with it from the start (the
 /// same levels, the Chebyshev estimates the larger of the world's and the body's); a
@@ -1266,12 +1281,7 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
         return;
     };
     let kernels = LatticeKernels::new(&g.device).unwrap();
-    let bodies = [
-        lattice_bar(0.0075),
-        lattice_box_at(Vec3::splat(0.02), Vec3::new(0.0, 0.2, 0.0)),
-        lattice_box_at(Vec3::new(0.03, 0.015, 0.02), Vec3::new(0.3, 0.1, 0.0)),
-    ];
-    let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
+    let (bodies, parts) = three_lattice_bodies();
     let model_of = |n: usize| {
         let mut m = Model::new();
         for b in &bodies[..n] {
@@ -1383,19 +1393,14 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
 /// changed.
 #[test]
 fn bodies_packed_on_another_thread_commit_as_appended_here() {
-    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid};
+    use bevy_tissue::core::multigrid::LatticeMultigrid;
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
     use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
     let Some(g) = gpu() else {
         return;
     };
     let kernels = LatticeKernels::new(&g.device).unwrap();
-    let bodies = [
-        lattice_bar(0.0075),
-        lattice_box_at(Vec3::splat(0.02), Vec3::new(0.0, 0.2, 0.0)),
-        lattice_box_at(Vec3::new(0.03, 0.015, 0.02), Vec3::new(0.3, 0.1, 0.0)),
-    ];
-    let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
+    let (bodies, parts) = three_lattice_bodies();
     let s = lattice_settings();
     let make = || {
         GpuLattice::with_levels(

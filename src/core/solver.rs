@@ -508,8 +508,8 @@ pub struct Solver {
     touched: Vec<u32>,
     /// Multigrid: the next Newton iteration is its substep's first.
     mg_fresh: bool,
-    /// Multigrid: per particle, the force on a collider (its penalty) or a grasper (the
-    /// pull it holds against) in the last Newton iteration, N, and which (`u32::MAX`:
+    /// Multigrid: per particle, the force on a grasper (the pull it holds against) in the
+    /// last Newton iteration, N, and which (`u32::MAX`:
     /// none).
     newton_force: Vec<(Vec3, u32)>,
     /// Multigrid: this iteration takes a Newton step ([`SolverSettings::newton_iterations`]).
@@ -2149,7 +2149,7 @@ impl Solver {
         if control.colliders.is_empty()
             || self.target.len() != n
             || mg.levels[0].nodes != n
-            || self.settings.newton_iterations == 0
+            || self.settings.element_solver != ElementSolver::Multigrid
         {
             return Vec::new();
         }
