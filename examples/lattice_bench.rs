@@ -595,6 +595,38 @@ fn changes(g: &Gpu, bodies: u32) {
     }
     println!("| remake: join the levels | {:.3} |", bench::median(join));
     println!("| remake: the GPU world | {:.3} |", bench::median(remake));
+    // What the frame that takes the world made again does: the bodies it keeps take
+    // their state from the old world by GPU copies.
+    let mg = LatticeMultigrid::from_bodies(&parts, MIN_NODES, MAX_LEVELS);
+    let mut again =
+        GpuLattice::with_levels(&g.device, &g.kernels, &plus, mg, &plus_state, &s, room)
+            .unwrap_or_else(|e| fail("GPU lattice", e));
+    let kept = [bevy_tissue::gpu::lattice::StateRun {
+        particles: 0..model.particle_count() as u32,
+        to_particle: 0,
+        elements: 0..model.elements.len() as u32,
+        to_element: 0,
+    }];
+    let (mut carries, mut carried) = (Vec::new(), Vec::new());
+    for _ in 0..5 {
+        let t = Instant::now();
+        again
+            .carry_state(&g.device, &g.queue, &world, &kept)
+            .unwrap_or_else(|e| fail("carry the state", e));
+        carries.push(t.elapsed().as_secs_f64() * 1e3);
+        wait(g, &again);
+        carried.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    println!(
+        "| remake: the kept bodies' state by GPU copies ({} particles), this thread | {:.3} |",
+        model.particle_count(),
+        bench::median(carries)
+    );
+    println!(
+        "| remake: the GPU copies, then wait for the GPU | {:.3} |",
+        bench::median(carried)
+    );
+    drop(again);
     // Appending: a cube at a time, into the room.
     let cube = cubes_at(1, 0.057);
     let cube_state = State::new(&cube);

@@ -1485,6 +1485,126 @@ fn bodies_packed_on_another_thread_commit_as_appended_here() {
     assert!(a == b, "committed differently: {} m", max_dist(&a, &b));
 }
 
+/// Past its room a GPU lattice is made again with more bodies, from the rest state, and
+/// takes the state of the bodies it keeps from the old world by GPU copies
+/// (`GpuLattice::carry_state`, what the plugin's installing frame does): the kept bodies
+/// are where the old world left them, the new one at rest, and the world steps to the
+/// bit as one that uploaded the same state from the CPU. A run past either world is
+/// refused with nothing copied.
+#[test]
+fn a_lattice_made_again_takes_the_kept_bodies_state_by_gpu_copies() {
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions, StateRun};
+    let Some(g) = gpu() else {
+        return;
+    };
+    let kernels = LatticeKernels::new(&g.device).unwrap();
+    let (bodies, parts) = three_lattice_bodies();
+    let model_of = |n: usize| {
+        let mut m = Model::new();
+        for b in &bodies[..n] {
+            m.append(b);
+        }
+        m
+    };
+    let (two, three) = (model_of(2), model_of(3));
+    let refs: Vec<&BodyLevels> = parts.iter().collect();
+    let s = lattice_settings();
+    let make = |model: &Model, n: usize| {
+        let depth = LatticeMultigrid::depth_of(&refs[..n], MIN_NODES, MAX_LEVELS);
+        GpuLattice::with_levels(
+            &g.device,
+            &kernels,
+            model,
+            LatticeMultigrid::joined(&refs[..n], depth),
+            &State::new(model),
+            &s,
+            LatticeOptions {
+                room: 1.5,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+    };
+    let steps = |world: &GpuLattice, n: u32| {
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record(&mut enc, &kernels, n, None);
+        g.queue.submit([enc.finish()]);
+    };
+    let read = |world: &GpuLattice, model: &Model| {
+        let mut state = State::new(model);
+        world.download(&g.device, &g.queue, &mut state);
+        state
+    };
+    let old = make(&two, 2);
+    steps(&old, 10);
+    let left = read(&old, &two);
+    let (np, ne) = (two.particle_count(), two.elements.len());
+    assert!(
+        max_dist(&left.x, &State::new(&two).x) > 1e-3,
+        "the bodies fell"
+    );
+    // Made again with the third body; the first two take their state by copies.
+    let mut copied = make(&three, 3);
+    let runs = StateRun::joined((0..2).map(|b| {
+        let p = two.bodies[b].range();
+        let e0: usize = bodies[..b].iter().map(|m| m.elements.len()).sum();
+        let e = e0..e0 + bodies[b].elements.len();
+        StateRun {
+            particles: p.start as u32..p.end as u32,
+            to_particle: p.start as u32,
+            elements: e.start as u32..e.end as u32,
+            to_element: e.start as u32,
+        }
+    }));
+    assert_eq!(runs.len(), 1, "two bodies in order make one run");
+    // A run past the world the state comes from: refused, nothing copied.
+    let past = StateRun {
+        particles: 0..np as u32 + 1,
+        ..runs[0].clone()
+    };
+    assert!(
+        copied
+            .carry_state(&g.device, &g.queue, &old, &[past])
+            .is_err()
+    );
+    let rest = State::new(&three).x;
+    let after = read(&copied, &three).x;
+    assert!(
+        after == rest,
+        "a refused run copied: {} m",
+        max_dist(&after, &rest)
+    );
+    copied
+        .carry_state(&g.device, &g.queue, &old, &runs)
+        .unwrap();
+    let now = read(&copied, &three);
+    assert!(now.x[..np] == left.x[..], "the kept bodies moved");
+    assert!(
+        now.v[..np] == left.v[..],
+        "the kept bodies' velocities changed"
+    );
+    assert!(now.element_rot[..ne] == left.element_rot[..]);
+    assert!(now.x[np..] == rest[np..], "the new body is not at rest");
+    // The same state uploaded from the CPU.
+    let mut uploaded = make(&three, 3);
+    let mut state = State::new(&three);
+    state.x[..np].copy_from_slice(&left.x);
+    state.v[..np].copy_from_slice(&left.v);
+    state.element_rot[..ne].copy_from_slice(&left.element_rot);
+    uploaded.upload(&g.queue, &three, &state);
+    steps(&copied, 10);
+    steps(&uploaded, 10);
+    let (a, b) = (read(&copied, &three).x, read(&uploaded, &three).x);
+    assert!(max_dist(&a, &now.x) > 1e-4, "the world did not step on");
+    assert!(
+        a == b,
+        "carried on the GPU, stepped differently from uploaded: {} m",
+        max_dist(&a, &b)
+    );
+}
+
 /// A GPU lattice takes a new time step, substeps and iteration counts in place
 /// (`GpuLattice::set_steps`) and then steps to the bit as one made with them; a change it
 /// cannot take (another smoother) is refused, nothing changed.

@@ -24,9 +24,9 @@
 //! ready; a body rebuilt with a new material is packed in the frame, as it keeps its
 //! pose), and a batch with rebuilt bodies, or new ones past the room, is made on a worker
 //! thread while the old one steps on, its GPU world with it; they join when it is ready
-//! (that frame uploads the state carried over). Gravity, damping and
-//! the step's schedule (time step, substeps, iterations) change in place. Anything else
-//! (other settings changes, the CPU path) makes the batch again at once.
+//! (the bodies it keeps take their state from the old world by GPU copies). Gravity,
+//! damping and the step's schedule (time step, substeps, iterations) change in place.
+//! Anything else (other settings changes, the CPU path) makes the batch again at once.
 //!
 //! Not done on this path (yet): sleeping, and [`ColliderForce`] while some bodies are
 //! stepped by the render graph (it is written when every built body is in this world).
@@ -42,7 +42,7 @@ use crate::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES
 use crate::core::skin::{skin_normals, skin_positions};
 use crate::core::solver::{Control, Solver, SolverSettings, State};
 use crate::gpu::kernels::lattice::{LatticeKernels, MAX_COLLIDERS};
-use crate::gpu::lattice::{GpuLattice, LatticeOptions, PreparedAppend};
+use crate::gpu::lattice::{GpuLattice, LatticeOptions, PreparedAppend, StateRun};
 use bevy::camera::primitives::Aabb;
 use bevy::mesh::VertexAttributeValues;
 use bevy::prelude::*;
@@ -119,6 +119,9 @@ pub struct CpuWorld {
     off_thread: u64,
     /// GPU worlds made on a worker thread with their batch.
     worlds_off_thread: u64,
+    /// Worlds made again whose bodies took their state from the world before them by
+    /// GPU copies.
+    states_carried: u64,
     /// Bodies appended in place ([`CpuWorld::appended_in_place`]).
     appended: u64,
     /// Bodies were appended in place since the solver was made: it is made again
@@ -136,6 +139,9 @@ struct LatticeOnGpu {
     lists: bool,
     /// Gravity or damping changed since the GPU world was made or last told.
     forces_dirty: bool,
+    /// The world `world` replaced, and the runs of bodies whose state it hands over by
+    /// GPU copies ([`GpuLattice::carry_state`]) before `world` first steps.
+    carry: Option<(GpuLattice, Vec<StateRun>)>,
 }
 
 /// Whether the GPU can step every body of `model` (hyperelastic lattice bodies).
@@ -171,6 +177,13 @@ impl CpuWorld {
     /// (a rebuild while the batch stepped on the GPU), not in the frame that steps them.
     pub fn gpu_worlds_made_off_thread(&self) -> u64 {
         self.worlds_off_thread
+    }
+
+    /// How many of the GPU worlds made on a worker thread took the state of the bodies
+    /// they share with the world before them by copies on the GPU, the frame that
+    /// installed them uploading nothing from the CPU.
+    pub fn states_carried_on_gpu(&self) -> u64 {
+        self.states_carried
     }
 
     /// How many bodies were appended to the batch in place: spawned while the batch
@@ -610,6 +623,7 @@ impl CpuWorld {
             world,
         } = batch;
         let mut state = State::new(&model);
+        let mut runs = Vec::new();
         if let Some(old) = &self.state {
             for (&(entity, generation, reset), (p, e)) in bodies.iter().zip(&ranges) {
                 let Some(k) = self.index_of(entity) else {
@@ -625,6 +639,12 @@ impl CpuWorld {
                 state.v[p.clone()].copy_from_slice(&old.v[op.clone()]);
                 state.rot[p.clone()].copy_from_slice(&old.rot[op.clone()]);
                 state.element_rot[e.clone()].copy_from_slice(&old.element_rot[oe.clone()]);
+                runs.push(StateRun {
+                    particles: op.start as u32..op.end as u32,
+                    to_particle: p.start as u32,
+                    elements: oe.start as u32..oe.end as u32,
+                    to_element: e.start as u32,
+                });
             }
             state.step = old.step;
         }
@@ -648,10 +668,15 @@ impl CpuWorld {
         self.solver_stale = false;
         self.rebuilds += 1;
         if let Some(g) = self.gpu.as_mut() {
-            // A world made with the batch takes the state carried over at the next step.
+            // A world made with the batch takes the state carried over at the next step:
+            // by GPU copies from the world it replaces where that one is current.
+            let synced_before = g.synced;
             g.synced = world.is_none();
             self.worlds_off_thread += world.is_some() as u64;
-            g.world = world;
+            let old = std::mem::replace(&mut g.world, world);
+            g.carry = old
+                .filter(|_| g.world.is_some() && synced_before)
+                .map(|w| (w, StateRun::joined(runs)));
             g.lists = false;
             g.forces_dirty = false;
         }
@@ -682,6 +707,7 @@ impl CpuWorld {
                         synced: false,
                         lists: false,
                         forces_dirty: false,
+                        carry: None,
                     })
                 }
                 Err(e) => {
@@ -726,6 +752,21 @@ impl CpuWorld {
         if g.forces_dirty {
             world.set_forces(queue, settings.gravity, settings.damping);
             g.forces_dirty = false;
+        }
+        let carried = match g.carry.take() {
+            Some((old, runs)) if !g.synced => match world.carry_state(device, queue, &old, &runs) {
+                Ok(()) => true,
+                Err(e) => {
+                    warn!("bevy_tissue: the state is uploaded instead: {e}");
+                    false
+                }
+            },
+            _ => false,
+        };
+        if carried {
+            self.states_carried += 1;
+            g.synced = true;
+            g.lists = false;
         }
         if !g.synced {
             world.upload(queue, &self.model, state);

@@ -33,9 +33,11 @@ use glam::{Quat, Vec3};
 use layout::{Buf, Layout, Writes};
 
 mod append;
+mod carry;
 mod layout;
 
 pub use append::{AppendBasis, PreparedAppend};
+pub use carry::StateRun;
 
 /// Byte stride of the per-dispatch records (the minimum uniform offset alignment
 /// WebGPU guarantees).
