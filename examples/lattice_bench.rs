@@ -28,9 +28,12 @@
 //! cargo run --release --example lattice_bench -- --quick # small sizes (lavapipe: a minute)
 //! ```
 //! Options: `--no-speed`, `--no-accuracy`, `--organs`, `--bodies N` (default 1,000),
-//! `--newton N,...` (accuracy: Newton iterations per step to compare, default 1,2),
+//! `--newton N,...` (Newton iterations per step to compare, default 1,2),
 //! `--cycles N,...` (V-cycles per Newton iteration to compare, more than 1 being
-//! conjugate gradients; default 1),
+//! conjugate gradients; default 1), `--sweeps F/C/K,...` (the V-cycle's smoothing
+//! sweeps to compare: on level 0, the levels between and the coarsest,
+//! `SolverSettings::sweeps`; default the library's), `--no-touching` (speed: leave out
+//! the touching cubes),
 //! `--smoother hybrid|chebyshev|gs`, `--first N,...` (speed only: line-search candidates
 //! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
 //! default the library's), `--room R` (speed only: the worlds made with room for bodies
@@ -54,7 +57,7 @@ use accuracy::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy_tissue::core::colliders::Collider;
 use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
-use bevy_tissue::core::multigrid::Smoother;
+use bevy_tissue::core::multigrid::{Smoother, Sweeps};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{ElementSolver, Method, Solver, SolverSettings, State};
@@ -247,15 +250,16 @@ fn speed(
     smoothers: &[Smoother],
     firsts: &[u32],
     room: f32,
-    cycles: &[u32],
+    steps_of: &StepsOf,
+    touching: bool,
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | first-pass candidates | Newton iterations × V-cycles | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | first-pass candidates | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
-    let scenes: Vec<(String, Model)> = if quick {
+    let mut scenes: Vec<(String, Model)> = if quick {
         vec![
             ("liver".into(), liver(3000)),
             ("cubes × 20".into(), cubes(20)),
@@ -271,29 +275,36 @@ fn speed(
             ),
         ]
     };
+    if !touching {
+        scenes.retain(|(name, _)| !name.contains("touching"));
+    }
     let steps = if quick { 5 } else { 60 };
     for (name, model) in &scenes {
         for &sm in smoothers {
             for &first in firsts {
-                for (it, c) in [1u32, 2]
-                    .into_iter()
-                    .flat_map(|it| cycles.iter().map(move |&c| (it, c)))
-                {
-                    eprintln!(
-                        "speed: {name}, {sm:?}, {first} first candidates, {it} Newton iteration(s) × {c} ..."
-                    );
+                for (it, c, sw) in steps_of.each() {
                     let s = SolverSettings {
                         // Particle contacts in every Newton iteration where bodies touch.
                         particle_contacts: name.contains("touching"),
                         contact_every: 1,
                         newton_cycles: c,
+                        sweeps: sw,
                         ..settings(it, Vec3::new(0.0, -9.81, 0.0), 0.0, sm)
                     };
+                    if let Err(e) = s.validate() {
+                        eprintln!("speed: {sm:?} with {}: {e}", sweeps_name(sw));
+                        continue;
+                    }
+                    eprintln!(
+                        "speed: {name}, {sm:?}, {first} first candidates, {it} Newton iteration(s) × {c}, sweeps {} ...",
+                        sweeps_name(sw)
+                    );
                     let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, first, room);
                     println!(
-                        "| {name} | {} | {} | {sm:?} | {first} | {it} × {c} | {} | {wall:.3} | {dispatches} |",
+                        "| {name} | {} | {} | {sm:?} | {first} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
                         model.elements.len(),
+                        sweeps_name(sw),
                         gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
                     );
                 }
@@ -342,12 +353,12 @@ fn settle_gpu(
     state.x
 }
 
-fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother], newtons: &[u32], cycles: &[u32]) {
+fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother], steps_of: &StepsOf) {
     println!(
         "\n## Accuracy on the GPU: the settled cantilever (lattice) against its static answer\n"
     );
     println!(
-        "| across | particles | E (Pa) | smoother | Newton iterations × V-cycles per 1/60 s step | simulated s | tip / static |\n|---|---|---|---|---|---|---|"
+        "| across | particles | E (Pa) | smoother | Newton iterations × V-cycles per 1/60 s step | sweeps (fine/coarse/coarsest) | simulated s | tip / static |\n|---|---|---|---|---|---|---|---|"
     );
     let cases: &[(u32, f32)] = if quick {
         &[(6, 1e5)]
@@ -365,22 +376,25 @@ fn accuracy(g: &Gpu, quick: bool, smoothers: &[Smoother], newtons: &[u32], cycle
             (8.0 / w1).clamp(1.0, 20.0) as f32
         };
         for &sm in smoothers {
-            for (it, c) in newtons
-                .iter()
-                .flat_map(|&it| cycles.iter().map(move |&c| (it, c)))
-            {
-                eprintln!(
-                    "accuracy: {across} across, E = {e}, {sm:?}, {it} iteration(s) × {c} ..."
-                );
+            for (it, c, sw) in steps_of.each() {
                 let s = SolverSettings {
                     newton_cycles: c,
+                    sweeps: sw,
                     ..settings(it, Vec3::new(0.0, -gv as f32, 0.0), (2.0 * w1) as f32, sm)
                 };
+                if s.validate().is_err() {
+                    continue;
+                }
+                eprintln!(
+                    "accuracy: {across} across, E = {e}, {sm:?}, {it} iteration(s) × {c}, sweeps {} ...",
+                    sweeps_name(sw)
+                );
                 let x = settle_gpu(g, &model, &s, secs, &[]);
                 let tip = bar_tip(&model, &displacements(&model, &x));
                 println!(
-                    "| {across} | {} | {e} | {sm:?} | {it} × {c} | {secs:.1} | {:.4} |",
+                    "| {across} | {} | {e} | {sm:?} | {it} × {c} | {} | {secs:.1} | {:.4} |",
                     model.particle_count(),
+                    sweeps_name(sw),
                     tip / stat
                 );
             }
@@ -458,6 +472,52 @@ fn organs(g: &Gpu, quick: bool) {
     }
 }
 
+/// The step shapes a run measures: Newton iterations, V-cycles per iteration and the
+/// V-cycle's sweeps, every combination.
+struct StepsOf {
+    newton: Vec<u32>,
+    cycles: Vec<u32>,
+    sweeps: Vec<Sweeps>,
+}
+
+impl StepsOf {
+    fn each(&self) -> Vec<(u32, u32, Sweeps)> {
+        let mut out = Vec::new();
+        for &it in &self.newton {
+            for &c in &self.cycles {
+                for &sw in &self.sweeps {
+                    out.push((it, c, sw));
+                }
+            }
+        }
+        out
+    }
+}
+
+fn sweeps_name(s: Sweeps) -> String {
+    format!("{}/{}/{}", s.fine, s.coarse, s.coarsest)
+}
+
+/// `--sweeps 2/2/30,1/2/10`: each entry fine/coarse/coarsest.
+fn parse_sweeps(text: &str) -> Vec<Sweeps> {
+    text.split(',')
+        .map(|one| {
+            let n: Vec<u32> = one
+                .split('/')
+                .map(|v| v.trim().parse().unwrap_or_else(|e| fail("--sweeps", e)))
+                .collect();
+            match n[..] {
+                [fine, coarse, coarsest] => Sweeps {
+                    fine,
+                    coarse,
+                    coarsest,
+                },
+                _ => fail("--sweeps", format!("{one}: expected fine/coarse/coarsest")),
+            }
+        })
+        .collect()
+}
+
 fn main() {
     let a = bench::Args::new();
     let quick = a.flag("--quick");
@@ -480,7 +540,13 @@ fn main() {
         queue,
         kernels,
     };
-    let cycles = a.list("--cycles", &[1u32]);
+    let steps_of = StepsOf {
+        newton: a.list("--newton", &[1u32, 2]),
+        cycles: a.list("--cycles", &[1u32]),
+        sweeps: a
+            .text("--sweeps")
+            .map_or(vec![Sweeps::DEFAULT], |t| parse_sweeps(t)),
+    };
     if !a.flag("--no-speed") {
         speed(
             &g,
@@ -490,17 +556,12 @@ fn main() {
             &smoothers,
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
             a.num("--room", LatticeOptions::default().room),
-            &cycles,
+            &steps_of,
+            !a.flag("--no-touching"),
         );
     }
     if !a.flag("--no-accuracy") {
-        accuracy(
-            &g,
-            quick,
-            &smoothers,
-            &a.list("--newton", &[1u32, 2]),
-            &cycles,
-        );
+        accuracy(&g, quick, &smoothers, &steps_of);
     }
     if a.flag("--organs") {
         organs(&g, quick);

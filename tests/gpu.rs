@@ -1096,8 +1096,8 @@ fn lattice_settings() -> SolverSettings {
 /// limits. The Chebyshev–Jacobi smoother (one dispatch a sweep) at 4 and 8 across
 /// (5,265 particles), with every line-search candidate in the second pass and in the
 /// first; Gauss–Seidel by colour; the hybrid (Gauss–Seidel on level 0, Chebyshev below);
-/// conjugate gradients of 2 and 3 V-cycles; and the bar in one batch with a box falling
-/// freely beside it, each body taking its own steps.
+/// conjugate gradients of 2 and 3 V-cycles; V-cycles of other sweep counts; and the bar
+/// in one batch with a box falling freely beside it, each body taking its own steps.
 #[test]
 fn lattice_newton_multigrid_matches_the_cpu() {
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
@@ -1112,20 +1112,35 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     .expect("a device with WebGPU's default limits");
     let kernels = LatticeKernels::new(&device).expect("the lattice kernels fit WebGPU's limits");
     use bevy_tissue::core::multigrid::Smoother::{Chebyshev, GaussSeidel, Hybrid};
+    use bevy_tissue::core::multigrid::Sweeps;
     // (spacing, line-search candidates in the first pass, smoother, V-cycles per Newton
-    // iteration (more than 1: conjugate gradients), a second body beside the bar).
-    for (spacing, first, smoother, cycles, two) in [
-        (0.0075f32, 4, Chebyshev, 1, false),
-        (0.00375, 4, Chebyshev, 1, false),
-        (0.0075, 0, Chebyshev, 1, false),
-        (0.0075, 13, Chebyshev, 1, false),
-        (0.0075, 4, GaussSeidel, 1, false),
-        (0.0075, 4, Hybrid, 1, false),
-        (0.00375, 4, Hybrid, 1, false),
-        (0.0075, 4, Hybrid, 2, false),
-        (0.00375, 4, Hybrid, 3, false),
-        (0.0075, 4, Hybrid, 1, true),
-        (0.0075, 4, Hybrid, 2, true),
+    // iteration (more than 1: conjugate gradients), a second body beside the bar, the
+    // V-cycle's sweeps).
+    let d = Sweeps::DEFAULT;
+    let few = Sweeps {
+        fine: 1,
+        coarse: 2,
+        coarsest: 10,
+    };
+    let chebyshev = Sweeps {
+        fine: 4,
+        coarse: 2,
+        coarsest: 6,
+    };
+    for (spacing, first, smoother, cycles, two, sweeps) in [
+        (0.0075f32, 4, Chebyshev, 1, false, d),
+        (0.00375, 4, Chebyshev, 1, false, d),
+        (0.0075, 0, Chebyshev, 1, false, d),
+        (0.0075, 13, Chebyshev, 1, false, d),
+        (0.0075, 4, Chebyshev, 2, false, chebyshev),
+        (0.0075, 4, GaussSeidel, 1, false, d),
+        (0.0075, 4, Hybrid, 1, false, d),
+        (0.00375, 4, Hybrid, 1, false, d),
+        (0.0075, 4, Hybrid, 2, false, d),
+        (0.00375, 4, Hybrid, 3, false, d),
+        (0.00375, 4, Hybrid, 2, false, few),
+        (0.0075, 4, Hybrid, 1, true, d),
+        (0.0075, 4, Hybrid, 2, true, d),
     ] {
         let mut model = lattice_bar(spacing);
         if two {
@@ -1137,6 +1152,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         let s = SolverSettings {
             smoother,
             newton_cycles: cycles,
+            sweeps,
             ..lattice_settings()
         };
         let mut cpu_state = State::new(&model);
@@ -1169,7 +1185,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             let sag = max_dist(&rest, &cpu_state.x);
             let diff = max_dist(&gpu_state.x, &cpu_state.x);
             eprintln!(
-                "{} particles, {smoother:?}, {cycles} cycle(s), {first} first candidates, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
+                "{} particles, {smoother:?}, {cycles} cycle(s), {sweeps:?}, {first} first candidates, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
                 model.particle_count()
             );
             assert!(sag > 1e-4, "the bar moved ({sag} m)");

@@ -17,6 +17,7 @@
 use super::constraints::{Hyperelastic, extract_rotation};
 use super::element::corotated_stress;
 use super::element::{CORNERS, HOURGLASS_MODES, HexModes, cube_stiffness, element_gradient};
+use super::error::TissueError;
 use super::model::{Discretisation, Material, Model};
 use glam::{IVec3, Mat3, Quat, Vec3};
 use std::collections::HashMap;
@@ -1024,8 +1025,7 @@ impl LatticeMultigrid {
     /// answer is left in `work.delta[0]`; `work.rhs[0]` becomes the last residual. Nodes
     /// `held` (and the level's fixed ones) keep a zero correction. With one cycle this is
     /// the V-cycle's correction scaled by its energy-minimising step.
-    pub fn krylov(&self, h2: f32, cycles: u32, held: &[bool], work: &mut MgWork) {
-        let (pre, post, coarsest) = VCYCLE_SWEEPS;
+    pub fn krylov(&self, h2: f32, cycles: u32, sweeps: Sweeps, held: &[bool], work: &mut MgWork) {
         let n = self.levels[0].nodes;
         let free = |j: usize| !held.get(j).copied().unwrap_or(false) && !self.levels[0].fixed[j];
         let mut x = vec![Vec3::ZERO; n];
@@ -1042,7 +1042,7 @@ impl LatticeMultigrid {
         let mut rz = vec![0.0f64; bodies.len()];
         for k in 0..cycles.max(1) {
             work.delta[0].iter_mut().for_each(|d| *d = Vec3::ZERO);
-            self.vcycle(0, h2, pre, post, coarsest, work);
+            self.vcycle(0, h2, sweeps, work);
             let z = &work.delta[0];
             for (b, range) in bodies.iter().enumerate() {
                 let beta = if k == 0 {
@@ -1092,14 +1092,15 @@ impl LatticeMultigrid {
         work.delta[0] = x;
     }
 
-    /// One V-cycle from level `l` down: `work.delta[l]` improves on `A δ = work.rhs[l]`.
-    pub fn vcycle(&self, l: usize, h2: f32, pre: u32, post: u32, coarsest: u32, work: &mut MgWork) {
+    /// One V-cycle from level `l` down, smoothing each level `sweeps` times:
+    /// `work.delta[l]` improves on `A δ = work.rhs[l]`.
+    pub fn vcycle(&self, l: usize, h2: f32, sweeps: Sweeps, work: &mut MgWork) {
         let nl = self.levels.len();
         if l + 1 == nl {
-            self.smooth(l, coarsest, h2, work);
+            self.smooth(l, sweeps.coarsest, h2, work);
             return;
         }
-        self.smooth(l, pre, h2, work);
+        self.smooth(l, sweeps.on_level(l), h2, work);
         // Restrict the residual: r_c = Pᵀ (rhs − A δ).
         let lv = &self.levels[l];
         let nc = self.levels[l + 1].nodes;
@@ -1123,7 +1124,7 @@ impl LatticeMultigrid {
         }
         work.rhs[l + 1] = rc;
         work.delta[l + 1].iter_mut().for_each(|d| *d = Vec3::ZERO);
-        self.vcycle(l + 1, h2, pre, post, coarsest, work);
+        self.vcycle(l + 1, h2, sweeps, work);
         // Prolongate the coarse correction `e = P δ_c` and take it with the step
         // `α = eᵀ r / eᵀ A e` that minimises the fine level's energy along it: the coarse
         // operator (each coarse cell's stiffness turned by one mean rotation) is exact
@@ -1154,13 +1155,68 @@ impl LatticeMultigrid {
                 work.delta[l][j] += e[j] * alpha;
             }
         }
-        self.smooth(l, post, h2, work);
+        self.smooth(l, sweeps.on_level(l), h2, work);
     }
 }
 
-/// Smoothing sweeps of a V-cycle: before and after each coarse correction, and on the
-/// coarsest level.
-pub const VCYCLE_SWEEPS: (u32, u32, u32) = (2, 2, 30);
+/// Smoothing sweeps of a V-cycle ([`LatticeMultigrid::vcycle`]). Where a level is
+/// smoothed by [`Smoother::Chebyshev`] its counts must be even (a sweep alternates
+/// between two buffers; [`Sweeps::check`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Sweeps {
+    /// On level 0 (the particles), before and after the coarse correction (each).
+    pub fine: u32,
+    /// On each level between level 0 and the coarsest, before and after (each).
+    pub coarse: u32,
+    /// On the coarsest level.
+    pub coarsest: u32,
+}
+
+impl Sweeps {
+    /// V(2, 2) on every level, 30 sweeps on the coarsest.
+    pub const DEFAULT: Sweeps = Sweeps {
+        fine: 2,
+        coarse: 2,
+        coarsest: 30,
+    };
+
+    /// The sweeps before and after the coarse correction on level `l` (not the
+    /// coarsest).
+    pub fn on_level(&self, l: usize) -> u32 {
+        if l == 0 { self.fine } else { self.coarse }
+    }
+
+    /// An error naming the count that `smoother` cannot take: every count from 1 to
+    /// 1,000, and even where the level is smoothed by Chebyshev.
+    pub fn check(&self, smoother: Smoother) -> Result<(), TissueError> {
+        let chebyshev_fine = smoother.on_level(0) == Smoother::Chebyshev;
+        let chebyshev_coarse = smoother.on_level(1) == Smoother::Chebyshev;
+        for (name, v, even) in [
+            ("sweeps.fine", self.fine, chebyshev_fine),
+            ("sweeps.coarse", self.coarse, chebyshev_coarse),
+            ("sweeps.coarsest", self.coarsest, chebyshev_coarse),
+        ] {
+            if v == 0 || v > 1000 || (even && v % 2 == 1) {
+                return Err(TissueError::InvalidParameter {
+                    name,
+                    value: v.to_string(),
+                    expected: if even {
+                        "an even count from 2 to 1000 (Chebyshev sweeps come in pairs)"
+                    } else {
+                        "a count from 1 to 1000"
+                    },
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Default for Sweeps {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
+}
 
 fn finite_or_zero(v: f64) -> f64 {
     if v.is_finite() { v } else { 0.0 }
@@ -1328,6 +1384,26 @@ mod tests {
     }
 
     #[test]
+    fn sweeps_are_checked_against_the_smoother() {
+        let odd = Sweeps {
+            fine: 1,
+            coarse: 2,
+            coarsest: 10,
+        };
+        assert!(odd.check(Smoother::Hybrid).is_ok());
+        assert!(odd.check(Smoother::GaussSeidel).is_ok());
+        // Chebyshev on level 0 takes pairs of sweeps only.
+        let err = odd.check(Smoother::Chebyshev).unwrap_err().to_string();
+        assert!(err.contains("sweeps.fine"), "{err}");
+        let coarse_odd = Sweeps { coarse: 3, ..odd };
+        assert!(coarse_odd.check(Smoother::Hybrid).is_err());
+        assert!(coarse_odd.check(Smoother::GaussSeidel).is_ok());
+        let none = Sweeps { coarsest: 0, ..odd };
+        assert!(none.check(Smoother::GaussSeidel).is_err());
+        assert!(Sweeps::DEFAULT.check(Smoother::Chebyshev).is_ok());
+    }
+
+    #[test]
     fn vcycle_contracts() {
         for (spacing, bound, smoother) in [
             (0.00375f32, 0.05f32, Smoother::GaussSeidel),
@@ -1356,7 +1432,7 @@ mod tests {
                 }
                 let r0 = residual_norm(&mg, h2, &work);
                 for _ in 0..6 {
-                    mg.vcycle(0, h2, 2, 2, 30, &mut work);
+                    mg.vcycle(0, h2, Sweeps::DEFAULT, &mut work);
                 }
                 let r6 = residual_norm(&mg, h2, &work) / r0;
                 eprintln!("{smoother:?} spacing {spacing} h {h}: {r6}");
@@ -1418,17 +1494,17 @@ mod tests {
                 (value, rows)
             };
             let mut best = fresh();
-            mg.krylov(h2, 40, held, &mut best);
+            mg.krylov(h2, 40, Sweeps::DEFAULT, held, &mut best);
             let least = phi(&best.delta[0]).0;
             let gap = |delta: &[Vec3]| (phi(delta).0 - least) / -least;
             let mut last = f64::MAX;
             for cycles in [1u32, 2, 3] {
                 let mut work = fresh();
-                mg.krylov(h2, cycles, held, &mut work);
+                mg.krylov(h2, cycles, Sweeps::DEFAULT, held, &mut work);
                 let e = gap(&work.delta[0]);
                 let mut plain = fresh();
                 for _ in 0..cycles {
-                    mg.vcycle(0, h2, 2, 2, 30, &mut plain);
+                    mg.vcycle(0, h2, Sweeps::DEFAULT, &mut plain);
                 }
                 let plain_e = gap(&plain.delta[0]);
                 eprintln!("{cycles} cycles: CG {e:.3e}, plain V-cycles {plain_e:.3e}");
@@ -1454,7 +1530,7 @@ mod tests {
             // 8 cycles: as near the minimum as f32 resolves it; with held nodes, which
             // the V-cycle moves (only its levels' fixed nodes it keeps), more slowly.
             let mut work = fresh();
-            mg.krylov(h2, 8, held, &mut work);
+            mg.krylov(h2, 8, Sweeps::DEFAULT, held, &mut work);
             let e = gap(&work.delta[0]);
             let bound = if held == &none { 1e-5 } else { 1e-3 };
             assert!(e.abs() < bound, "8 cycles leave {e}");

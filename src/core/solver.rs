@@ -177,6 +177,11 @@ pub struct SolverSettings {
     /// iteration of 2 V-cycles is about as accurate as 2 Newton iterations of one, and
     /// faster.
     pub newton_cycles: u32,
+    /// [`ElementSolver::Multigrid`]: the V-cycle's smoothing sweeps on level 0, on the
+    /// levels between and on the coarsest ([`super::multigrid::Sweeps`]; even where
+    /// [`Self::smoother`] smooths a level by Chebyshev). Default V(2, 2) with 30 on the
+    /// coarsest.
+    pub sweeps: super::multigrid::Sweeps,
 }
 
 /// What the coarse levels of hierarchical PBD solve. Level 0 is solved last in every
@@ -231,6 +236,7 @@ impl Default for SolverSettings {
             descent_adaptive_init: false,
             smoother: Default::default(),
             newton_cycles: 2,
+            sweeps: Default::default(),
         }
     }
 }
@@ -295,6 +301,7 @@ impl SolverSettings {
         count("knn_every", self.knn_every)?;
         count("contact_every", self.contact_every)?;
         count("newton_cycles", self.newton_cycles)?;
+        self.sweeps.check(self.smoother)?;
         if !self.gravity.is_finite() {
             return Err(TissueError::InvalidParameter {
                 name: "gravity",
@@ -1321,10 +1328,15 @@ impl Solver {
             .iter_mut()
             .for_each(|d| *d = Vec3::ZERO);
         if self.settings.newton_cycles > 1 {
-            mg.krylov(h2, self.settings.newton_cycles, &held, &mut self.mg_work);
+            mg.krylov(
+                h2,
+                self.settings.newton_cycles,
+                self.settings.sweeps,
+                &held,
+                &mut self.mg_work,
+            );
         } else {
-            let (pre, post, coarsest) = super::multigrid::VCYCLE_SWEEPS;
-            mg.vcycle(0, h2, pre, post, coarsest, &mut self.mg_work);
+            mg.vcycle(0, h2, self.settings.sweeps, &mut self.mg_work);
         }
         // Backtracking line search on the substep's energy
         // `Σ m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²` (active contacts and

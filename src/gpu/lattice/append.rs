@@ -102,6 +102,7 @@ impl AppendBasis {
             self.shape.smoother,
             self.shape.pairs,
             self.shape.cycles,
+            self.shape.sweeps,
         );
         let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
         if records.len() > self.pass_room {

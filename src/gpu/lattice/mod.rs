@@ -20,7 +20,7 @@ use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{
-    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother,
+    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother, Sweeps,
 };
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
@@ -55,9 +55,6 @@ const MAX_BODY_CHUNKS: usize = 1024;
 const BODY_SLOTS: usize = 16;
 /// Most workgroups of a `pick` (they stride over the bodies).
 const MAX_PICK_GROUPS: u32 = 65_535;
-/// Smoothing sweeps before and after the coarse correction, and on the coarsest
-/// level (as the CPU solver's V-cycle; even, for the Chebyshev smoother's buffers).
-const SWEEPS: (u32, u32, u32) = crate::core::multigrid::VCYCLE_SWEEPS;
 /// Most workgroups of a Chebyshev sweep (they stride over larger levels).
 const CHEBYSHEV_GROUPS: u32 = 8192;
 
@@ -140,6 +137,8 @@ pub struct Shape {
     /// V-cycles per Newton iteration (more than 1: conjugate gradients preconditioned
     /// by them, [`SolverSettings::newton_cycles`]).
     pub cycles: u32,
+    /// The V-cycle's smoothing sweeps ([`SolverSettings::sweeps`]).
+    pub sweeps: Sweeps,
 }
 
 /// How [`GpuLattice`] schedules its work (the answer is the same either way).
@@ -305,11 +304,12 @@ fn sweeps(
 }
 
 fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
-    let (pre, post, coarsest) = SWEEPS;
+    let counts = shape.sweeps;
     if l + 1 == shape.levels.len() {
-        sweeps(shape, l, coarsest, push);
+        sweeps(shape, l, counts.coarsest, push);
         return;
     }
+    let (pre, post) = (counts.on_level(l), counts.on_level(l));
     let lv = shape.levels[l];
     let cv = shape.levels[l + 1];
     let ll = l as u32;
@@ -381,7 +381,12 @@ fn params_of(
         restr_base: layout.restr_base,
         child_base: layout.child_base,
         lv,
-        sweeps: [SWEEPS.0, SWEEPS.1, SWEEPS.2, options.first_candidates],
+        sweeps: [
+            settings.sweeps.fine,
+            settings.sweeps.coarse,
+            settings.sweeps.coarsest,
+            options.first_candidates,
+        ],
         colours,
         misc: [
             0,
@@ -412,7 +417,13 @@ fn params_of(
 }
 
 /// The shape the plan needs of `layout` as packed so far.
-fn shape_of(layout: &Layout, smoother: Smoother, pairs: Option<u32>, cycles: u32) -> Shape {
+fn shape_of(
+    layout: &Layout,
+    smoother: Smoother,
+    pairs: Option<u32>,
+    cycles: u32,
+    sweeps: Sweeps,
+) -> Shape {
     Shape {
         levels: layout
             .nodes
@@ -430,6 +441,7 @@ fn shape_of(layout: &Layout, smoother: Smoother, pairs: Option<u32>, cycles: u32
         smoother,
         pairs,
         cycles: cycles.max(1),
+        sweeps,
     }
 }
 
@@ -658,6 +670,7 @@ impl GpuLattice {
             mg.smoother,
             (pair_capacity > 0).then_some(settings.contact_every),
             settings.newton_cycles,
+            settings.sweeps,
         );
         // Every buffer's contents: zero, then the bodies' writes.
         let (n, nt) = (layout.n_slots() as usize, layout.node_slots() as usize);
@@ -1383,7 +1396,31 @@ mod tests {
             smoother: Smoother::GaussSeidel,
             pairs: None,
             cycles: 1,
+            sweeps: Sweeps::DEFAULT,
         }
+    }
+
+    /// Each level is smoothed as many times as the settings' sweeps say: level 0 `fine`
+    /// times before and after, the levels between `coarse`, the coarsest `coarsest`,
+    /// each Gauss–Seidel sweep a dispatch per non-empty colour.
+    #[test]
+    fn each_level_takes_its_own_sweeps() {
+        let s = Shape {
+            sweeps: Sweeps {
+                fine: 1,
+                coarse: 3,
+                coarsest: 5,
+            },
+            ..shape()
+        };
+        let count = |l: u32| {
+            plan(&s, 1)
+                .iter()
+                .filter(|d| d.kernel == Kernel::Smooth && d.pass.level == l)
+                .count()
+        };
+        // Level 1 has an empty colour.
+        assert_eq!((count(0), count(1), count(2)), (2 * 8, 2 * 3 * 7, 5 * 8));
     }
 
     /// Particle contacts are projected after every `contact_every`-th Newton iteration
