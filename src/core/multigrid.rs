@@ -1097,10 +1097,11 @@ impl LatticeMultigrid {
     pub fn vcycle(&self, l: usize, h2: f32, sweeps: Sweeps, work: &mut MgWork) {
         let nl = self.levels.len();
         if l + 1 == nl {
-            self.smooth(l, sweeps.coarsest, h2, work);
+            self.smooth(l, sweeps.on_level(l, true, self.smoother), h2, work);
             return;
         }
-        self.smooth(l, sweeps.on_level(l), h2, work);
+        let count = sweeps.on_level(l, false, self.smoother);
+        self.smooth(l, count, h2, work);
         // Restrict the residual: r_c = Pᵀ (rhs − A δ).
         let lv = &self.levels[l];
         let nc = self.levels[l + 1].nodes;
@@ -1155,13 +1156,13 @@ impl LatticeMultigrid {
                 work.delta[l][j] += e[j] * alpha;
             }
         }
-        self.smooth(l, sweeps.on_level(l), h2, work);
+        self.smooth(l, count, h2, work);
     }
 }
 
-/// Smoothing sweeps of a V-cycle ([`LatticeMultigrid::vcycle`]). Where a level is
-/// smoothed by [`Smoother::Chebyshev`] its counts must be even (a sweep alternates
-/// between two buffers; [`Sweeps::check`]).
+/// Smoothing sweeps of a V-cycle ([`LatticeMultigrid::vcycle`]). A level smoothed by
+/// [`Smoother::Chebyshev`] takes its sweeps in pairs (a sweep alternates between two
+/// buffers): an odd count there is one more ([`Sweeps::on_level`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Sweeps {
     /// On level 0 (the particles), before and after the coarse correction (each).
@@ -1173,38 +1174,45 @@ pub struct Sweeps {
 }
 
 impl Sweeps {
-    /// V(2, 2) on every level, 30 sweeps on the coarsest.
+    /// One sweep before and after on level 0, two on the levels between, 30 on the
+    /// coarsest: as accurate as two on level 0 at a real-time step, for half of level
+    /// 0's work (the coarsest level's solve carries what a stiff body's bending needs).
     pub const DEFAULT: Sweeps = Sweeps {
-        fine: 2,
+        fine: 1,
         coarse: 2,
         coarsest: 30,
     };
 
-    /// The sweeps before and after the coarse correction on level `l` (not the
-    /// coarsest).
-    pub fn on_level(&self, l: usize) -> u32 {
-        if l == 0 { self.fine } else { self.coarse }
+    /// The sweeps `smoother` takes on level `l`: before and after the coarse correction
+    /// (each), or all of them where `l` is the coarsest level; rounded up to even where
+    /// the level is smoothed by Chebyshev.
+    pub fn on_level(&self, l: usize, coarsest: bool, smoother: Smoother) -> u32 {
+        let n = if coarsest {
+            self.coarsest
+        } else if l == 0 {
+            self.fine
+        } else {
+            self.coarse
+        };
+        if smoother.on_level(l) == Smoother::Chebyshev {
+            n + n % 2
+        } else {
+            n
+        }
     }
 
-    /// An error naming the count that `smoother` cannot take: every count from 1 to
-    /// 1,000, and even where the level is smoothed by Chebyshev.
-    pub fn check(&self, smoother: Smoother) -> Result<(), TissueError> {
-        let chebyshev_fine = smoother.on_level(0) == Smoother::Chebyshev;
-        let chebyshev_coarse = smoother.on_level(1) == Smoother::Chebyshev;
-        for (name, v, even) in [
-            ("sweeps.fine", self.fine, chebyshev_fine),
-            ("sweeps.coarse", self.coarse, chebyshev_coarse),
-            ("sweeps.coarsest", self.coarsest, chebyshev_coarse),
+    /// An error naming a count out of range: every count from 1 to 1,000.
+    pub fn check(&self) -> Result<(), TissueError> {
+        for (name, v) in [
+            ("sweeps.fine", self.fine),
+            ("sweeps.coarse", self.coarse),
+            ("sweeps.coarsest", self.coarsest),
         ] {
-            if v == 0 || v > 1000 || (even && v % 2 == 1) {
+            if v == 0 || v > 1000 {
                 return Err(TissueError::InvalidParameter {
                     name,
                     value: v.to_string(),
-                    expected: if even {
-                        "an even count from 2 to 1000 (Chebyshev sweeps come in pairs)"
-                    } else {
-                        "a count from 1 to 1000"
-                    },
+                    expected: "a count from 1 to 1000",
                 });
             }
         }
@@ -1383,24 +1391,34 @@ mod tests {
         assert_eq!(spd_inverse(Mat3::ZERO), Mat3::ZERO);
     }
 
+    /// V(2, 2) with 30 on the coarsest (what these tests were written with).
+    const V22: Sweeps = Sweeps {
+        fine: 2,
+        coarse: 2,
+        coarsest: 30,
+    };
+
     #[test]
-    fn sweeps_are_checked_against_the_smoother() {
+    fn sweeps_are_counted_per_level_and_checked() {
         let odd = Sweeps {
             fine: 1,
-            coarse: 2,
-            coarsest: 10,
+            coarse: 3,
+            coarsest: 9,
         };
-        assert!(odd.check(Smoother::Hybrid).is_ok());
-        assert!(odd.check(Smoother::GaussSeidel).is_ok());
-        // Chebyshev on level 0 takes pairs of sweeps only.
-        let err = odd.check(Smoother::Chebyshev).unwrap_err().to_string();
-        assert!(err.contains("sweeps.fine"), "{err}");
-        let coarse_odd = Sweeps { coarse: 3, ..odd };
-        assert!(coarse_odd.check(Smoother::Hybrid).is_err());
-        assert!(coarse_odd.check(Smoother::GaussSeidel).is_ok());
+        assert!(odd.check().is_ok());
+        // Gauss–Seidel takes the counts as they are; Chebyshev in pairs.
+        assert_eq!(odd.on_level(0, false, Smoother::Hybrid), 1);
+        assert_eq!(odd.on_level(1, false, Smoother::Hybrid), 4);
+        assert_eq!(odd.on_level(2, true, Smoother::Hybrid), 10);
+        assert_eq!(odd.on_level(0, false, Smoother::Chebyshev), 2);
+        assert_eq!(odd.on_level(1, false, Smoother::GaussSeidel), 3);
+        assert_eq!(odd.on_level(2, true, Smoother::GaussSeidel), 9);
+        // A single level is the coarsest.
+        assert_eq!(odd.on_level(0, true, Smoother::Hybrid), 9);
         let none = Sweeps { coarsest: 0, ..odd };
-        assert!(none.check(Smoother::GaussSeidel).is_err());
-        assert!(Sweeps::DEFAULT.check(Smoother::Chebyshev).is_ok());
+        let err = none.check().unwrap_err().to_string();
+        assert!(err.contains("sweeps.coarsest"), "{err}");
+        assert!(Sweeps { fine: 5000, ..odd }.check().is_err());
     }
 
     #[test]
@@ -1432,7 +1450,7 @@ mod tests {
                 }
                 let r0 = residual_norm(&mg, h2, &work);
                 for _ in 0..6 {
-                    mg.vcycle(0, h2, Sweeps::DEFAULT, &mut work);
+                    mg.vcycle(0, h2, V22, &mut work);
                 }
                 let r6 = residual_norm(&mg, h2, &work) / r0;
                 eprintln!("{smoother:?} spacing {spacing} h {h}: {r6}");
@@ -1494,17 +1512,17 @@ mod tests {
                 (value, rows)
             };
             let mut best = fresh();
-            mg.krylov(h2, 40, Sweeps::DEFAULT, held, &mut best);
+            mg.krylov(h2, 40, V22, held, &mut best);
             let least = phi(&best.delta[0]).0;
             let gap = |delta: &[Vec3]| (phi(delta).0 - least) / -least;
             let mut last = f64::MAX;
             for cycles in [1u32, 2, 3] {
                 let mut work = fresh();
-                mg.krylov(h2, cycles, Sweeps::DEFAULT, held, &mut work);
+                mg.krylov(h2, cycles, V22, held, &mut work);
                 let e = gap(&work.delta[0]);
                 let mut plain = fresh();
                 for _ in 0..cycles {
-                    mg.vcycle(0, h2, Sweeps::DEFAULT, &mut plain);
+                    mg.vcycle(0, h2, V22, &mut plain);
                 }
                 let plain_e = gap(&plain.delta[0]);
                 eprintln!("{cycles} cycles: CG {e:.3e}, plain V-cycles {plain_e:.3e}");
@@ -1530,7 +1548,7 @@ mod tests {
             // 8 cycles: as near the minimum as f32 resolves it; with held nodes, which
             // the V-cycle moves (only its levels' fixed nodes it keeps), more slowly.
             let mut work = fresh();
-            mg.krylov(h2, 8, Sweeps::DEFAULT, held, &mut work);
+            mg.krylov(h2, 8, V22, held, &mut work);
             let e = gap(&work.delta[0]);
             let bound = if held == &none { 1e-5 } else { 1e-3 };
             assert!(e.abs() < bound, "8 cycles leave {e}");

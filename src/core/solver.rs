@@ -178,9 +178,9 @@ pub struct SolverSettings {
     /// faster.
     pub newton_cycles: u32,
     /// [`ElementSolver::Multigrid`]: the V-cycle's smoothing sweeps on level 0, on the
-    /// levels between and on the coarsest ([`super::multigrid::Sweeps`]; even where
-    /// [`Self::smoother`] smooths a level by Chebyshev). Default V(2, 2) with 30 on the
-    /// coarsest.
+    /// levels between and on the coarsest ([`super::multigrid::Sweeps`]; in pairs where
+    /// [`Self::smoother`] smooths a level by Chebyshev). Default one sweep before and after
+    /// on level 0, two on the levels between, 30 on the coarsest.
     pub sweeps: super::multigrid::Sweeps,
 }
 
@@ -301,7 +301,7 @@ impl SolverSettings {
         count("knn_every", self.knn_every)?;
         count("contact_every", self.contact_every)?;
         count("newton_cycles", self.newton_cycles)?;
-        self.sweeps.check(self.smoother)?;
+        self.sweeps.check()?;
         if !self.gravity.is_finite() {
             return Err(TissueError::InvalidParameter {
                 name: "gravity",

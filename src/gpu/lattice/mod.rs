@@ -304,12 +304,13 @@ fn sweeps(
 }
 
 fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
-    let counts = shape.sweeps;
     if l + 1 == shape.levels.len() {
-        sweeps(shape, l, counts.coarsest, push);
+        let count = shape.sweeps.on_level(l, true, shape.smoother);
+        sweeps(shape, l, count, push);
         return;
     }
-    let (pre, post) = (counts.on_level(l), counts.on_level(l));
+    let count = shape.sweeps.on_level(l, false, shape.smoother);
+    let (pre, post) = (count, count);
     let lv = shape.levels[l];
     let cv = shape.levels[l + 1];
     let ll = l as u32;
