@@ -1397,7 +1397,12 @@ mod tests {
             smoother: Smoother::GaussSeidel,
             pairs: None,
             cycles: 1,
-            sweeps: Sweeps::DEFAULT,
+            // V(2, 2), 30 on the coarsest (what these tests count).
+            sweeps: Sweeps {
+                fine: 2,
+                coarse: 2,
+                coarsest: 30,
+            },
         }
     }
 
