@@ -19,7 +19,7 @@ use super::element::corotated_stress;
 use super::element::{CORNERS, HOURGLASS_MODES, HexModes, cube_stiffness, element_gradient};
 use super::error::TissueError;
 use super::model::{Discretisation, Material, Model};
-use glam::{IVec3, Mat3, Quat, Vec3};
+use glam::{DVec3, IVec3, Mat3, Quat, Vec3};
 use std::collections::HashMap;
 
 /// One level of the lattice hierarchy (level 0 is the model's own elements).
@@ -1092,6 +1092,44 @@ impl LatticeMultigrid {
         work.delta[0] = x;
     }
 
+    /// Each free body's translation step on level 0: `t = Σ r / Σ m/h²` over its nodes,
+    /// added to every node's correction, the residual `r` updated by it (`r −= m/h² t`).
+    /// Elements store no energy in a translation, so for a body with no fixed node and
+    /// no contact block `t` is the exact minimiser of the step's energy along it: the
+    /// rigid motion a stiff body's mass alone resists (`M/h²`, small against its
+    /// stiffness), which smoothing barely moves and the coarse levels approximate, is
+    /// taken whole. Bodies with fixed nodes or contacts take none.
+    fn translate_bodies(&self, h2: f32, r: &mut [Vec3], work: &mut MgWork) {
+        let lv = &self.levels[0];
+        let extra = work.extra.first();
+        for w in lv.body_start.windows(2) {
+            let nodes = w[0] as usize..w[1] as usize;
+            let blocked = nodes.clone().any(|j| {
+                lv.fixed[j]
+                    || extra
+                        .and_then(|e| e.get(j))
+                        .is_some_and(|m| *m != Mat3::ZERO)
+            });
+            if blocked {
+                continue;
+            }
+            let (mut sum, mut mass) = (DVec3::ZERO, 0.0f64);
+            for j in nodes.clone() {
+                sum += r[j].as_dvec3();
+                mass += (lv.mass[j] / h2) as f64;
+            }
+            let t = sum / mass;
+            if !(mass > 0.0) || !t.is_finite() {
+                continue;
+            }
+            let t = t.as_vec3();
+            for j in nodes {
+                work.delta[0][j] += t;
+                r[j] -= t * (lv.mass[j] / h2);
+            }
+        }
+    }
+
     /// One V-cycle from level `l` down, smoothing each level `sweeps` times:
     /// `work.delta[l]` improves on `A δ = work.rhs[l]`.
     pub fn vcycle(&self, l: usize, h2: f32, sweeps: Sweeps, work: &mut MgWork) {
@@ -1108,13 +1146,16 @@ impl LatticeMultigrid {
         let mut rc = vec![Vec3::ZERO; nc];
         let mut rf = vec![Vec3::ZERO; lv.nodes];
         for (j, rfj) in rf.iter_mut().enumerate() {
-            if lv.fixed[j] {
-                continue;
+            if !lv.fixed[j] {
+                *rfj = work.rhs[l][j] - self.apply_row(l, j, &work.delta[l], h2, work);
             }
-            let r = work.rhs[l][j] - self.apply_row(l, j, &work.delta[l], h2, work);
-            *rfj = r;
+        }
+        if l == 0 {
+            self.translate_bodies(h2, &mut rf, work);
+        }
+        for (j, r) in rf.iter().enumerate() {
             for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
-                rc[lv.prolong_node[s] as usize] += r * lv.prolong_weight[s];
+                rc[lv.prolong_node[s] as usize] += *r * lv.prolong_weight[s];
             }
         }
         let cfixed = &self.levels[l + 1].fixed;

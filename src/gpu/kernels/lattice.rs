@@ -181,6 +181,12 @@ pub enum Kernel {
     CgMatvec,
     /// `cg_update`: the conjugate gradients' step on the iterate and the residual.
     CgUpdate,
+    /// `translate_terms`: partial sums of each body's level-0 residual and mass for its
+    /// translation step.
+    TranslateTerms,
+    /// `translate`: each free body's translation step on its level-0 correction and
+    /// residual.
+    Translate,
 }
 
 /// One entry point and the slots it uses.
@@ -356,6 +362,16 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::CgUpdate,
         name: "cg_update",
+        uses: &["params", "pc", "vecs", "red", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::TranslateTerms,
+        name: "translate_terms",
+        uses: &["params", "pc", "vecs", "nblk", "red", "elems", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::Translate,
+        name: "translate",
         uses: &["params", "pc", "vecs", "red", "nodes"],
     },
 ];

@@ -22,6 +22,7 @@ const B_PENDING: u32 = 1u;    // 1: the line search's second pass decides
 const B_CG_ALPHA: u32 = 2u;   // conjugate gradients: the last step α
 const B_CG_RZ: u32 = 3u;      // conjugate gradients: the last zᵀ r
 const B_CG_BETA: u32 = 4u;    // conjugate gradients: the next direction's β
+const B_SHIFT: u32 = 5u;      // + 0..2: the body's translation step (xyz)
 const B_MG_ALPHA: u32 = 8u;   // + level: the coarse correction's step
 
 const R_X: u32 = 0u;
@@ -554,6 +555,9 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
     } else if (mode == 6u) {
         used = 3u;
         table = 1u;
+    } else if (mode == 7u) {
+        used = 5u;
+        table = 1u;
     } else {
         table = 1u + pc.level;
     }
@@ -633,6 +637,18 @@ fn pick_body(b: u32, mode: u32) {
         }
         red[body_slot(b, B_CG_ALPHA)] = select(0.0, a, is_finite_f(a));
         red[body_slot(b, B_CG_RZ)] = wsum[0][2];
+    } else if (mode == 7u) {
+        // The translation step Σ r / Σ m/h², none for a body with a blocking node.
+        var t = vec3<f32>(0.0);
+        if (wsum[0][4] < 0.5 && wsum[0][3] > 0.0) {
+            t = vec3<f32>(wsum[0][0], wsum[0][1], wsum[0][2]) / wsum[0][3];
+        }
+        if (!is_finite_f(t.x) || !is_finite_f(t.y) || !is_finite_f(t.z)) {
+            t = vec3<f32>(0.0);
+        }
+        red[body_slot(b, B_SHIFT)] = t.x;
+        red[body_slot(b, B_SHIFT + 1u)] = t.y;
+        red[body_slot(b, B_SHIFT + 2u)] = t.z;
     } else {
         red[body_slot(b, B_MG_ALPHA + pc.level)] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
     }
@@ -1128,6 +1144,53 @@ fn alpha_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
     wsum[lid][0] = num;
     wsum[lid][1] = den;
     reduce_partials(lid, wg.x, 2u);
+}
+
+// Partial sums over a chunk of level 0's nodes (workgroup pc.first + wg.x of its
+// table) for each body's translation step (core::multigrid's translate_bodies): Σ r, Σ
+// m/h², and the nodes that block it (held, or with a contact block).
+@compute @workgroup_size(64)
+fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
+    var r = vec3<f32>(0.0);
+    var m = 0.0;
+    var blocked = 0.0;
+    let ch = chunk(pc.first + wg.x);
+    for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
+        let x = extra_block(j);
+        let contact = any(x[0] != vec3<f32>(0.0)) || any(x[1] != vec3<f32>(0.0))
+            || any(x[2] != vec3<f32>(0.0));
+        if (held(j) || contact) {
+            blocked = blocked + 1.0;
+        } else {
+            r = r + vecs[V_RES * params.n_total + j].xyz;
+            m = m + nodes[j].x / params.h2;
+        }
+    }
+    wsum[lid][0] = r.x;
+    wsum[lid][1] = r.y;
+    wsum[lid][2] = r.z;
+    wsum[lid][3] = m;
+    wsum[lid][4] = blocked;
+    reduce_partials(lid, wg.x, 5u);
+}
+
+// Level 0's node j takes its body's translation step t: δ += t, r −= m/h² t (held
+// nodes: none; their bodies take none).
+@compute @workgroup_size(64)
+fn translate(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    if (held(j)) {
+        return;
+    }
+    let b = node_body(j);
+    let t = vec3<f32>(red[body_slot(b, B_SHIFT)], red[body_slot(b, B_SHIFT + 1u)],
+                      red[body_slot(b, B_SHIFT + 2u)]);
+    let n = params.n_total;
+    vecs[V_DELTA * n + j] = vec4<f32>(vecs[V_DELTA * n + j].xyz + t, 0.0);
+    vecs[V_RES * n + j] = vec4<f32>(vecs[V_RES * n + j].xyz - t * (nodes[j].x / params.h2), 0.0);
 }
 
 // δ += α e on level pc.level, α each node's body's.

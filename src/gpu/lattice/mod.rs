@@ -316,6 +316,13 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     let ll = l as u32;
     sweeps(shape, l, pre, push);
     push(Kernel::FineResidual, lv[0], lv[1], ll, 0, groups(lv[1]));
+    if l == 0 {
+        // Each free body's translation step (`translate_bodies`).
+        let [n0, nc] = shape.tables[1];
+        push(Kernel::TranslateTerms, n0, nc, 0, 0, nc);
+        push(Kernel::Pick, 0, nc, 0, 7, pick_groups(shape));
+        push(Kernel::Translate, lv[0], lv[1], 0, 0, groups(lv[1]));
+    }
     push(Kernel::Restrict, cv[0], cv[1], ll + 1, 0, groups(cv[1]));
     vcycle(shape, l + 1, push);
     push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
@@ -1542,7 +1549,7 @@ mod tests {
                         | Kernel::CgMatvec
                         | Kernel::CgUpdate
                         | Kernel::Trust
-                ) || (d.kernel == Kernel::Pick && d.pass.mode >= 5)
+                ) || (d.kernel == Kernel::Pick && (5..=6).contains(&d.pass.mode))
             })
             .map(|d| (d.kernel, d.pass.mode))
             .take(16)
@@ -1612,6 +1619,18 @@ mod tests {
         );
         assert_eq!(count(Kernel::Restrict), 2 * 2);
         assert_eq!(count(Kernel::Prolong), 2 * 2);
+        // Each V-cycle's translation step, between level 0's residual and its
+        // restriction.
+        assert_eq!(count(Kernel::TranslateTerms), 2);
+        for (i, d) in p.iter().enumerate() {
+            if d.kernel == Kernel::TranslateTerms {
+                assert_eq!(p[i - 1].kernel, Kernel::FineResidual);
+                assert_eq!(p[i - 1].pass.level, 0);
+                assert_eq!((p[i + 1].kernel, p[i + 1].pass.mode), (Kernel::Pick, 7));
+                assert_eq!(p[i + 2].kernel, Kernel::Translate);
+                assert_eq!(p[i + 3].kernel, Kernel::Restrict);
+            }
+        }
         // Level 1 has an empty colour (7): 7 colours × 4 sweeps; level 0: 8 × 4;
         // coarsest: 8 × 30.
         assert_eq!(count(Kernel::Smooth), 2 * (8 * 4 + 7 * 4 + 8 * 30));
@@ -1626,6 +1645,10 @@ mod tests {
                 let table = match before.kernel {
                     Kernel::Energy => 0,
                     Kernel::AlphaTerms => 1 + before.pass.level as usize,
+                    Kernel::TranslateTerms => {
+                        assert_eq!(d.pass.mode, 7);
+                        1
+                    }
                     other => panic!("pick after {other:?}"),
                 };
                 let [first, count] = s.tables[table];
