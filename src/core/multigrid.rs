@@ -1119,7 +1119,7 @@ impl LatticeMultigrid {
                 mass += (lv.mass[j] / h2) as f64;
             }
             let t = sum / mass;
-            if !(mass > 0.0) || !t.is_finite() {
+            if mass <= 0.0 || !t.is_finite() {
                 continue;
             }
             let t = t.as_vec3();
