@@ -1215,12 +1215,12 @@ pub struct Sweeps {
 }
 
 impl Sweeps {
-    /// Two sweeps before and after on every level but the coarsest, 30 there. (One on
-    /// level 0 is as accurate on a clamped body and halves level 0's work, but a free
-    /// stiff body then falls behind gravity: its rigid motion is left to the coarse
-    /// levels.)
+    /// One sweep before and after on level 0, two on the levels between, 30 on the
+    /// coarsest: as accurate as two on level 0 at a real-time step (the coarsest
+    /// level's solve carries a stiff body's bending, each V-cycle's translation step
+    /// its rigid motion), for half of level 0's work.
     pub const DEFAULT: Sweeps = Sweeps {
-        fine: 2,
+        fine: 1,
         coarse: 2,
         coarsest: 30,
     };
