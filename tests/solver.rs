@@ -732,10 +732,11 @@ fn lattice_box_dropped_onto_another_rests_on_it() {
 /// bodies and stiff ones (1 MPa) on both lattices; and with one V-cycle (the `Fast`
 /// quality) or two Gauss–Seidel sweeps on level 0 for a stiff one. A stiff body's rigid
 /// motion is held by its mass alone, which the smoothing barely moves: each V-cycle's
-/// translation step takes it whole (without it the 4 mm stiff body fell 0.981 of the
-/// drop after 30 steps with two level-0 sweeps, one V-cycle 0.10, one sweep 0.52). (One Newton iteration lagged
-/// on a lattice finer than twice gravity's 2.7 mm a step while the trust region held
-/// each particle to half a spacing per iteration; it now adds gravity's step from rest.)
+/// translation step takes it whole (without it, the 4 mm stiff body fell 0.981 of the
+/// drop after 30 steps with two level-0 sweeps and 0.72 with one; the 8 mm one 0.52
+/// with one). (One Newton iteration lagged on a lattice finer than twice gravity's
+/// 2.7 mm a step while the trust region held each particle to half a spacing per
+/// iteration; it now adds gravity's step from rest.)
 #[test]
 fn free_lattice_bodies_fall_at_gravitys_rate() {
     use bevy_tissue::core::multigrid::Sweeps;

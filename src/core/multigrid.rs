@@ -19,7 +19,7 @@ use super::element::corotated_stress;
 use super::element::{CORNERS, HOURGLASS_MODES, HexModes, cube_stiffness, element_gradient};
 use super::error::TissueError;
 use super::model::{Discretisation, Material, Model};
-use glam::{DVec3, IVec3, Mat3, Quat, Vec3};
+use glam::{DMat3, DVec3, IVec3, Mat3, Quat, Vec3};
 use std::collections::HashMap;
 
 /// One level of the lattice hierarchy (level 0 is the model's own elements).
@@ -1092,40 +1092,41 @@ impl LatticeMultigrid {
         work.delta[0] = x;
     }
 
-    /// Each free body's translation step on level 0: `t = Σ r / Σ m/h²` over its nodes,
-    /// added to every node's correction, the residual `r` updated by it (`r −= m/h² t`).
-    /// Elements store no energy in a translation, so for a body with no fixed node and
-    /// no contact block `t` is the exact minimiser of the step's energy along it: the
-    /// rigid motion a stiff body's mass alone resists (`M/h²`, small against its
-    /// stiffness), which smoothing barely moves and the coarse levels approximate, is
-    /// taken whole. Bodies with fixed nodes or contacts take none.
+    /// Each body's translation step on level 0: `t = (Σ m/h² I + S_j)⁻¹ Σ r` over its
+    /// nodes (`S_j` a node's contact block), added to every node's correction, the
+    /// residual updated by it (`r_j −= (m_j/h² I + S_j) t`). Elements store no energy in
+    /// a translation, so this is the exact minimiser of the step's energy along the
+    /// body's translations (the contacts as the V-cycle sees them): the rigid motion a
+    /// stiff body's mass alone resists (`M/h²`, small against its stiffness), which
+    /// smoothing barely moves and the coarse levels approximate, is taken whole. Bodies
+    /// with a fixed node (pinned, or outside the lattice) take none.
     fn translate_bodies(&self, h2: f32, r: &mut [Vec3], work: &mut MgWork) {
         let lv = &self.levels[0];
-        let extra = work.extra.first();
+        let block = |j: usize| -> Mat3 {
+            let m = Mat3::from_diagonal(Vec3::splat(lv.mass[j] / h2));
+            match work.extra.first().and_then(|e| e.get(j)) {
+                Some(s) => m + *s,
+                None => m,
+            }
+        };
         for w in lv.body_start.windows(2) {
             let nodes = w[0] as usize..w[1] as usize;
-            let blocked = nodes.clone().any(|j| {
-                lv.fixed[j]
-                    || extra
-                        .and_then(|e| e.get(j))
-                        .is_some_and(|m| *m != Mat3::ZERO)
-            });
-            if blocked {
+            if nodes.clone().any(|j| lv.fixed[j]) {
                 continue;
             }
-            let (mut sum, mut mass) = (DVec3::ZERO, 0.0f64);
+            let (mut sum, mut a) = (DVec3::ZERO, DMat3::ZERO);
             for j in nodes.clone() {
                 sum += r[j].as_dvec3();
-                mass += (lv.mass[j] / h2) as f64;
+                a += block(j).as_dmat3();
             }
-            let t = sum / mass;
-            if mass <= 0.0 || !t.is_finite() {
+            let t = a.inverse() * sum;
+            if a.determinant() <= 0.0 || !t.is_finite() {
                 continue;
             }
             let t = t.as_vec3();
             for j in nodes {
+                r[j] -= block(j) * t;
                 work.delta[0][j] += t;
-                r[j] -= t * (lv.mass[j] / h2);
             }
         }
     }

@@ -372,7 +372,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Translate,
         name: "translate",
-        uses: &["params", "pc", "vecs", "red", "nodes"],
+        uses: &["params", "pc", "vecs", "nblk", "red", "nodes"],
     },
 ];
 

@@ -556,7 +556,7 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
         used = 3u;
         table = 1u;
     } else if (mode == 7u) {
-        used = 5u;
+        used = 10u;
         table = 1u;
     } else {
         table = 1u + pc.level;
@@ -638,10 +638,13 @@ fn pick_body(b: u32, mode: u32) {
         red[body_slot(b, B_CG_ALPHA)] = select(0.0, a, is_finite_f(a));
         red[body_slot(b, B_CG_RZ)] = wsum[0][2];
     } else if (mode == 7u) {
-        // The translation step Σ r / Σ m/h², none for a body with a blocking node.
+        // The translation step (Σ m/h² I + S)⁻¹ Σ r, none for a body with a held node.
         var t = vec3<f32>(0.0);
-        if (wsum[0][4] < 0.5 && wsum[0][3] > 0.0) {
-            t = vec3<f32>(wsum[0][0], wsum[0][1], wsum[0][2]) / wsum[0][3];
+        if (wsum[0][9] < 0.5) {
+            let w = wsum[0];
+            let a = mat3x3<f32>(vec3<f32>(w[3], w[6], w[7]), vec3<f32>(w[6], w[4], w[8]),
+                                vec3<f32>(w[7], w[8], w[5]));
+            t = spd_inverse(a) * vec3<f32>(w[0], w[1], w[2]);
         }
         if (!is_finite_f(t.x) || !is_finite_f(t.y) || !is_finite_f(t.z)) {
             t = vec3<f32>(0.0);
@@ -1146,36 +1149,45 @@ fn alpha_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
     reduce_partials(lid, wg.x, 2u);
 }
 
+// Node j's block against a translation of its body: m/h² I plus its contact block.
+fn translation_block(j: u32) -> mat3x3<f32> {
+    let m = nodes[j].x / params.h2;
+    return mat3x3<f32>(vec3<f32>(m, 0.0, 0.0), vec3<f32>(0.0, m, 0.0), vec3<f32>(0.0, 0.0, m))
+        + extra_block(j);
+}
+
 // Partial sums over a chunk of level 0's nodes (workgroup pc.first + wg.x of its
-// table) for each body's translation step (core::multigrid's translate_bodies): Σ r, Σ
-// m/h², and the nodes that block it (held, or with a contact block).
+// table) for each body's translation step (core::multigrid's translate_bodies): Σ r,
+// the six entries of Σ (m/h² I + S), and the held nodes (whose bodies take none).
 @compute @workgroup_size(64)
 fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     var r = vec3<f32>(0.0);
-    var m = 0.0;
-    var blocked = 0.0;
+    var a = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    var fixed = 0.0;
     let ch = chunk(pc.first + wg.x);
     for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
-        let x = extra_block(j);
-        let contact = any(x[0] != vec3<f32>(0.0)) || any(x[1] != vec3<f32>(0.0))
-            || any(x[2] != vec3<f32>(0.0));
-        if (held(j) || contact) {
-            blocked = blocked + 1.0;
+        if (held(j)) {
+            fixed = fixed + 1.0;
         } else {
             r = r + vecs[V_RES * params.n_total + j].xyz;
-            m = m + nodes[j].x / params.h2;
+            a = a + translation_block(j);
         }
     }
     wsum[lid][0] = r.x;
     wsum[lid][1] = r.y;
     wsum[lid][2] = r.z;
-    wsum[lid][3] = m;
-    wsum[lid][4] = blocked;
-    reduce_partials(lid, wg.x, 5u);
+    wsum[lid][3] = a[0].x;
+    wsum[lid][4] = a[1].y;
+    wsum[lid][5] = a[2].z;
+    wsum[lid][6] = 0.5 * (a[0].y + a[1].x);
+    wsum[lid][7] = 0.5 * (a[0].z + a[2].x);
+    wsum[lid][8] = 0.5 * (a[1].z + a[2].y);
+    wsum[lid][9] = fixed;
+    reduce_partials(lid, wg.x, 10u);
 }
 
-// Level 0's node j takes its body's translation step t: δ += t, r −= m/h² t (held
-// nodes: none; their bodies take none).
+// Level 0's node j takes its body's translation step t: δ += t, r −= (m/h² I + S) t
+// (held nodes: none; their bodies take none).
 @compute @workgroup_size(64)
 fn translate(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= pc.count) {
@@ -1190,7 +1202,7 @@ fn translate(@builtin(global_invocation_id) gid: vec3<u32>) {
                       red[body_slot(b, B_SHIFT + 2u)]);
     let n = params.n_total;
     vecs[V_DELTA * n + j] = vec4<f32>(vecs[V_DELTA * n + j].xyz + t, 0.0);
-    vecs[V_RES * n + j] = vec4<f32>(vecs[V_RES * n + j].xyz - t * (nodes[j].x / params.h2), 0.0);
+    vecs[V_RES * n + j] = vec4<f32>(vecs[V_RES * n + j].xyz - translation_block(j) * t, 0.0);
 }
 
 // δ += α e on level pc.level, α each node's body's.
