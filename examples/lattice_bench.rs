@@ -578,6 +578,24 @@ fn main() {
     }
 }
 
+/// Median of 5 of the milliseconds `f` takes on this thread, and until the GPU has
+/// finished what it queued.
+fn thread_then_gpu(
+    g: &Gpu,
+    world: &mut GpuLattice,
+    mut f: impl FnMut(&mut GpuLattice),
+) -> (f64, f64) {
+    let (mut here, mut done) = (Vec::new(), Vec::new());
+    for _ in 0..5 {
+        let t = Instant::now();
+        f(world);
+        here.push(t.elapsed().as_secs_f64() * 1e3);
+        wait(g, world);
+        done.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    (bench::median(here), bench::median(done))
+}
+
 /// Milliseconds `f` takes, the GPU's work it queued finished (what an empty
 /// submission and wait take is printed as a row of its own).
 fn timed<T>(g: &Gpu, world: &mut GpuLattice, f: impl FnOnce(&mut GpuLattice) -> T) -> (T, f64) {
@@ -668,25 +686,15 @@ fn changes(g: &Gpu, bodies: u32) {
         elements: 0..model.elements.len() as u32,
         to_element: 0,
     }];
-    let (mut carries, mut carried) = (Vec::new(), Vec::new());
-    for _ in 0..5 {
-        let t = Instant::now();
-        again
-            .carry_state(&g.device, &g.queue, &world, &kept)
+    let (carries, carried) = thread_then_gpu(g, &mut again, |w| {
+        w.carry_state(&g.device, &g.queue, &world, &kept)
             .unwrap_or_else(|e| fail("carry the state", e));
-        carries.push(t.elapsed().as_secs_f64() * 1e3);
-        wait(g, &again);
-        carried.push(t.elapsed().as_secs_f64() * 1e3);
-    }
+    });
     println!(
-        "| remake: the kept bodies' state by GPU copies ({} particles), this thread | {:.3} |",
+        "| remake: the kept bodies' state by GPU copies ({} particles), this thread | {carries:.3} |",
         model.particle_count(),
-        bench::median(carries)
     );
-    println!(
-        "| remake: the GPU copies, then wait for the GPU | {:.3} |",
-        bench::median(carried)
-    );
+    println!("| remake: the GPU copies, then wait for the GPU | {carried:.3} |");
     drop(again);
     // Appending: a cube at a time, into the room.
     let cube = cubes_at(1, 0.057);
@@ -768,24 +776,15 @@ fn changes(g: &Gpu, bodies: u32) {
     // What the frame that takes a world made again on a worker thread does with it:
     // upload the state it carries over (on this thread, then with the GPU's copies).
     let state = State::new(&grown);
-    let (mut uploads, mut uploaded) = (Vec::new(), Vec::new());
-    for _ in 0..5 {
-        let t = Instant::now();
-        world.upload(&g.queue, &grown, &state);
+    let (uploads, uploaded) = thread_then_gpu(g, &mut world, |w| {
+        w.upload(&g.queue, &grown, &state);
         g.queue.submit([]);
-        uploads.push(t.elapsed().as_secs_f64() * 1e3);
-        wait(g, &world);
-        uploaded.push(t.elapsed().as_secs_f64() * 1e3);
-    }
+    });
     println!(
-        "| upload the state ({} particles; the frame taking a world made again), this thread | {:.3} |",
+        "| upload the state ({} particles; the frame taking a world made again), this thread | {uploads:.3} |",
         grown.particle_count(),
-        bench::median(uploads)
     );
-    println!(
-        "| upload the state, then wait for the GPU | {:.3} |",
-        bench::median(uploaded)
-    );
+    println!("| upload the state, then wait for the GPU | {uploaded:.3} |");
     println!(
         "\nGPU ms per step: no room {tight_step:.3}; room 1.5 {room_step:.3}; after 10 appended {appended_step:.3}"
     );

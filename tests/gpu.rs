@@ -1283,6 +1283,15 @@ fn three_lattice_bodies() -> ([Model; 3], Vec<bevy_tissue::core::multigrid::Body
     (bodies, parts)
 }
 
+/// `bodies` appended into one model, in order.
+fn joined(bodies: &[Model]) -> Model {
+    let mut m = Model::new();
+    for b in bodies {
+        m.append(b);
+    }
+    m
+}
+
 /// A lattice body appended into a world's room (`GpuLattice::append`, what the plugin
 /// does when a body spawns) steps to the bit as a world made with it from the start (the
 /// same levels, the Chebyshev estimates the larger of the world's and the body's); a
@@ -1298,14 +1307,7 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
     };
     let kernels = LatticeKernels::new(&g.device).unwrap();
     let (bodies, parts) = three_lattice_bodies();
-    let model_of = |n: usize| {
-        let mut m = Model::new();
-        for b in &bodies[..n] {
-            m.append(b);
-        }
-        m
-    };
-    let (two, three) = (model_of(2), model_of(3));
+    let (two, three) = (joined(&bodies[..2]), joined(&bodies[..3]));
     let refs: Vec<&BodyLevels> = parts.iter().collect();
     let depth = LatticeMultigrid::depth_of(&refs[..2], MIN_NODES, MAX_LEVELS);
     assert!(depth >= 2);
@@ -1484,10 +1486,7 @@ fn bodies_packed_on_another_thread_commit_as_appended_here() {
         (there.body_count(), there.particle_count()),
         (here.body_count(), here.particle_count())
     );
-    let mut all = Model::new();
-    for b in &bodies {
-        all.append(b);
-    }
+    let all = joined(&bodies);
     let run = |world: &GpuLattice| {
         let mut enc = g.device.create_command_encoder(&Default::default());
         world.record(&mut enc, &kernels, 10, None);
@@ -1517,14 +1516,7 @@ fn a_lattice_made_again_takes_the_kept_bodies_state_by_gpu_copies() {
     };
     let kernels = LatticeKernels::new(&g.device).unwrap();
     let (bodies, parts) = three_lattice_bodies();
-    let model_of = |n: usize| {
-        let mut m = Model::new();
-        for b in &bodies[..n] {
-            m.append(b);
-        }
-        m
-    };
-    let (two, three) = (model_of(2), model_of(3));
+    let (two, three) = (joined(&bodies[..2]), joined(&bodies[..3]));
     let refs: Vec<&BodyLevels> = parts.iter().collect();
     let s = lattice_settings();
     let make = |model: &Model, n: usize| {

@@ -532,7 +532,8 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
 // workgroups, `pc.count`, into `args`); mode 4: for a pending body, the first of the
 // second pass's candidates that does not, else 0 (and `args` back to none); mode 3: the
 // coarse correction's step of level `pc.level`; conjugate gradients: mode 5 the next
-// direction's β, mode 6 the step α along the direction and zᵀ r.
+// direction's β, mode 6 the step α along the direction and zᵀ r; mode 7 the body's
+// translation step (`translate_terms`).
 @compute @workgroup_size(64)
 fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>,
         @builtin(num_workgroups) nwg: vec3<u32>) {

@@ -309,15 +309,15 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
         sweeps(shape, l, count, push);
         return;
     }
+    // The same count before and after the coarse correction.
     let count = shape.sweeps.on_level(l, false, shape.smoother);
-    let (pre, post) = (count, count);
     let lv = shape.levels[l];
     let cv = shape.levels[l + 1];
     let ll = l as u32;
-    sweeps(shape, l, pre, push);
+    sweeps(shape, l, count, push);
     push(Kernel::FineResidual, lv[0], lv[1], ll, 0, groups(lv[1]));
     if l == 0 {
-        // Each free body's translation step (`translate_bodies`).
+        // Each body's translation step (`translate_bodies`; none with fixed nodes).
         let [n0, nc] = shape.tables[1];
         push(Kernel::TranslateTerms, n0, nc, 0, 0, nc);
         push(Kernel::Pick, 0, nc, 0, 7, pick_groups(shape));
@@ -330,7 +330,7 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
     push(Kernel::Pick, 0, cn, ll, 3, pick_groups(shape));
     push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
-    sweeps(shape, l, post, push);
+    sweeps(shape, l, count, push);
 }
 
 /// The `nodes` record of particle `j` (a level-0 node): mass (kg), held, the trust
