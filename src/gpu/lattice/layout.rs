@@ -14,7 +14,8 @@ use super::{MAX_BODY_CHUNKS, MAX_LEVELS, WORKGROUP};
 use crate::core::model::Model;
 use crate::core::multigrid::{COLOURS, LatticeMultigrid};
 use crate::core::solver::State;
-use glam::Vec3;
+use glam::{Mat3, Vec3};
+use std::collections::{HashMap, HashSet};
 
 /// A segment: where it starts and how many items it can hold and holds (in the
 /// buffer's own items: u32 in `topo`, vec4 records in `elems`, blocks in `kmat`).
@@ -42,6 +43,8 @@ pub(super) struct Extent {
     prol: Vec<u32>,
     restr: Vec<u32>,
     child: Vec<u32>,
+    /// Blocks in `kmat`: every set of the body (an upper bound: sets already in the
+    /// world are shared), or, as packed, only its new ones.
     kmat: u32,
     chunks: Vec<u32>,
 }
@@ -236,6 +239,9 @@ pub(super) struct Layout {
     pub child: Vec<Seg>,
     /// The stiffness blocks in `kmat` (3 vec4 each).
     pub kmat: Seg,
+    /// Where each distinct set of 64 blocks packed so far starts in `kmat` (in blocks),
+    /// by [`fingerprint`]: an element whose blocks are already there points at them.
+    pub shared: HashMap<u128, u32>,
     /// The reductions' tables: their chunk records, from the first chunk.
     pub tables: Vec<Seg>,
     /// Bodies.
@@ -291,6 +297,47 @@ fn vec4(v: Vec3) -> [f32; 4] {
     v.extend(0.0).to_array()
 }
 
+/// A 128-bit fingerprint of a set of stiffness blocks (of their f32 bits): two 64-bit
+/// multiply–xor hashes with independent constants. Elements whose blocks are equal, bit
+/// for bit, share one copy in `kmat` (a lattice's interior coarse elements, and every
+/// copy of a body, have the same blocks); two different sets collide with a chance of
+/// about 2⁻¹²⁸.
+fn fingerprint(blocks: &[Mat3]) -> u128 {
+    let (mut a, mut b) = (0x243f_6a88_85a3_08d3u64, 0x1319_8a2e_0370_7344u64);
+    for m in blocks {
+        for v in m.to_cols_array() {
+            let w = v.to_bits() as u64;
+            a = (a ^ w).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(27);
+            b = (b ^ w.rotate_left(17))
+                .wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
+                .rotate_left(31);
+        }
+    }
+    let mix = |mut h: u64| {
+        h ^= h >> 33;
+        h = h.wrapping_mul(0xff51_afd7_ed55_8ccd);
+        h ^ (h >> 33)
+    };
+    ((mix(a) as u128) << 64) | mix(b ^ blocks.len() as u64) as u128
+}
+
+/// Body `b`'s stiffness block sets in packing order: its unit cube's (a lattice body),
+/// then each coarse element's, level by level.
+fn block_sets<'a>(
+    mg: &'a LatticeMultigrid,
+    b: usize,
+    s: &'a BodySlice,
+) -> impl Iterator<Item = &'a [Mat3]> + 'a {
+    let unit = mg.unit_blocks[b].as_deref().into_iter();
+    let coarse = (1..s.nodes.len()).flat_map(move |l| {
+        let lv = &mg.levels[l];
+        s.elems[l]
+            .clone()
+            .map(move |e| &lv.blocks[64 * e as usize..64 * (e as usize + 1)])
+    });
+    unit.chain(coarse)
+}
+
 /// Empty segments of capacities `caps` one after another from 0, each followed by
 /// `spare` items; and where the last ends.
 fn back_to_back(caps: Vec<u32>, spare: u32) -> (Vec<Seg>, u32) {
@@ -330,11 +377,16 @@ impl Layout {
         let starts = element_starts(mg, bodies);
         let mut total = Extent::zero(nl);
         let mut most = Extent::zero(nl);
+        // The distinct block sets: only those take room in `kmat`.
+        let mut distinct = HashSet::new();
         for b in 0..bodies {
-            let e = extent(mg, b, &slice(mg, b, &starts));
+            let s = slice(mg, b, &starts);
+            let e = extent(mg, b, &s);
             total.add(&e);
             most.max(&e);
+            distinct.extend(block_sets(mg, b, &s).map(fingerprint));
         }
+        total.kmat = 64 * distinct.len() as u32;
         let caps = |t: &Vec<u32>, m: &Vec<u32>| -> Vec<u32> {
             t.iter()
                 .zip(m)
@@ -404,6 +456,7 @@ impl Layout {
             restr,
             child,
             kmat,
+            shared: HashMap::new(),
             tables,
             bodies: Seg {
                 start: 0,
@@ -495,7 +548,15 @@ impl Layout {
         out: &mut Writes,
     ) -> bool {
         let s = slice(mg, b, element_start);
-        let ext = extent(mg, b, &s);
+        let mut ext = extent(mg, b, &s);
+        // The body's block sets in packing order; those not in the world yet take room.
+        let prints: Vec<u128> = block_sets(mg, b, &s).map(fingerprint).collect();
+        let fresh: HashSet<u128> = prints
+            .iter()
+            .filter(|p| !self.shared.contains_key(p))
+            .copied()
+            .collect();
+        ext.kmat = 64 * fresh.len() as u32;
         if !self.fits(&ext) {
             return false;
         }
@@ -510,15 +571,24 @@ impl Layout {
             .collect();
         let nslot = |l: usize, j: u32| (j as i64 + node_at[l]) as u32;
         let eslot = |l: usize, e: u32| (e as i64 + elem_at[l]) as u32;
-        // Stiffness blocks: the body's unit cube, then its coarse elements'.
+        // Stiffness blocks: the body's unit cube, then its coarse elements', each set
+        // written once into the world (`shared`).
         let mut kmat: Vec<[f32; 4]> = Vec::new();
         let kbase = self.kmat.end();
-        let unit_base = kbase;
-        if let Some(k) = &mg.unit_blocks[b] {
-            for m in k {
-                kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
-            }
-        }
+        let shared = &mut self.shared;
+        let mut print = prints.into_iter();
+        let mut place = |blocks: &[Mat3]| -> u32 {
+            let p = print.next().unwrap_or_else(|| fingerprint(blocks));
+            debug_assert_eq!(p, fingerprint(blocks));
+            *shared.entry(p).or_insert_with(|| {
+                let base = kbase + (kmat.len() / 3) as u32;
+                for m in blocks {
+                    kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
+                }
+                base
+            })
+        };
+        let unit_base = mg.unit_blocks[b].as_deref().map_or(kbase, &mut place);
         for l in 0..nl {
             let lv = &mg.levels[l];
             // Element records.
@@ -531,10 +601,7 @@ impl Layout {
                     let r = &model.element_rest[e as usize];
                     recs.push([unit_base, body, r.size.to_bits(), r.volume.to_bits()]);
                 } else {
-                    let base = kbase + (kmat.len() / 3) as u32;
-                    for m in &lv.blocks[64 * e as usize..64 * (e as usize + 1)] {
-                        kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
-                    }
+                    let base = place(&lv.blocks[64 * e as usize..64 * (e as usize + 1)]);
                     recs.push([base, body, 0, 0]);
                 }
             }
@@ -754,5 +821,131 @@ impl Layout {
         self.kmat.used += ext.kmat;
         self.bodies.used += 1;
         true
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::model::{BodyDesc, Discretisation, Material};
+    use crate::core::multigrid::{MAX_LEVELS, MIN_NODES};
+    use crate::core::procedural;
+    use crate::core::sampling::Resolution;
+
+    /// Three lattice boxes: two of one material (the second a moved copy of the first),
+    /// one stiffer.
+    fn boxes() -> Model {
+        let mut model = Model::new();
+        let mesh = procedural::cuboid(Vec3::new(0.03, 0.02, 0.025), 1);
+        for (k, e) in [(0.0f32, 10e3f32), (1.0, 10e3), (2.0, 40e3)] {
+            model
+                .add_body(
+                    &mesh,
+                    &BodyDesc {
+                        resolution: Resolution::Spacing(0.006),
+                        material: Material::Hyperelastic {
+                            youngs_modulus: e,
+                            poisson_ratio: 0.3,
+                        },
+                        discretisation: Discretisation::Lattice,
+                        translation: Vec3::new(0.2 * k, 0.3, 0.0),
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+        }
+        model
+    }
+
+    /// The packed buffers' words, from the writes.
+    fn buffer(w: &Writes, buf: Buf) -> Vec<u32> {
+        let mut out = Vec::new();
+        for (b, at, data) in &w.0 {
+            if *b == buf {
+                let end = *at as usize + data.len();
+                if out.len() < end {
+                    out.resize(end, 0);
+                }
+                out[*at as usize..end].copy_from_slice(data);
+            }
+        }
+        out
+    }
+
+    /// Equal stiffness block sets are written once and shared: every element (and every
+    /// body's unit cube) reads back its own blocks bit for bit, the moved copy adds
+    /// nothing, and the world holds fewer blocks than its elements have.
+    #[test]
+    fn equal_stiffness_blocks_are_stored_once() {
+        let model = boxes();
+        let mg = LatticeMultigrid::new(&model, MIN_NODES, MAX_LEVELS);
+        assert!(mg.levels.len() >= 2, "levels {}", mg.levels.len());
+        let state = State::new(&model);
+        let mut layout = Layout::new(&mg, 1.0);
+        let mut w = Writes::default();
+        assert!(layout.pack_all(&model, &mg, &state, &mut w));
+        let elems = buffer(&w, Buf::Elems);
+        let kmat = buffer(&w, Buf::Kmat);
+        let blocks_at = |base: u32| -> Vec<u32> {
+            // 64 blocks of 3 vec4 (xyz used).
+            (0..64 * 3)
+                .flat_map(|v| {
+                    let o = 4 * (3 * base as usize + v);
+                    kmat[o..o + 3].to_vec()
+                })
+                .collect()
+        };
+        let bits = |set: &[Mat3]| -> Vec<u32> {
+            set.iter()
+                .flat_map(|m| [m.x_axis, m.y_axis, m.z_axis])
+                .flat_map(|v| v.to_array().map(f32::to_bits))
+                .collect()
+        };
+        let starts = element_starts(&mg, 3);
+        let mut sets = 0;
+        for b in 0..3 {
+            let s = slice(&mg, b, &starts);
+            // Level 0's records name the body's unit cube.
+            let e0 = s.elems[0].start as usize;
+            let unit = elems[12 * (layout.elems[0].start as usize + e0) + 8];
+            assert_eq!(
+                blocks_at(unit),
+                bits(mg.unit_blocks[b].as_ref().unwrap()),
+                "body {b}'s unit cube"
+            );
+            sets += 1;
+            for l in 1..mg.levels.len() {
+                for e in s.elems[l].clone() {
+                    let slot = layout.elems[l].start as usize + e as usize;
+                    let base = elems[12 * slot + 8];
+                    let own = &mg.levels[l].blocks[64 * e as usize..64 * (e as usize + 1)];
+                    assert_eq!(blocks_at(base), bits(own), "level {l} element {e}");
+                    sets += 1;
+                }
+            }
+        }
+        let one = {
+            let s = slice(&mg, 0, &starts);
+            block_sets(&mg, 0, &s)
+                .map(fingerprint)
+                .collect::<HashSet<_>>()
+                .len() as u32
+        };
+        let stiff = {
+            let s = slice(&mg, 2, &starts);
+            block_sets(&mg, 2, &s)
+                .map(fingerprint)
+                .collect::<HashSet<_>>()
+                .len() as u32
+        };
+        // The copy shares every set of the first body; the stiffer one shares none.
+        assert_eq!(layout.kmat.used, 64 * (one + stiff));
+        assert!(
+            layout.kmat.used < 64 * sets,
+            "{} of {}",
+            layout.kmat.used,
+            64 * sets
+        );
+        assert_eq!(layout.kmat.used, layout.kmat.cap);
     }
 }
