@@ -37,8 +37,10 @@
 //! `--smoother hybrid|chebyshev|gs`, `--first N,...` (speed only: line-search candidates
 //! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
 //! default the library's), `--room R` (speed only: the worlds made with room for bodies
-//! appended later, `LatticeOptions::room`; default none), `--profile` (GPU time per
-//! kernel: every dispatch in its own timed pass).
+//! appended later, `LatticeOptions::room`; default none), `--fused N,...` (speed only:
+//! the most coarsest-level nodes a body may have for that level's sweeps to run in one
+//! dispatch, `LatticeOptions::fused_coarsest`, values to compare, 0 never; default the
+//! library's), `--profile` (GPU time per kernel: every dispatch in its own timed pass).
 //!
 //! `--changes` (what changing a world of `--bodies` touching cubes costs: made again
 //! for one more body, one appended into its room, one retired, gravity; and the step's
@@ -162,11 +164,13 @@ fn time(
     steps: u32,
     first: u32,
     room: f32,
+    fused: u32,
 ) -> (Option<f64>, f64, usize) {
     let state = State::new(model);
     let options = LatticeOptions {
         first_candidates: first,
         room,
+        fused_coarsest: fused,
     };
     let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
@@ -249,13 +253,14 @@ fn speed(
     profile_kernels: bool,
     smoothers: &[Smoother],
     firsts: &[u32],
+    fuseds: &[u32],
     room: f32,
     steps_of: &StepsOf,
     touching: bool,
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | first-pass candidates | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
@@ -281,7 +286,10 @@ fn speed(
     let steps = if quick { 5 } else { 60 };
     for (name, model) in &scenes {
         for &sm in smoothers {
-            for &first in firsts {
+            for (&first, &fused) in firsts
+                .iter()
+                .flat_map(|f| fuseds.iter().map(move |u| (f, u)))
+            {
                 for (it, c, sw) in steps_of.each() {
                     let s = SolverSettings {
                         // Particle contacts in every Newton iteration where bodies touch.
@@ -299,9 +307,9 @@ fn speed(
                         "speed: {name}, {sm:?}, {first} first candidates, {it} Newton iteration(s) × {c}, sweeps {} ...",
                         sweeps_name(sw)
                     );
-                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, first, room);
+                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, first, room, fused);
                     println!(
-                        "| {name} | {} | {} | {sm:?} | {first} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
+                        "| {name} | {} | {} | {sm:?} | {first} | {fused} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
                         model.elements.len(),
                         sweeps_name(sw),
@@ -555,6 +563,7 @@ fn main() {
             a.flag("--profile"),
             &smoothers,
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
+            &a.list("--fused", &[LatticeOptions::default().fused_coarsest]),
             a.num("--room", LatticeOptions::default().room),
             &steps_of,
             !a.flag("--no-touching"),

@@ -1127,20 +1127,26 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         coarse: 2,
         coarsest: 6,
     };
-    for (spacing, first, smoother, cycles, two, sweeps) in [
-        (0.0075f32, 4, Chebyshev, 1, false, d),
-        (0.00375, 4, Chebyshev, 1, false, d),
-        (0.0075, 0, Chebyshev, 1, false, d),
-        (0.0075, 13, Chebyshev, 1, false, d),
-        (0.0075, 4, Chebyshev, 2, false, chebyshev),
-        (0.0075, 4, GaussSeidel, 1, false, d),
-        (0.0075, 4, Hybrid, 1, false, d),
-        (0.00375, 4, Hybrid, 1, false, d),
-        (0.0075, 4, Hybrid, 2, false, d),
-        (0.00375, 4, Hybrid, 3, false, d),
-        (0.00375, 4, Hybrid, 2, false, few),
-        (0.0075, 4, Hybrid, 1, true, d),
-        (0.0075, 4, Hybrid, 2, true, d),
+    // The last: the most coarsest-level nodes of a body for that level's sweeps to run
+    // in one dispatch (0: a dispatch a sweep).
+    let f = LatticeOptions::default().fused_coarsest;
+    for (spacing, first, smoother, cycles, two, sweeps, fused) in [
+        (0.0075f32, 4, Chebyshev, 1, false, d, f),
+        (0.00375, 4, Chebyshev, 1, false, d, f),
+        (0.00375, 4, Chebyshev, 1, false, d, 0),
+        (0.0075, 0, Chebyshev, 1, false, d, f),
+        (0.0075, 13, Chebyshev, 1, false, d, f),
+        (0.0075, 4, Chebyshev, 2, false, chebyshev, f),
+        (0.0075, 4, GaussSeidel, 1, false, d, f),
+        (0.0075, 4, Hybrid, 1, false, d, f),
+        (0.00375, 4, Hybrid, 1, false, d, f),
+        (0.0075, 4, Hybrid, 2, false, d, f),
+        (0.00375, 4, Hybrid, 3, false, d, f),
+        (0.00375, 4, Hybrid, 2, false, few, f),
+        (0.00375, 4, Hybrid, 2, false, few, 0),
+        (0.0075, 4, Hybrid, 1, true, d, f),
+        (0.0075, 4, Hybrid, 2, true, d, f),
+        (0.0075, 4, Hybrid, 2, true, d, 0),
     ] {
         let mut model = lattice_bar(spacing);
         if two {
@@ -1166,10 +1172,34 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             &s,
             LatticeOptions {
                 first_candidates: first,
+                fused_coarsest: fused,
                 ..Default::default()
             },
         )
         .unwrap();
+        // These bodies are small: below level 0, their coarsest level's sweeps are one
+        // dispatch unless the limit is 0.
+        let apart = GpuLattice::new_with(
+            &device,
+            &kernels,
+            &model,
+            &cpu_state,
+            &s,
+            LatticeOptions {
+                first_candidates: first,
+                fused_coarsest: 0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(
+            gpu_world.dispatch_count() < apart.dispatch_count(),
+            fused > 0 && smoother != GaussSeidel,
+            "{smoother:?}, limit {fused}: {} dispatches a step, {} a sweep a dispatch",
+            gpu_world.dispatch_count(),
+            apart.dispatch_count()
+        );
+        drop(apart);
         let mut gpu_state = cpu_state.clone();
         let rest = model.rest.clone();
         let mut steps_done = 0;
@@ -1185,13 +1215,13 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             let sag = max_dist(&rest, &cpu_state.x);
             let diff = max_dist(&gpu_state.x, &cpu_state.x);
             eprintln!(
-                "{} particles, {smoother:?}, {cycles} cycle(s), {sweeps:?}, {first} first candidates, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
+                "{} particles, {smoother:?}, {cycles} cycle(s), {sweeps:?}, {first} first candidates, coarsest fused up to {fused}, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
                 model.particle_count()
             );
             assert!(sag > 1e-4, "the bar moved ({sag} m)");
             assert!(
                 diff <= 1e-3 * sag + 1e-6,
-                "GPU − CPU {diff} m of {sag} m after {steps_done} steps ({} particles, {smoother:?}, {cycles} cycle(s))",
+                "GPU − CPU {diff} m of {sag} m after {steps_done} steps ({} particles, {smoother:?}, {cycles} cycle(s), coarsest fused up to {fused})",
                 model.particle_count()
             );
         }

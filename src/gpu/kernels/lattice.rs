@@ -145,6 +145,9 @@ pub enum Kernel {
     Smooth,
     /// `smooth_chebyshev`: one Chebyshev–Jacobi sweep of a level.
     Chebyshev,
+    /// `smooth_coarsest`: every Chebyshev sweep of the coarsest level, a workgroup per
+    /// body.
+    Coarsest,
     /// `fine_residual`: a level's residual before restriction.
     FineResidual,
     /// `restrict_residual`: the next coarser level's right-hand side.
@@ -258,6 +261,13 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Chebyshev,
         name: "smooth_chebyshev",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::Coarsest,
+        name: "smooth_coarsest",
         uses: &[
             "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
         ],

@@ -1133,6 +1133,66 @@ fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
     }
 }
 
+// The fused coarsest solve's row parts (xyz), 256 threads, and the node range of the
+// body it is on.
+var<workgroup> wide: array<array<f32, 3>, 256>;
+var<workgroup> wide_range: vec2<u32>;
+
+// `split_row` for a 256-thread workgroup, eight threads a node: thread `lid` adds its
+// element's part of (A x)_j into `wide`, the node's first thread gets the sum.
+fn split_row_wide(j: u32, valid: bool, region: u32, lid: u32) -> vec3<f32> {
+    var p = vec3<f32>(0.0);
+    if (valid) {
+        p = apply_part(j, region, lid % 8u, 8u);
+    }
+    wide[lid] = array<f32, 3>(p.x, p.y, p.z);
+    for (var st = 4u; st > 0u; st = st / 2u) {
+        workgroupBarrier();
+        if (lid % 8u < st) {
+            let o = wide[lid + st];
+            wide[lid] = array<f32, 3>(wide[lid][0] + o[0], wide[lid][1] + o[1], wide[lid][2] + o[2]);
+        }
+    }
+    workgroupBarrier();
+    return vec3<f32>(wide[lid][0], wide[lid][1], wide[lid][2]);
+}
+
+// The coarsest level's pc.mode Chebyshev sweeps (level pc.level, its reduction table
+// from pc.first) in one dispatch, as that many `smooth_chebyshev` dispatches would do
+// them: a workgroup per body (striding over the bodies), eight threads a node and 32
+// nodes at a time, a storage barrier between sweeps. A body's coarsest nodes couple
+// only with each other, so its workgroup needs no other.
+@compute @workgroup_size(256)
+fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                   @builtin(local_invocation_index) lid: u32) {
+    let l = pc.level;
+    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
+        if (lid == 0u) {
+            let r = body_chunks(1u + l, b);
+            var range = vec2<u32>(0u, 0u);
+            if (r.x < r.y) {
+                let last = chunk(pc.first + r.y - 1u);
+                range = vec2<u32>(chunk(pc.first + r.x).x, last.x + last.y);
+            }
+            wide_range = range;
+        }
+        let range = workgroupUniformLoad(&wide_range);
+        for (var k = 0u; k < pc.mode; k = k + 1u) {
+            let src = select(V_DELTA, V_PE, (k & 1u) == 1u);
+            for (var base = range.x; base < range.y; base = base + 32u) {
+                let i = base + lid / 8u;
+                let ax = split_row_wide(i, i < range.y, src, lid);
+                if (lid % 8u == 0u && i < range.y) {
+                    chebyshev_node(i, ax, l, k);
+                }
+            }
+            storageBarrier();
+        }
+        // Every thread has read this body's range before the next is written.
+        workgroupBarrier();
+    }
+}
+
 // Partial sums of eᵀ r and eᵀ A e over a chunk of level pc.level's nodes (workgroup
 // pc.first + wg.x of its table; the coarse correction's energy-minimising step).
 @compute @workgroup_size(64)

@@ -103,6 +103,7 @@ impl AppendBasis {
             self.shape.pairs,
             self.shape.cycles,
             self.shape.sweeps,
+            self.shape.fused_coarsest,
         );
         let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
         if records.len() > self.pass_room {

@@ -237,6 +237,8 @@ pub(super) struct Layout {
     /// Per level but the finest: its elements' child lists in `topo` (elements of the
     /// finer level).
     pub child: Vec<Seg>,
+    /// Per level: the most nodes one body packed so far has there.
+    pub most_nodes: Vec<u32>,
     /// The stiffness blocks in `kmat` (3 vec4 each).
     pub kmat: Seg,
     /// Where each distinct set of 64 blocks packed so far starts in `kmat` (in blocks),
@@ -455,6 +457,7 @@ impl Layout {
             prol,
             restr,
             child,
+            most_nodes: vec![0; nl],
             kmat,
             shared: HashMap::new(),
             tables,
@@ -808,6 +811,7 @@ impl Layout {
         }
         // Everything written: the segments move on.
         for l in 0..nl {
+            self.most_nodes[l] = self.most_nodes[l].max(ext.nodes[l]);
             self.nodes[l].used += ext.nodes[l];
             self.elems[l].used += ext.elems[l];
             self.inv[l].used += ext.inv[l];

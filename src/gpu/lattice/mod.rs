@@ -57,6 +57,9 @@ const BODY_SLOTS: usize = 16;
 const MAX_PICK_GROUPS: u32 = 65_535;
 /// Most workgroups of a Chebyshev sweep (they stride over larger levels).
 const CHEBYSHEV_GROUPS: u32 = 8192;
+/// [`LatticeOptions::fused_coarsest`]'s default: up to four rounds of 32 nodes a sweep
+/// in a body's workgroup.
+const FUSED_COARSEST: u32 = 128;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -139,6 +142,22 @@ pub struct Shape {
     pub cycles: u32,
     /// The V-cycle's smoothing sweeps ([`SolverSettings::sweeps`]).
     pub sweeps: Sweeps,
+    /// The most nodes one body has on the coarsest level.
+    pub most_coarsest: u32,
+    /// [`LatticeOptions::fused_coarsest`].
+    pub fused_coarsest: u32,
+}
+
+impl Shape {
+    /// Whether the coarsest level's sweeps run in one dispatch (`smooth_coarsest`, a
+    /// workgroup per body): it is smoothed by Chebyshev, below level 0, and no body has
+    /// more than [`Shape::fused_coarsest`] nodes there.
+    pub fn coarsest_fused(&self) -> bool {
+        let l = self.levels.len().saturating_sub(1);
+        l > 0
+            && self.smoother.on_level(l) == Smoother::Chebyshev
+            && self.most_coarsest <= self.fused_coarsest
+    }
 }
 
 /// How [`GpuLattice`] schedules its work (the answer is the same either way).
@@ -151,6 +170,10 @@ pub struct LatticeOptions {
     /// the world's bodies take, plus one more of their largest; at most 1: none.
     /// Default 1.
     pub room: f32,
+    /// The coarsest level's smoothing sweeps run in one dispatch, a workgroup per body,
+    /// where no body has more than this many nodes there (and the level is smoothed by
+    /// Chebyshev); otherwise a dispatch a sweep. 0: never. Default 128.
+    pub fused_coarsest: u32,
 }
 
 impl Default for LatticeOptions {
@@ -158,6 +181,7 @@ impl Default for LatticeOptions {
         Self {
             first_candidates: 4,
             room: 1.0,
+            fused_coarsest: FUSED_COARSEST,
         }
     }
 }
@@ -306,7 +330,21 @@ fn sweeps(
 fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
     if l + 1 == shape.levels.len() {
         let count = shape.sweeps.on_level(l, true, shape.smoother);
-        sweeps(shape, l, count, push);
+        if shape.coarsest_fused() {
+            // Every sweep in one dispatch, a workgroup per body (its nodes from the
+            // level's reduction table).
+            let [t0, tn] = shape.tables[1 + l];
+            push(
+                Kernel::Coarsest,
+                t0,
+                tn,
+                l as u32,
+                count,
+                pick_groups(shape),
+            );
+        } else {
+            sweeps(shape, l, count, push);
+        }
         return;
     }
     // The same count before and after the coarse correction.
@@ -431,6 +469,7 @@ fn shape_of(
     pairs: Option<u32>,
     cycles: u32,
     sweeps: Sweeps,
+    fused_coarsest: u32,
 ) -> Shape {
     Shape {
         levels: layout
@@ -450,6 +489,8 @@ fn shape_of(
         pairs,
         cycles: cycles.max(1),
         sweeps,
+        most_coarsest: layout.most_nodes.last().copied().unwrap_or(0),
+        fused_coarsest,
     }
 }
 
@@ -679,6 +720,7 @@ impl GpuLattice {
             (pair_capacity > 0).then_some(settings.contact_every),
             settings.newton_cycles,
             settings.sweeps,
+            options.fused_coarsest,
         );
         // Every buffer's contents: zero, then the bodies' writes.
         let (n, nt) = (layout.n_slots() as usize, layout.node_slots() as usize);
@@ -1410,6 +1452,68 @@ mod tests {
                 coarse: 2,
                 coarsest: 30,
             },
+            // The coarsest level's sweeps a dispatch each (what these tests count).
+            most_coarsest: 3,
+            fused_coarsest: 0,
+        }
+    }
+
+    /// Where every body has few nodes on the coarsest level, and it is smoothed by
+    /// Chebyshev, its sweeps are one dispatch (a workgroup per body, the sweep count its
+    /// mode, its reduction table its range); a larger body, a limit of 0 or a
+    /// Gauss–Seidel coarsest level keep a dispatch a sweep.
+    #[test]
+    fn small_coarsest_levels_take_their_sweeps_in_one_dispatch() {
+        let fused = Shape {
+            smoother: Smoother::Hybrid,
+            fused_coarsest: 3,
+            ..shape()
+        };
+        assert!(fused.coarsest_fused());
+        let p = plan(&fused, 2);
+        let one: Vec<&Dispatch> = p.iter().filter(|d| d.kernel == Kernel::Coarsest).collect();
+        // Two Newton iterations, one V-cycle each.
+        assert_eq!(one.len(), 2);
+        for d in &one {
+            assert_eq!(d.pass.level, 2);
+            assert_eq!(d.pass.mode, 30);
+            assert_eq!([d.pass.first, d.pass.count], fused.tables[3]);
+            assert_eq!(d.groups, 3);
+        }
+        assert!(
+            p.iter()
+                .all(|d| d.kernel != Kernel::Chebyshev || d.pass.level != 2)
+        );
+        // Everything else as a dispatch a sweep would have it.
+        let apart = plan(
+            &Shape {
+                fused_coarsest: 0,
+                ..fused.clone()
+            },
+            2,
+        );
+        assert_eq!(apart.len(), p.len() - 2 + 2 * 30);
+        for unfused in [
+            Shape {
+                most_coarsest: 4,
+                ..fused.clone()
+            },
+            Shape {
+                smoother: Smoother::GaussSeidel,
+                ..fused.clone()
+            },
+            Shape {
+                levels: fused.levels[..1].to_vec(),
+                smoother: Smoother::Chebyshev,
+                ..fused.clone()
+            },
+        ] {
+            assert!(!unfused.coarsest_fused(), "{unfused:?}");
+            assert!(
+                plan(&unfused, 2)
+                    .iter()
+                    .all(|d| d.kernel != Kernel::Coarsest)
+            );
         }
     }
 
