@@ -809,19 +809,35 @@ fn extra_block(j: u32) -> mat3x3<f32> {
     return mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
 }
 
-// One element's part of (A x)_j: R Σ_b K_ab Rᵀ x_b (times its scale) over the corners
-// b = first, first + step, … (the element and corner a packed as `ec`, x at `vecs[off ..]`).
-fn element_term(ec: u32, off: u32, first: u32, step: u32) -> vec3<f32> {
+// One element's part of (A x)_j: R Σ_b K_ab Rᵀ x_b (times its scale) over its eight
+// corners b (the element and corner a packed as `ec`, x at `vecs[off ..]`). Written out
+// corner by corner, so that the eight loads of x are issued together.
+fn element_term(ec: u32, off: u32) -> vec3<f32> {
     let e = ec >> 3u;
     let a = ec & 7u;
+    let c0 = elems[3u * e];
+    let c1 = elems[3u * e + 1u];
     let ki = kinfo(e);
+    let q = rot[e];
+    let x0 = vecs[off + c0.x].xyz;
+    let x1 = vecs[off + c0.y].xyz;
+    let x2 = vecs[off + c0.z].xyz;
+    let x3 = vecs[off + c0.w].xyz;
+    let x4 = vecs[off + c1.x].xyz;
+    let x5 = vecs[off + c1.y].xyz;
+    let x6 = vecs[off + c1.z].xyz;
+    let x7 = vecs[off + c1.w].xyz;
     let kb = bitcast<u32>(ki.x);
-    let r = quat_mat(rot[e]);
+    let r = quat_mat(q);
     let rt = transpose(r);
-    var acc = vec3<f32>(0.0);
-    for (var b = first; b < 8u; b = b + step) {
-        acc = acc + kblock(kb, a, b) * (rt * vecs[off + corner(e, b)].xyz);
-    }
+    var acc = kblock(kb, a, 0u) * (rt * x0);
+    acc = acc + kblock(kb, a, 1u) * (rt * x1);
+    acc = acc + kblock(kb, a, 2u) * (rt * x2);
+    acc = acc + kblock(kb, a, 3u) * (rt * x3);
+    acc = acc + kblock(kb, a, 4u) * (rt * x4);
+    acc = acc + kblock(kb, a, 5u) * (rt * x5);
+    acc = acc + kblock(kb, a, 6u) * (rt * x6);
+    acc = acc + kblock(kb, a, 7u) * (rt * x7);
     return r * acc * ki.y;
 }
 
@@ -836,7 +852,7 @@ fn apply_row_at(j: u32, off: u32) -> vec3<f32> {
     let xj = vecs[off + j].xyz;
     var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
     for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
-        y = y + element_term(topo[s], off, 0u, 1u);
+        y = y + element_term(topo[s], off);
     }
     return y;
 }
@@ -984,7 +1000,7 @@ fn correction_step(t: vec2<f32>) -> f32 {
 // threads a node (one element each), eight nodes a workgroup.
 @compute @workgroup_size(64)
 fn smooth_colour(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
-    smooth_split(pc.first + wg.x * 8u + lid / 8u, pc.first + pc.count, lid, 8u);
+    smooth_split(pc.first + wg.x * 8u + lid / 8u, pc.first + pc.count, lid);
 }
 
 // The residual rhs − A δ of level pc.level's nodes (0 on fixed ones).
@@ -1021,35 +1037,34 @@ fn colour_range(l: u32, c: u32) -> vec2<u32> {
 
 var<workgroup> part: array<vec3<f32>, 64>;
 
-// Part `slot` of (A x)_j split `split` ways (8: one of node j's elements; 64: one of its
-// elements' corner blocks), the mass and extra terms in part 0; 0 past its elements.
-fn apply_part(j: u32, region: u32, slot: u32, split: u32) -> vec3<f32> {
+// Part `slot` (0..8) of (A x)_j: one of node j's elements, the mass and extra terms
+// in part 0; 0 past its elements.
+fn apply_part(j: u32, region: u32, slot: u32) -> vec3<f32> {
     let off = region * params.n_total;
     var y = vec3<f32>(0.0);
     if (slot == 0u) {
         let xj = vecs[off + j].xyz;
         y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
     }
-    let per = split / 8u;
-    let s = topo[j] + slot / per;
+    let s = topo[j] + slot;
     if (s >= topo[j + 1u]) {
         return y;
     }
-    return y + element_term(topo[s], off, slot % per, per);
+    return y + element_term(topo[s], off);
 }
 
-// (A x)_j of region `region` split `split` ways (8 or 64): thread `lid` adds its part
-// into `part`, the node's first thread gets the sum. Every thread of the workgroup calls
-// it (`valid` false: no node).
-fn split_row(j: u32, valid: bool, region: u32, lid: u32, split: u32) -> vec3<f32> {
+// (A x)_j of region `region` split eight ways: thread `lid` adds its part into `part`,
+// the node's first thread gets the sum. Every thread of the workgroup calls it (`valid`
+// false: no node).
+fn split_row(j: u32, valid: bool, region: u32, lid: u32) -> vec3<f32> {
     var p = vec3<f32>(0.0);
     if (valid) {
-        p = apply_part(j, region, lid % split, split);
+        p = apply_part(j, region, lid % 8u);
     }
     part[lid] = p;
-    for (var st = split / 2u; st > 0u; st = st / 2u) {
+    for (var st = 4u; st > 0u; st = st / 2u) {
         workgroupBarrier();
-        if (lid % split < st) {
+        if (lid % 8u < st) {
             part[lid] = part[lid] + part[lid + st];
         }
     }
@@ -1057,15 +1072,15 @@ fn split_row(j: u32, valid: bool, region: u32, lid: u32, split: u32) -> vec3<f32
     return part[lid];
 }
 
-// Part of a Gauss–Seidel update split `split` ways: the node at topo[i] (none past
+// Part of a Gauss–Seidel update split eight ways: the node at topo[i] (none past
 // `end`), updated by its first thread. Every thread of the workgroup calls it.
-fn smooth_split(i: u32, end: u32, lid: u32, split: u32) {
+fn smooth_split(i: u32, end: u32, lid: u32) {
     var j = 0u;
     if (i < end) {
         j = topo[i];
     }
-    let ax = split_row(j, i < end, V_DELTA, lid, split);
-    if (lid % split == 0u && i < end) {
+    let ax = split_row(j, i < end, V_DELTA, lid);
+    if (lid % 8u == 0u && i < end) {
         if (!held(j)) {
             let o = 3u * j;
             let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
@@ -1114,10 +1129,10 @@ fn chebyshev_node(j: u32, ax: vec3<f32>, l: u32, k: u32) {
 }
 
 // Chebyshev sweep k of level l for the node at `first + i` (none from `end`), its row
-// split `split` ways. Every thread of the workgroup calls it.
-fn chebyshev_split(i: u32, end: u32, lid: u32, split: u32, l: u32, k: u32) {
-    let ax = split_row(i, i < end, select(V_DELTA, V_PE, (k & 1u) == 1u), lid, split);
-    if (lid % split == 0u && i < end) {
+// split eight ways. Every thread of the workgroup calls it.
+fn chebyshev_split(i: u32, end: u32, lid: u32, l: u32, k: u32) {
+    let ax = split_row(i, i < end, select(V_DELTA, V_PE, (k & 1u) == 1u), lid);
+    if (lid % 8u == 0u && i < end) {
         chebyshev_node(i, ax, l, k);
     }
 }
@@ -1129,7 +1144,7 @@ fn chebyshev_split(i: u32, end: u32, lid: u32, split: u32, l: u32, k: u32) {
 fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                     @builtin(local_invocation_index) lid: u32) {
     for (var base = wg.x * 8u; base < pc.count; base = base + nwg.x * 8u) {
-        chebyshev_split(pc.first + base + lid / 8u, pc.first + pc.count, lid, 8u, pc.level, pc.mode);
+        chebyshev_split(pc.first + base + lid / 8u, pc.first + pc.count, lid, pc.level, pc.mode);
     }
 }
 
@@ -1143,7 +1158,7 @@ var<workgroup> wide_range: vec2<u32>;
 fn split_row_wide(j: u32, valid: bool, region: u32, lid: u32) -> vec3<f32> {
     var p = vec3<f32>(0.0);
     if (valid) {
-        p = apply_part(j, region, lid % 8u, 8u);
+        p = apply_part(j, region, lid % 8u);
     }
     wide[lid] = array<f32, 3>(p.x, p.y, p.z);
     for (var st = 4u; st > 0u; st = st / 2u) {
