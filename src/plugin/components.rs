@@ -5,6 +5,7 @@ pub use super::quality::TissueQuality;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::hierarchy::HierarchyDesc;
 use crate::core::model::{Discretisation, Material, PinRegion};
+use crate::core::multigrid::Sweeps;
 use crate::core::sampling::Resolution;
 use crate::core::solver::{ElementSolver, Method, SolverSettings};
 use bevy::prelude::*;
@@ -547,6 +548,12 @@ pub struct TissueSettings {
     /// iterations of one and faster, and a stiff body falls at the rate gravity sets
     /// where one V-cycle lags.
     pub newton_cycles: u32,
+    /// The V-cycle's smoothing sweeps on the particles, on the levels between and on the
+    /// coarsest level, for lattice bodies (default 1/2/30; each from 1 to 1,000).
+    /// The coarsest level's sweeps carry a stiff body's bending: fewer leave a 1 MPa
+    /// body too soft at real-time settings ([`crate::core::solver::SolverSettings::sweeps`]).
+    #[reflect(ignore)]
+    pub sweeps: Sweeps,
 }
 
 impl Default for TissueSettings {
@@ -574,6 +581,7 @@ impl Default for TissueSettings {
             backend: TissueBackend::default(),
             newton_iterations: Self::NEWTON_ITERATIONS,
             newton_cycles: Self::NEWTON_CYCLES,
+            sweeps: c.sweeps,
         }
     }
 }
@@ -624,6 +632,7 @@ impl TissueSettings {
             contact_neighbours: self.contact_neighbours,
             contact_every: self.contact_every,
             contact_relaxation: self.contact_relaxation,
+            sweeps: self.sweeps,
             method: Method::Jacobi,
             ..Default::default()
         }
@@ -720,5 +729,29 @@ mod tests {
             ..Default::default()
         };
         assert!(bad.to_core().validate().is_err());
+        // The V-cycle's sweeps reach the core, on either path; a count of 0 is refused.
+        let sweeps = Sweeps {
+            fine: 2,
+            coarse: 3,
+            coarsest: 12,
+        };
+        let s = TissueSettings {
+            sweeps,
+            ..Default::default()
+        };
+        assert_eq!(
+            (s.to_core().sweeps, s.to_core_cpu().sweeps),
+            (sweeps, sweeps)
+        );
+        assert_eq!(TissueSettings::default().sweeps, Sweeps::DEFAULT);
+        let bad = TissueSettings {
+            sweeps: Sweeps {
+                coarsest: 0,
+                ..sweeps
+            },
+            ..Default::default()
+        };
+        let e = bad.to_core().validate().unwrap_err().to_string();
+        assert!(e.contains("coarsest"), "{e}");
     }
 }

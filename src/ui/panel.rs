@@ -314,8 +314,8 @@ pub(crate) fn settings_widgets(
         "Newton iterations",
     ));
     e.add(&r.on_hover_text(
-        "Newton–multigrid iterations per substep of lattice bodies (default 2: within \
-         a few percent of the static answer from 1 kPa to 1 MPa)",
+        "Newton–multigrid iterations per substep of lattice bodies (default 1: with 2 \
+         V-cycles, within a few percent of the static answer from 1 kPa to 1 MPa)",
     ));
     let r = ui.add(slider(
         &mut s.newton_cycles,
@@ -326,6 +326,16 @@ pub(crate) fn settings_widgets(
         "Multigrid V-cycles per Newton iteration of lattice bodies (default 2; more than \
          one solve the Newton step by conjugate gradients: with 1 Newton iteration, \
          faster for the same accuracy)",
+    ));
+    let r = ui.add(slider(
+        &mut s.sweeps.coarsest,
+        2..=100,
+        "coarsest-level sweeps",
+    ));
+    e.add(&r.on_hover_text(
+        "Smoothing sweeps on the coarsest multigrid level of lattice bodies (default 30): \
+         they carry a stiff body's bending; fewer are faster but leave a 1 MPa body too \
+         soft",
     ));
     ui.horizontal(|ui| {
         let r = ui.radio_value(&mut s.backend, TissueBackend::Auto, "GPU")
