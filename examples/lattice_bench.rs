@@ -40,7 +40,9 @@
 //! appended later, `LatticeOptions::room`; default none), `--fused N,...` (speed only:
 //! the most coarsest-level nodes a body may have for that level's sweeps to run in one
 //! dispatch, `LatticeOptions::fused_coarsest`, values to compare, 0 never; default the
-//! library's), `--profile` (GPU time per kernel: every dispatch in its own timed pass).
+//! library's), `--rows N,...` (speed only: threads summing a node's row in the smoothing
+//! sweeps, 8 or 1, `LatticeOptions::one_thread_rows`; default 8), `--profile` (GPU time
+//! per kernel: every dispatch in its own timed pass).
 //!
 //! `--changes` (what changing a world of `--bodies` touching cubes costs: made again
 //! for one more body, one appended into its room, one retired, gravity; and the step's
@@ -162,16 +164,9 @@ fn time(
     model: &Model,
     s: &SolverSettings,
     steps: u32,
-    first: u32,
-    room: f32,
-    fused: u32,
+    options: LatticeOptions,
 ) -> (Option<f64>, f64, usize) {
     let state = State::new(model);
-    let options = LatticeOptions {
-        first_candidates: first,
-        room,
-        fused_coarsest: fused,
-    };
     let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
     if world.has_particle_contacts() {
@@ -254,13 +249,14 @@ fn speed(
     smoothers: &[Smoother],
     firsts: &[u32],
     fuseds: &[u32],
+    rows: &[u32],
     room: f32,
     steps_of: &StepsOf,
     touching: bool,
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | threads a row | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
@@ -286,10 +282,11 @@ fn speed(
     let steps = if quick { 5 } else { 60 };
     for (name, model) in &scenes {
         for &sm in smoothers {
-            for (&first, &fused) in firsts
-                .iter()
-                .flat_map(|f| fuseds.iter().map(move |u| (f, u)))
-            {
+            for (&first, &fused, &row) in firsts.iter().flat_map(|f| {
+                fuseds
+                    .iter()
+                    .flat_map(move |u| rows.iter().map(move |r| (f, u, r)))
+            }) {
                 for (it, c, sw) in steps_of.each() {
                     let s = SolverSettings {
                         // Particle contacts in every Newton iteration where bodies touch.
@@ -307,9 +304,15 @@ fn speed(
                         "speed: {name}, {sm:?}, {first} first candidates, {it} Newton iteration(s) × {c}, sweeps {} ...",
                         sweeps_name(sw)
                     );
-                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, first, room, fused);
+                    let options = LatticeOptions {
+                        first_candidates: first,
+                        room,
+                        fused_coarsest: fused,
+                        one_thread_rows: row == 1,
+                    };
+                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, options);
                     println!(
-                        "| {name} | {} | {} | {sm:?} | {first} | {fused} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
+                        "| {name} | {} | {} | {sm:?} | {first} | {fused} | {row} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
                         model.elements.len(),
                         sweeps_name(sw),
@@ -564,6 +567,13 @@ fn main() {
             &smoothers,
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
             &a.list("--fused", &[LatticeOptions::default().fused_coarsest]),
+            &{
+                let rows = a.list("--rows", &[8u32]);
+                if let Some(r) = rows.iter().find(|&&r| r != 1 && r != 8) {
+                    fail("--rows", format!("{r}: expected 8 or 1"));
+                }
+                rows
+            },
             a.num("--room", LatticeOptions::default().room),
             &steps_of,
             !a.flag("--no-touching"),

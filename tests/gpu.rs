@@ -1130,23 +1130,26 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     // The last: the most coarsest-level nodes of a body for that level's sweeps to run
     // in one dispatch (0: a dispatch a sweep).
     let f = LatticeOptions::default().fused_coarsest;
-    for (spacing, first, smoother, cycles, two, sweeps, fused) in [
-        (0.0075f32, 4, Chebyshev, 1, false, d, f),
-        (0.00375, 4, Chebyshev, 1, false, d, f),
-        (0.00375, 4, Chebyshev, 1, false, d, 0),
-        (0.0075, 0, Chebyshev, 1, false, d, f),
-        (0.0075, 13, Chebyshev, 1, false, d, f),
-        (0.0075, 4, Chebyshev, 2, false, chebyshev, f),
-        (0.0075, 4, GaussSeidel, 1, false, d, f),
-        (0.0075, 4, Hybrid, 1, false, d, f),
-        (0.00375, 4, Hybrid, 1, false, d, f),
-        (0.0075, 4, Hybrid, 2, false, d, f),
-        (0.00375, 4, Hybrid, 3, false, d, f),
-        (0.00375, 4, Hybrid, 2, false, few, f),
-        (0.00375, 4, Hybrid, 2, false, few, 0),
-        (0.0075, 4, Hybrid, 1, true, d, f),
-        (0.0075, 4, Hybrid, 2, true, d, f),
-        (0.0075, 4, Hybrid, 2, true, d, 0),
+    for (spacing, first, smoother, cycles, two, sweeps, fused, one_thread_rows) in [
+        (0.0075f32, 4, Chebyshev, 1, false, d, f, false),
+        (0.00375, 4, Chebyshev, 1, false, d, f, false),
+        (0.00375, 4, Chebyshev, 1, false, d, 0, false),
+        (0.0075, 0, Chebyshev, 1, false, d, f, false),
+        (0.0075, 13, Chebyshev, 1, false, d, f, false),
+        (0.0075, 4, Chebyshev, 2, false, chebyshev, f, false),
+        (0.0075, 4, GaussSeidel, 1, false, d, f, false),
+        (0.0075, 4, Hybrid, 1, false, d, f, false),
+        (0.00375, 4, Hybrid, 1, false, d, f, false),
+        (0.0075, 4, Hybrid, 2, false, d, f, false),
+        (0.00375, 4, Hybrid, 3, false, d, f, false),
+        (0.00375, 4, Hybrid, 2, false, few, f, false),
+        (0.00375, 4, Hybrid, 2, false, few, 0, false),
+        (0.0075, 4, Hybrid, 1, true, d, f, false),
+        (0.0075, 4, Hybrid, 2, true, d, f, false),
+        (0.0075, 4, Hybrid, 2, true, d, 0, false),
+        (0.00375, 4, Hybrid, 2, false, d, f, true),
+        (0.0075, 4, Chebyshev, 1, false, d, 0, true),
+        (0.0075, 4, Hybrid, 2, true, d, f, true),
     ] {
         let mut model = lattice_bar(spacing);
         if two {
@@ -1173,6 +1176,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             LatticeOptions {
                 first_candidates: first,
                 fused_coarsest: fused,
+                one_thread_rows,
                 ..Default::default()
             },
         )
@@ -1188,6 +1192,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             LatticeOptions {
                 first_candidates: first,
                 fused_coarsest: 0,
+                one_thread_rows,
                 ..Default::default()
             },
         )
@@ -1215,13 +1220,13 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             let sag = max_dist(&rest, &cpu_state.x);
             let diff = max_dist(&gpu_state.x, &cpu_state.x);
             eprintln!(
-                "{} particles, {smoother:?}, {cycles} cycle(s), {sweeps:?}, {first} first candidates, coarsest fused up to {fused}, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
+                "{} particles, {smoother:?}, {cycles} cycle(s), {sweeps:?}, {first} first candidates, coarsest fused up to {fused}, one thread a row: {one_thread_rows}, after {steps_done} steps: CPU moved {sag:.3e} m, GPU − CPU {diff:.3e} m",
                 model.particle_count()
             );
             assert!(sag > 1e-4, "the bar moved ({sag} m)");
             assert!(
                 diff <= 1e-3 * sag + 1e-6,
-                "GPU − CPU {diff} m of {sag} m after {steps_done} steps ({} particles, {smoother:?}, {cycles} cycle(s), coarsest fused up to {fused})",
+                "GPU − CPU {diff} m of {sag} m after {steps_done} steps ({} particles, {smoother:?}, {cycles} cycle(s), coarsest fused up to {fused}, one thread a row: {one_thread_rows})",
                 model.particle_count()
             );
         }

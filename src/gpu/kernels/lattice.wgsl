@@ -996,10 +996,22 @@ fn correction_step(t: vec2<f32>) -> f32 {
     return select(0.0, a, is_finite_f(a));
 }
 
+// A smoothing pass's mode bit: one thread a node, its row's elements in a loop, rather
+// than eight threads a node.
+const ROW_MODE: u32 = 0x10000u;
+
 // One colour of a Gauss–Seidel sweep: the nodes topo[pc.first ..][.. pc.count], eight
-// threads a node (one element each), eight nodes a workgroup.
+// threads a node (one element each), eight nodes a workgroup; or, with ROW_MODE, one
+// thread a node.
 @compute @workgroup_size(64)
 fn smooth_colour(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    if ((pc.mode & ROW_MODE) != 0u) {
+        let i = wg.x * LWG + lid;
+        if (i < pc.count) {
+            smooth_node(topo[pc.first + i]);
+        }
+        return;
+    }
     smooth_split(pc.first + wg.x * 8u + lid / 8u, pc.first + pc.count, lid);
 }
 
@@ -1139,12 +1151,21 @@ fn chebyshev_split(i: u32, end: u32, lid: u32, l: u32, k: u32) {
 
 // Chebyshev sweep pc.mode of level pc.level over its nodes pc.first ..
 // [.. pc.count], eight threads a node (one element each), eight nodes a workgroup,
-// the workgroups striding over the level.
+// the workgroups striding over the level; or, with ROW_MODE in pc.mode, one thread a
+// node.
 @compute @workgroup_size(64)
 fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                     @builtin(local_invocation_index) lid: u32) {
+    let k = pc.mode & (ROW_MODE - 1u);
+    if ((pc.mode & ROW_MODE) != 0u) {
+        for (var i = wg.x * LWG + lid; i < pc.count; i = i + nwg.x * LWG) {
+            let j = pc.first + i;
+            chebyshev_node(j, apply_row(j, select(V_DELTA, V_PE, (k & 1u) == 1u)), pc.level, k);
+        }
+        return;
+    }
     for (var base = wg.x * 8u; base < pc.count; base = base + nwg.x * 8u) {
-        chebyshev_split(pc.first + base + lid / 8u, pc.first + pc.count, lid, pc.level, pc.mode);
+        chebyshev_split(pc.first + base + lid / 8u, pc.first + pc.count, lid, pc.level, k);
     }
 }
 

@@ -57,6 +57,8 @@ const BODY_SLOTS: usize = 16;
 const MAX_PICK_GROUPS: u32 = 65_535;
 /// Most workgroups of a Chebyshev sweep (they stride over larger levels).
 const CHEBYSHEV_GROUPS: u32 = 8192;
+/// A smoothing pass's mode bit (`ROW_MODE` in the shader): one thread a node.
+const ROW_MODE: u32 = 0x10000;
 /// [`LatticeOptions::fused_coarsest`]'s default: up to four rounds of 32 nodes a sweep
 /// in a body's workgroup.
 const FUSED_COARSEST: u32 = 128;
@@ -146,6 +148,8 @@ pub struct Shape {
     pub most_coarsest: u32,
     /// [`LatticeOptions::fused_coarsest`].
     pub fused_coarsest: u32,
+    /// [`LatticeOptions::one_thread_rows`].
+    pub one_thread_rows: bool,
 }
 
 impl Shape {
@@ -174,6 +178,11 @@ pub struct LatticeOptions {
     /// where no body has more than this many nodes there (and the level is smoothed by
     /// Chebyshev); otherwise a dispatch a sweep. 0: never. Default 128.
     pub fused_coarsest: u32,
+    /// The smoothing sweeps (Gauss–Seidel colours and Chebyshev sweeps, but the fused
+    /// coarsest level) sum each node's row in one thread, its elements in a loop, rather
+    /// than in eight threads, one element each, summed through workgroup memory. The
+    /// sums' order differs, so the answers differ by rounding. Default false.
+    pub one_thread_rows: bool,
 }
 
 impl Default for LatticeOptions {
@@ -182,6 +191,7 @@ impl Default for LatticeOptions {
             first_candidates: 4,
             room: 1.0,
             fused_coarsest: FUSED_COARSEST,
+            one_thread_rows: false,
         }
     }
 }
@@ -301,6 +311,12 @@ fn sweeps(
     count: u32,
     push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32),
 ) {
+    // Eight threads a node (one element each) or one (`ROW_MODE`, see `smooth_colour`).
+    let (mode, per_group) = if shape.one_thread_rows {
+        (ROW_MODE, WORKGROUP)
+    } else {
+        (0, 8)
+    };
     if shape.smoother.on_level(l) == Smoother::Chebyshev {
         // An even count ends in the correction's own region (see `chebyshev_node`).
         debug_assert!(count.is_multiple_of(2), "Chebyshev sweeps come in pairs");
@@ -311,8 +327,8 @@ fn sweeps(
                 first,
                 len,
                 l as u32,
-                k,
-                len.div_ceil(8).min(CHEBYSHEV_GROUPS),
+                k | mode,
+                len.div_ceil(per_group).min(CHEBYSHEV_GROUPS),
             );
         }
         return;
@@ -321,8 +337,14 @@ fn sweeps(
     for _ in 0..count {
         for [start, end] in c {
             let len = end - start;
-            // Eight threads a node (see `smooth_colour`).
-            push(Kernel::Smooth, *start, len, l as u32, 0, len.div_ceil(8));
+            push(
+                Kernel::Smooth,
+                *start,
+                len,
+                l as u32,
+                mode,
+                len.div_ceil(per_group),
+            );
         }
     }
 }
@@ -470,6 +492,7 @@ fn shape_of(
     cycles: u32,
     sweeps: Sweeps,
     fused_coarsest: u32,
+    one_thread_rows: bool,
 ) -> Shape {
     Shape {
         levels: layout
@@ -491,6 +514,7 @@ fn shape_of(
         sweeps,
         most_coarsest: layout.most_nodes.last().copied().unwrap_or(0),
         fused_coarsest,
+        one_thread_rows,
     }
 }
 
@@ -721,6 +745,7 @@ impl GpuLattice {
             settings.newton_cycles,
             settings.sweeps,
             options.fused_coarsest,
+            options.one_thread_rows,
         );
         // Every buffer's contents: zero, then the bodies' writes.
         let (n, nt) = (layout.n_slots() as usize, layout.node_slots() as usize);
@@ -1455,6 +1480,39 @@ mod tests {
             // The coarsest level's sweeps a dispatch each (what these tests count).
             most_coarsest: 3,
             fused_coarsest: 0,
+            one_thread_rows: false,
+        }
+    }
+
+    /// With one thread a node, every smoothing pass (Gauss–Seidel colour or Chebyshev
+    /// sweep) carries the row mode bit beside its sweep index and a workgroup per 64
+    /// nodes; the plan is otherwise the same.
+    #[test]
+    fn one_thread_rows_mark_the_smoothing_passes() {
+        for smoother in [Smoother::GaussSeidel, Smoother::Chebyshev, Smoother::Hybrid] {
+            let split = Shape {
+                smoother,
+                ..shape()
+            };
+            let rows = Shape {
+                one_thread_rows: true,
+                ..split.clone()
+            };
+            let (a, b) = (plan(&split, 2), plan(&rows, 2));
+            assert_eq!(a.len(), b.len());
+            for (x, y) in a.iter().zip(&b) {
+                assert_eq!(
+                    (x.kernel, x.pass.first, x.pass.count),
+                    (y.kernel, y.pass.first, y.pass.count)
+                );
+                if matches!(x.kernel, Kernel::Smooth | Kernel::Chebyshev) {
+                    assert_eq!(y.pass.mode, x.pass.mode | ROW_MODE);
+                    assert_eq!(x.groups, x.pass.count.div_ceil(8));
+                    assert_eq!(y.groups, y.pass.count.div_ceil(WORKGROUP));
+                } else {
+                    assert_eq!((x.pass.mode, x.groups), (y.pass.mode, y.groups));
+                }
+            }
         }
     }
 
