@@ -1167,36 +1167,26 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         let mut cpu_state = State::new(&model);
         let mut solver = Solver::new(&model, s.clone()).unwrap();
         let control = Control::default();
-        let gpu_world = GpuLattice::new_with(
-            &device,
-            &kernels,
-            &model,
-            &cpu_state,
-            &s,
-            LatticeOptions {
-                first_candidates: first,
-                fused_coarsest: fused,
-                one_thread_rows,
-                ..Default::default()
-            },
-        )
-        .unwrap();
+        let world = |fused_coarsest| {
+            GpuLattice::new_with(
+                &device,
+                &kernels,
+                &model,
+                &cpu_state,
+                &s,
+                LatticeOptions {
+                    first_candidates: first,
+                    fused_coarsest,
+                    one_thread_rows,
+                    ..Default::default()
+                },
+            )
+            .unwrap()
+        };
+        let gpu_world = world(fused);
         // These bodies are small: below level 0, their coarsest level's sweeps are one
         // dispatch unless the limit is 0.
-        let apart = GpuLattice::new_with(
-            &device,
-            &kernels,
-            &model,
-            &cpu_state,
-            &s,
-            LatticeOptions {
-                first_candidates: first,
-                fused_coarsest: 0,
-                one_thread_rows,
-                ..Default::default()
-            },
-        )
-        .unwrap();
+        let apart = world(0);
         assert_eq!(
             gpu_world.dispatch_count() < apart.dispatch_count(),
             fused > 0 && smoother != GaussSeidel,

@@ -928,20 +928,14 @@ mod tests {
                 }
             }
         }
-        let one = {
-            let s = slice(&mg, 0, &starts);
-            block_sets(&mg, 0, &s)
+        let distinct = |b: usize| {
+            let s = slice(&mg, b, &starts);
+            block_sets(&mg, b, &s)
                 .map(fingerprint)
                 .collect::<HashSet<_>>()
                 .len() as u32
         };
-        let stiff = {
-            let s = slice(&mg, 2, &starts);
-            block_sets(&mg, 2, &s)
-                .map(fingerprint)
-                .collect::<HashSet<_>>()
-                .len() as u32
-        };
+        let (one, stiff) = (distinct(0), distinct(2));
         // The copy shares every set of the first body; the stiffer one shares none.
         assert_eq!(layout.kmat.used, 64 * (one + stiff));
         assert!(
