@@ -40,9 +40,12 @@
 //! appended later, `LatticeOptions::room`; default none), `--fused N,...` (speed only:
 //! the most coarsest-level nodes a body may have for that level's sweeps to run in one
 //! dispatch, `LatticeOptions::fused_coarsest`, values to compare, 0 never; default the
-//! library's), `--rows N,...` (speed only: threads summing a node's row in the smoothing
-//! sweeps, 8 or 1, `LatticeOptions::one_thread_rows`; default 8), `--profile` (GPU time
-//! per kernel: every dispatch in its own timed pass).
+//! library's), `--rows N,...` (speed only: the fewest nodes a smoothing pass has for it
+//! to sum each node's row in one thread rather than eight,
+//! `LatticeOptions::one_thread_rows_from`, values to compare, 0 always, 4294967295
+//! never; default the library's), `--profile` (GPU time
+//! per kernel of each speed row: timestamps between the dispatches of one pass where the
+//! device writes them there, else every dispatch in its own timed pass).
 //!
 //! `--changes` (what changing a world of `--bodies` touching cubes costs: made again
 //! for one more body, one appended into its room, one retired, gravity; and the step's
@@ -210,34 +213,98 @@ fn time(
     (gpu_ms, walls[2], world.dispatch_count())
 }
 
-/// GPU ms per step of each kernel (every dispatch its own timed pass).
-fn profile(g: &Gpu, name: &str, model: &Model, s: &SolverSettings) {
+/// GPU ms per step of each kernel: timestamps between the dispatches of one pass where
+/// the device can write them there (the median of 5 steps per dispatch), else every
+/// dispatch its own timed pass (which adds a pass's cost to each).
+fn profile(
+    g: &Gpu,
+    name: &str,
+    model: &Model,
+    s: &SolverSettings,
+    options: LatticeOptions,
+) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
     let state = State::new(model);
-    let world = GpuLattice::new(&g.device, &g.kernels, model, &state, s)
+    let world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
-    let Some(mut prof) = GpuProfiler::new(&g.device, &g.queue, world.dispatch_count() as u32)
-    else {
-        return;
+    const STEPS: u32 = 5;
+    let stamps = world.dispatch_count() as u32 + 2;
+    let Some(mut prof) = GpuProfiler::new(&g.device, &g.queue, STEPS * stamps) else {
+        return out;
     };
     let mut enc = g.device.create_command_encoder(&Default::default());
     world.record(&mut enc, &g.kernels, 3, None);
     g.queue.submit([enc.finish()]);
-    let mut enc = g.device.create_command_encoder(&Default::default());
-    world.record_profiled(&mut enc, &g.kernels, 1, &mut prof);
-    prof.resolve(&mut enc);
-    g.queue.submit([enc.finish()]);
-    let t = prof.read(&g.device, &g.queue);
-    println!(
-        "\nGPU time per kernel, {name}, {} Newton iteration(s) (one step, every dispatch its own pass):\n",
-        s.newton_iterations
+    let mut t = std::collections::BTreeMap::<&str, (f64, u32)>::new();
+    let how;
+    if GpuProfiler::inside_passes(&g.device) {
+        how = "timestamps between the dispatches of one pass, median of 5 steps";
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        let mut runs = Vec::new();
+        for _ in 0..STEPS {
+            let Some((set, first)) = prof.reserve(stamps) else {
+                return out;
+            };
+            runs.push((first, world.record_timed(&mut enc, &g.kernels, &set, first)));
+        }
+        prof.resolve(&mut enc);
+        g.queue.submit([enc.finish()]);
+        let total = prof.reserve(0).map_or(0, |(_, i)| i);
+        let ts = prof.read_stamps(&g.device, &g.queue, 0, total);
+        let names = &runs[0].1;
+        let mut whole = Vec::new();
+        for (i, name) in names.iter().enumerate() {
+            let times: Vec<f64> = runs
+                .iter()
+                .map(|(first, _)| {
+                    let f = *first as usize + i;
+                    ts.get(f + 1)
+                        .zip(ts.get(f))
+                        .map_or(f64::NAN, |(b, a)| b - a)
+                })
+                .collect();
+            let e = t.entry(name).or_insert((0.0, 0));
+            e.0 += bench::median(times);
+            e.1 += 1;
+        }
+        for (first, n) in &runs {
+            let f = *first as usize;
+            if let (Some(a), Some(b)) = (ts.get(f), ts.get(f + n.len())) {
+                whole.push(b - a);
+            }
+        }
+        if !whole.is_empty() {
+            let _ = writeln!(
+                out,
+                "\n{name}: the timed step, first to last timestamp: {:.4} ms (median of {STEPS})",
+                bench::median(whole)
+            );
+        }
+    } else {
+        how = "every dispatch its own pass";
+        let mut enc = g.device.create_command_encoder(&Default::default());
+        world.record_profiled(&mut enc, &g.kernels, 1, &mut prof);
+        prof.resolve(&mut enc);
+        g.queue.submit([enc.finish()]);
+        t = prof.read(&g.device, &g.queue);
+    }
+    let _ = writeln!(
+        out,
+        "\nGPU time per kernel, {name}, {} Newton iteration(s) of {} V-cycle(s), one step ({how}):\n",
+        s.newton_iterations, s.newton_cycles
     );
-    println!("| kernel | ms per step | dispatches per step |\n|---|---|---|");
+    let _ = writeln!(
+        out,
+        "| kernel | ms per step | dispatches per step |\n|---|---|---|"
+    );
     let mut sum = 0.0;
     for (k, (ms, count)) in &t {
-        println!("| {k} | {ms:.4} | {count} |");
+        let _ = writeln!(out, "| {k} | {ms:.4} | {count} |");
         sum += ms;
     }
-    println!("| sum | {sum:.4} | |");
+    let _ = writeln!(out, "| sum | {sum:.4} | |");
+    out
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -256,7 +323,7 @@ fn speed(
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | threads a row | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | one thread a row from (nodes) | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
@@ -280,6 +347,7 @@ fn speed(
         scenes.retain(|(name, _)| !name.contains("touching"));
     }
     let steps = if quick { 5 } else { 60 };
+    let mut profiles = Vec::new();
     for (name, model) in &scenes {
         for &sm in smoothers {
             for (&first, &fused, &row) in firsts.iter().flat_map(|f| {
@@ -308,7 +376,7 @@ fn speed(
                         first_candidates: first,
                         room,
                         fused_coarsest: fused,
-                        one_thread_rows: row == 1,
+                        one_thread_rows_from: row,
                     };
                     let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, options);
                     println!(
@@ -318,21 +386,21 @@ fn speed(
                         sweeps_name(sw),
                         gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
                     );
+                    if profile_kernels {
+                        profiles.push(profile(
+                            g,
+                            &format!("{name}, {sm:?}, rows {row}, fused {fused}, first {first}, sweeps {}", sweeps_name(sw)),
+                            model,
+                            &s,
+                            options,
+                        ));
+                    }
                 }
             }
         }
     }
-    if profile_kernels {
-        for (name, model) in &scenes {
-            for &sm in smoothers {
-                profile(
-                    g,
-                    &format!("{name}, {sm:?}"),
-                    model,
-                    &settings(2, Vec3::new(0.0, -9.81, 0.0), 0.0, sm),
-                );
-            }
-        }
+    for p in &profiles {
+        print!("{p}");
     }
 }
 
@@ -567,13 +635,7 @@ fn main() {
             &smoothers,
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
             &a.list("--fused", &[LatticeOptions::default().fused_coarsest]),
-            &{
-                let rows = a.list("--rows", &[8u32]);
-                if let Some(r) = rows.iter().find(|&&r| r != 1 && r != 8) {
-                    fail("--rows", format!("{r}: expected 8 or 1"));
-                }
-                rows
-            },
+            &a.list("--rows", &[LatticeOptions::default().one_thread_rows_from]),
             a.num("--room", LatticeOptions::default().room),
             &steps_of,
             !a.flag("--no-touching"),

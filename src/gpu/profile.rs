@@ -80,6 +80,50 @@ impl GpuProfiler {
         out
     }
 
+    /// Reserves `count` single timestamps for writes inside a pass (device feature
+    /// `TIMESTAMP_QUERY_INSIDE_PASSES`, see [`GpuProfiler::inside_passes`]): the query set
+    /// and the first index, `None` past the profiler's capacity. Read them with
+    /// [`GpuProfiler::read_stamps`] after [`GpuProfiler::resolve`].
+    pub fn reserve(&mut self, count: u32) -> Option<(QuerySet, u32)> {
+        let first = self.names.len() as u32 * 2;
+        let pairs = count.div_ceil(2);
+        if first + pairs * 2 > self.capacity {
+            return None;
+        }
+        self.names
+            .extend(std::iter::repeat_n("stamps", pairs as usize));
+        Some((self.set.clone(), first))
+    }
+
+    /// Whether `device` can write timestamps between a pass's dispatches.
+    pub fn inside_passes(device: &RenderDevice) -> bool {
+        device
+            .features()
+            .contains(bevy::render::render_resource::WgpuFeatures::TIMESTAMP_QUERY_INSIDE_PASSES)
+    }
+
+    /// Reads `count` resolved timestamps from index `first` back (blocking), in ms on
+    /// the GPU's clock (only differences mean anything). Resets for the next submission.
+    pub fn read_stamps(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        first: u32,
+        count: u32,
+    ) -> Vec<f64> {
+        let used = self.names.len() as u64 * 2;
+        self.names.clear();
+        if u64::from(first + count) > used {
+            return Vec::new();
+        }
+        let bytes = super::world::read_buffer(device, queue, &self.resolve, 0, used * 8);
+        let ts: &[u64] = bytemuck::cast_slice(&bytes);
+        ts[first as usize..(first + count) as usize]
+            .iter()
+            .map(|&t| t as f64 * self.period_ns as f64 * 1e-6)
+            .collect()
+    }
+
     /// Records the resolve of this submission's queries (call after the passes).
     pub fn resolve(&self, encoder: &mut CommandEncoder) {
         let used = self.names.len() as u32 * 2;

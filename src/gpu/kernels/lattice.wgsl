@@ -814,21 +814,20 @@ fn extra_block(j: u32) -> mat3x3<f32> {
 // corner by corner, so that the eight loads of x are issued together.
 fn element_term(ec: u32, off: u32) -> vec3<f32> {
     let e = ec >> 3u;
-    let a = ec & 7u;
     let c0 = elems[3u * e];
     let c1 = elems[3u * e + 1u];
+    return element_apply(e, ec & 7u, vecs[off + c0.x].xyz, vecs[off + c0.y].xyz,
+                         vecs[off + c0.z].xyz, vecs[off + c0.w].xyz, vecs[off + c1.x].xyz,
+                         vecs[off + c1.y].xyz, vecs[off + c1.z].xyz, vecs[off + c1.w].xyz);
+}
+
+// Element e's part of (A x) at its corner a, R Σ_b K_ab Rᵀ x_b (times its scale), given
+// its corners' values x0 .. x7.
+fn element_apply(e: u32, a: u32, x0: vec3<f32>, x1: vec3<f32>, x2: vec3<f32>, x3: vec3<f32>,
+                 x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>, x7: vec3<f32>) -> vec3<f32> {
     let ki = kinfo(e);
-    let q = rot[e];
-    let x0 = vecs[off + c0.x].xyz;
-    let x1 = vecs[off + c0.y].xyz;
-    let x2 = vecs[off + c0.z].xyz;
-    let x3 = vecs[off + c0.w].xyz;
-    let x4 = vecs[off + c1.x].xyz;
-    let x5 = vecs[off + c1.y].xyz;
-    let x6 = vecs[off + c1.z].xyz;
-    let x7 = vecs[off + c1.w].xyz;
     let kb = bitcast<u32>(ki.x);
-    let r = quat_mat(q);
+    let r = quat_mat(rot[e]);
     let rt = transpose(r);
     var acc = kblock(kb, a, 0u) * (rt * x0);
     acc = acc + kblock(kb, a, 1u) * (rt * x1);
@@ -1169,17 +1168,54 @@ fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
     }
 }
 
-// The fused coarsest solve's row parts (xyz), 256 threads, and the node range of the
-// body it is on.
+// The fused coarsest solve's row parts (xyz), 256 threads; the node range of the body it
+// is on; and that body's two Chebyshev iterates (V_DELTA, then V_PE: xyz of each of
+// its at most COARSEST_NODES nodes), kept in workgroup memory between the sweeps.
+const COARSEST_NODES: u32 = 128u;
 var<workgroup> wide: array<array<f32, 3>, 256>;
 var<workgroup> wide_range: vec2<u32>;
+var<workgroup> xs: array<f32, 768>;
 
-// `split_row` for a 256-thread workgroup, eight threads a node: thread `lid` adds its
-// element's part of (A x)_j into `wide`, the node's first thread gets the sum.
-fn split_row_wide(j: u32, valid: bool, region: u32, lid: u32) -> vec3<f32> {
+// Node `local` of the body's iterate `sel` (0: V_DELTA, 1: V_PE) in `xs`.
+fn xs_get(sel: u32, local: u32) -> vec3<f32> {
+    let o = 3u * (sel * COARSEST_NODES + local);
+    return vec3<f32>(xs[o], xs[o + 1u], xs[o + 2u]);
+}
+
+fn xs_set(sel: u32, local: u32, v: vec3<f32>) {
+    let o = 3u * (sel * COARSEST_NODES + local);
+    xs[o] = v.x;
+    xs[o + 1u] = v.y;
+    xs[o + 2u] = v.z;
+}
+
+// `apply_part` on the body's iterate `sel` in `xs` (its nodes from `base`).
+fn apply_part_xs(j: u32, sel: u32, base: u32, slot: u32) -> vec3<f32> {
+    var y = vec3<f32>(0.0);
+    if (slot == 0u) {
+        let xj = xs_get(sel, j - base);
+        y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
+    }
+    let s = topo[j] + slot;
+    if (s >= topo[j + 1u]) {
+        return y;
+    }
+    let ec = topo[s];
+    let e = ec >> 3u;
+    let c0 = elems[3u * e] - vec4<u32>(base);
+    let c1 = elems[3u * e + 1u] - vec4<u32>(base);
+    return y + element_apply(e, ec & 7u, xs_get(sel, c0.x), xs_get(sel, c0.y), xs_get(sel, c0.z),
+                             xs_get(sel, c0.w), xs_get(sel, c1.x), xs_get(sel, c1.y),
+                             xs_get(sel, c1.z), xs_get(sel, c1.w));
+}
+
+// `split_row` for a 256-thread workgroup, eight threads a node, on the body's iterate
+// `sel` in `xs`: thread `lid` adds its element's part of (A x)_j into `wide`, the node's
+// first thread gets the sum.
+fn split_row_wide(j: u32, valid: bool, sel: u32, base: u32, lid: u32) -> vec3<f32> {
     var p = vec3<f32>(0.0);
     if (valid) {
-        p = apply_part(j, region, lid % 8u);
+        p = apply_part_xs(j, sel, base, lid % 8u);
     }
     wide[lid] = array<f32, 3>(p.x, p.y, p.z);
     for (var st = 4u; st > 0u; st = st / 2u) {
@@ -1193,15 +1229,38 @@ fn split_row_wide(j: u32, valid: bool, region: u32, lid: u32) -> vec3<f32> {
     return vec3<f32>(wide[lid][0], wide[lid][1], wide[lid][2]);
 }
 
+// `chebyshev_node` on the body's iterates in `xs` (node j at `local`).
+fn chebyshev_node_xs(j: u32, local: u32, ax: vec3<f32>, l: u32, k: u32) {
+    let odd = (k & 1u) == 1u;
+    let src = select(0u, 1u, odd);
+    let dst = select(1u, 0u, odd);
+    let cur = xs_get(src, local);
+    var next = cur;
+    if (!held(j)) {
+        let o = 3u * j;
+        let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+        let c = params.cheb[l];
+        let xh = cur + dinv * (vecs[V_RHS * params.n_total + j].xyz - ax) * c.x;
+        var prev = cur;
+        if (k > 0u) {
+            prev = xs_get(dst, local);
+        }
+        next = (xh - prev) * chebyshev_weight(k, c.y) + prev;
+    }
+    xs_set(dst, local, next);
+}
+
 // The coarsest level's pc.mode Chebyshev sweeps (level pc.level, its reduction table
-// from pc.first) in one dispatch, as that many `smooth_chebyshev` dispatches would do
-// them: a workgroup per body (striding over the bodies), eight threads a node and 32
-// nodes at a time, a storage barrier between sweeps. A body's coarsest nodes couple
-// only with each other, so its workgroup needs no other.
+// from pc.first) in one dispatch, with the arithmetic of that many `smooth_chebyshev`
+// dispatches: a workgroup per body (striding over the bodies), eight threads a node and
+// 32 nodes at a time. A body's coarsest nodes couple only with each other, so its
+// workgroup needs no other, and their iterates stay in workgroup memory from the first
+// sweep to the last (read from `vecs` before, written back after).
 @compute @workgroup_size(256)
 fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                    @builtin(local_invocation_index) lid: u32) {
     let l = pc.level;
+    let n = params.n_total;
     for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
         if (lid == 0u) {
             let r = body_chunks(1u + l, b);
@@ -1210,21 +1269,32 @@ fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
                 let last = chunk(pc.first + r.y - 1u);
                 range = vec2<u32>(chunk(pc.first + r.x).x, last.x + last.y);
             }
+            // The plan fuses only levels whose bodies fit `xs`.
+            range.y = min(range.y, range.x + COARSEST_NODES);
             wide_range = range;
         }
         let range = workgroupUniformLoad(&wide_range);
+        for (var i = range.x + lid; i < range.y; i = i + 256u) {
+            xs_set(0u, i - range.x, vecs[V_DELTA * n + i].xyz);
+            xs_set(1u, i - range.x, vecs[V_PE * n + i].xyz);
+        }
+        workgroupBarrier();
         for (var k = 0u; k < pc.mode; k = k + 1u) {
-            let src = select(V_DELTA, V_PE, (k & 1u) == 1u);
+            let src = select(0u, 1u, (k & 1u) == 1u);
             for (var base = range.x; base < range.y; base = base + 32u) {
                 let i = base + lid / 8u;
-                let ax = split_row_wide(i, i < range.y, src, lid);
+                let ax = split_row_wide(i, i < range.y, src, range.x, lid);
                 if (lid % 8u == 0u && i < range.y) {
-                    chebyshev_node(i, ax, l, k);
+                    chebyshev_node_xs(i, i - range.x, ax, l, k);
                 }
             }
-            storageBarrier();
+            workgroupBarrier();
         }
-        // Every thread has read this body's range before the next is written.
+        for (var i = range.x + lid; i < range.y; i = i + 256u) {
+            vecs[V_DELTA * n + i] = vec4<f32>(xs_get(0u, i - range.x), 0.0);
+            vecs[V_PE * n + i] = vec4<f32>(xs_get(1u, i - range.x), 0.0);
+        }
+        // Every thread has read this body's range and iterates before the next's.
         workgroupBarrier();
     }
 }

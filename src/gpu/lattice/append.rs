@@ -104,7 +104,7 @@ impl AppendBasis {
             self.shape.cycles,
             self.shape.sweeps,
             self.shape.fused_coarsest,
-            self.shape.one_thread_rows,
+            self.shape.one_thread_rows_from,
         );
         let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
         if records.len() > self.pass_room {

@@ -59,9 +59,10 @@ const MAX_PICK_GROUPS: u32 = 65_535;
 const CHEBYSHEV_GROUPS: u32 = 8192;
 /// A smoothing pass's mode bit (`ROW_MODE` in the shader): one thread a node.
 const ROW_MODE: u32 = 0x10000;
-/// [`LatticeOptions::fused_coarsest`]'s default: up to four rounds of 32 nodes a sweep
-/// in a body's workgroup.
-const FUSED_COARSEST: u32 = 128;
+/// [`LatticeOptions::fused_coarsest`]'s default and its most: up to four rounds of 32
+/// nodes a sweep in a body's workgroup, the body's iterates in its workgroup memory
+/// (`COARSEST_NODES` in the shader).
+pub const FUSED_COARSEST: u32 = 128;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -148,19 +149,20 @@ pub struct Shape {
     pub most_coarsest: u32,
     /// [`LatticeOptions::fused_coarsest`].
     pub fused_coarsest: u32,
-    /// [`LatticeOptions::one_thread_rows`].
-    pub one_thread_rows: bool,
+    /// [`LatticeOptions::one_thread_rows_from`].
+    pub one_thread_rows_from: u32,
 }
 
 impl Shape {
     /// Whether the coarsest level's sweeps run in one dispatch (`smooth_coarsest`, a
     /// workgroup per body): it is smoothed by Chebyshev, below level 0, and no body has
-    /// more than [`Shape::fused_coarsest`] nodes there.
+    /// more than [`Shape::fused_coarsest`] nodes there (nor more than
+    /// [`FUSED_COARSEST`]).
     pub fn coarsest_fused(&self) -> bool {
         let l = self.levels.len().saturating_sub(1);
         l > 0
             && self.smoother.on_level(l) == Smoother::Chebyshev
-            && self.most_coarsest <= self.fused_coarsest
+            && self.most_coarsest <= self.fused_coarsest.min(FUSED_COARSEST)
     }
 }
 
@@ -176,14 +178,22 @@ pub struct LatticeOptions {
     pub room: f32,
     /// The coarsest level's smoothing sweeps run in one dispatch, a workgroup per body,
     /// where no body has more than this many nodes there (and the level is smoothed by
-    /// Chebyshev); otherwise a dispatch a sweep. 0: never. Default 128.
+    /// Chebyshev); otherwise a dispatch a sweep. 0: never. Default and most
+    /// [`FUSED_COARSEST`], 128 (a larger value counts as 128: the dispatch keeps a body's
+    /// iterates in its workgroup memory).
     pub fused_coarsest: u32,
-    /// The smoothing sweeps (Gauss–Seidel colours and Chebyshev sweeps, but the fused
-    /// coarsest level) sum each node's row in one thread, its elements in a loop, rather
-    /// than in eight threads, one element each, summed through workgroup memory. The
-    /// sums' order differs, so the answers differ by rounding. Default false.
-    pub one_thread_rows: bool,
+    /// A smoothing pass (a Gauss–Seidel colour or a Chebyshev sweep, but the fused
+    /// coarsest level) over at least this many nodes sums each node's row in one thread,
+    /// its elements in a loop; a smaller one in eight threads, one element each, summed
+    /// through workgroup memory. Eight threads a node keep a small pass's GPU busy; one
+    /// thread a node skips the workgroup sums where there are nodes enough to fill it.
+    /// The sums' order differs, so the answers differ by rounding. 0: always one thread a
+    /// node; `u32::MAX`: never. Default 16,384.
+    pub one_thread_rows_from: u32,
 }
+
+/// [`LatticeOptions::one_thread_rows_from`]'s default.
+pub const ONE_THREAD_ROWS_FROM: u32 = 16_384;
 
 impl Default for LatticeOptions {
     fn default() -> Self {
@@ -191,7 +201,7 @@ impl Default for LatticeOptions {
             first_candidates: 4,
             room: 1.0,
             fused_coarsest: FUSED_COARSEST,
-            one_thread_rows: false,
+            one_thread_rows_from: ONE_THREAD_ROWS_FROM,
         }
     }
 }
@@ -311,16 +321,20 @@ fn sweeps(
     count: u32,
     push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32),
 ) {
-    // Eight threads a node (one element each) or one (`ROW_MODE`, see `smooth_colour`).
-    let (mode, per_group) = if shape.one_thread_rows {
-        (ROW_MODE, WORKGROUP)
-    } else {
-        (0, 8)
+    // Eight threads a node (one element each) or, over enough nodes, one (`ROW_MODE`,
+    // see `smooth_colour`).
+    let rows = |len: u32| {
+        if len >= shape.one_thread_rows_from {
+            (ROW_MODE, WORKGROUP)
+        } else {
+            (0, 8)
+        }
     };
     if shape.smoother.on_level(l) == Smoother::Chebyshev {
         // An even count ends in the correction's own region (see `chebyshev_node`).
         debug_assert!(count.is_multiple_of(2), "Chebyshev sweeps come in pairs");
         let [first, len, _, _] = shape.levels[l];
+        let (mode, per_group) = rows(len);
         for k in 0..count {
             push(
                 Kernel::Chebyshev,
@@ -337,6 +351,7 @@ fn sweeps(
     for _ in 0..count {
         for [start, end] in c {
             let len = end - start;
+            let (mode, per_group) = rows(len);
             push(
                 Kernel::Smooth,
                 *start,
@@ -492,7 +507,7 @@ fn shape_of(
     cycles: u32,
     sweeps: Sweeps,
     fused_coarsest: u32,
-    one_thread_rows: bool,
+    one_thread_rows_from: u32,
 ) -> Shape {
     Shape {
         levels: layout
@@ -514,7 +529,7 @@ fn shape_of(
         sweeps,
         most_coarsest: layout.most_nodes.last().copied().unwrap_or(0),
         fused_coarsest,
-        one_thread_rows,
+        one_thread_rows_from,
     }
 }
 
@@ -745,7 +760,7 @@ impl GpuLattice {
             settings.newton_cycles,
             settings.sweeps,
             options.fused_coarsest,
-            options.one_thread_rows,
+            options.one_thread_rows_from,
         );
         // Every buffer's contents: zero, then the bodies' writes.
         let (n, nt) = (layout.n_slots() as usize, layout.node_slots() as usize);
@@ -1097,16 +1112,9 @@ impl GpuLattice {
         }
     }
 
-    /// Records `steps` time steps with each dispatch in its own compute pass, timed by
-    /// `rec` under the kernel's name (smoothing per level: "smooth_colour L0", ...): for
-    /// profiling (separate passes add their own cost).
-    pub fn record_profiled(
-        &self,
-        encoder: &mut CommandEncoder,
-        kernels: &LatticeKernels,
-        steps: u32,
-        rec: &mut dyn super::world::PassRecorder,
-    ) {
+    /// The name a profile gives dispatch `d`: its kernel's, smoothing per level
+    /// ("smooth_colour L0", ...).
+    fn dispatch_name(d: &Dispatch) -> &'static str {
         const SMOOTH: [&str; 8] = [
             "smooth_colour L0",
             "smooth_colour L1",
@@ -1127,15 +1135,28 @@ impl GpuLattice {
             "smooth_chebyshev L6",
             "smooth_chebyshev L7",
         ];
+        if d.kernel == Kernel::Smooth {
+            SMOOTH[(d.pass.level as usize).min(7)]
+        } else if d.kernel == Kernel::Chebyshev {
+            CHEBYSHEV[(d.pass.level as usize).min(7)]
+        } else {
+            super::kernels::lattice::ENTRIES[LatticeKernels::index(d.kernel)].name
+        }
+    }
+
+    /// Records `steps` time steps with each dispatch in its own compute pass, timed by
+    /// `rec` under the kernel's name (smoothing per level: "smooth_colour L0", ...): for
+    /// profiling (separate passes add their own cost).
+    pub fn record_profiled(
+        &self,
+        encoder: &mut CommandEncoder,
+        kernels: &LatticeKernels,
+        steps: u32,
+        rec: &mut dyn super::world::PassRecorder,
+    ) {
         for _ in 0..steps * self.substeps {
             for (i, d) in self.dispatches.iter().enumerate() {
-                let name = if d.kernel == Kernel::Smooth {
-                    SMOOTH[(d.pass.level as usize).min(7)]
-                } else if d.kernel == Kernel::Chebyshev {
-                    CHEBYSHEV[(d.pass.level as usize).min(7)]
-                } else {
-                    super::kernels::lattice::ENTRIES[LatticeKernels::index(d.kernel)].name
-                };
+                let name = Self::dispatch_name(d);
                 let ts = rec.timestamps(name);
                 let timestamp_writes =
                     ts.as_ref().map(|(qs, i)| wgpu::ComputePassTimestampWrites {
@@ -1150,6 +1171,44 @@ impl GpuLattice {
                 self.encode(&mut pass, kernels, i);
             }
         }
+    }
+
+    /// Records one time step in one compute pass, as [`GpuLattice::record`] does, with a
+    /// GPU timestamp before its first dispatch and after each one, into `set` from index
+    /// `first` (one more timestamp than dispatches). The device needs
+    /// `TIMESTAMP_QUERY_INSIDE_PASSES`. A dispatch's time is the difference between the
+    /// timestamps on either side of it (its barrier included), with much less added than a
+    /// pass a dispatch. Returns the dispatches' names in order (as `record_profiled` names
+    /// them).
+    pub fn record_timed(
+        &self,
+        encoder: &mut CommandEncoder,
+        kernels: &LatticeKernels,
+        set: &wgpu::QuerySet,
+        first: u32,
+    ) -> Vec<&'static str> {
+        let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
+            label: Some("tissue lattice (timed)"),
+            timestamp_writes: None,
+        });
+        let mut names = Vec::new();
+        let clear = LatticeKernels::index(Kernel::ForceClear);
+        pass.write_timestamp(set, first);
+        for s in 0..self.substeps {
+            if s == 0 {
+                pass.set_pipeline(&kernels.pipelines[clear].0);
+                pass.set_bind_group(0, &self.groups[clear], &[]);
+                pass.dispatch_workgroups(1, 1, 1);
+                names.push("force_clear");
+                pass.write_timestamp(set, first + names.len() as u32);
+            }
+            for (i, d) in self.dispatches.iter().enumerate() {
+                self.encode(&mut pass, kernels, i);
+                names.push(Self::dispatch_name(d));
+                pass.write_timestamp(set, first + names.len() as u32);
+            }
+        }
+        names
     }
 
     /// Sets the colliders of the next steps (at most [`MAX_COLLIDERS`]). They push as
@@ -1480,39 +1539,56 @@ mod tests {
             // The coarsest level's sweeps a dispatch each (what these tests count).
             most_coarsest: 3,
             fused_coarsest: 0,
-            one_thread_rows: false,
+            one_thread_rows_from: u32::MAX,
         }
     }
 
-    /// With one thread a node, every smoothing pass (Gauss–Seidel colour or Chebyshev
-    /// sweep) carries the row mode bit beside its sweep index and a workgroup per 64
-    /// nodes; the plan is otherwise the same.
+    /// A smoothing pass (Gauss–Seidel colour or Chebyshev sweep) over at least
+    /// `one_thread_rows_from` nodes carries the row mode bit beside its sweep index and a
+    /// workgroup per 64 nodes, a smaller one eight threads a node; the plan is otherwise
+    /// the same. 0 marks every pass, and a limit between the passes' sizes some of them.
     #[test]
-    fn one_thread_rows_mark_the_smoothing_passes() {
+    fn one_thread_rows_mark_the_smoothing_passes_over_enough_nodes() {
         for smoother in [Smoother::GaussSeidel, Smoother::Chebyshev, Smoother::Hybrid] {
             let split = Shape {
                 smoother,
                 ..shape()
             };
-            let rows = Shape {
-                one_thread_rows: true,
-                ..split.clone()
-            };
-            let (a, b) = (plan(&split, 2), plan(&rows, 2));
-            assert_eq!(a.len(), b.len());
-            for (x, y) in a.iter().zip(&b) {
-                assert_eq!(
-                    (x.kernel, x.pass.first, x.pass.count),
-                    (y.kernel, y.pass.first, y.pass.count)
-                );
-                if matches!(x.kernel, Kernel::Smooth | Kernel::Chebyshev) {
-                    assert_eq!(y.pass.mode, x.pass.mode | ROW_MODE);
-                    assert_eq!(x.groups, x.pass.count.div_ceil(8));
-                    assert_eq!(y.groups, y.pass.count.div_ceil(WORKGROUP));
-                } else {
-                    assert_eq!((x.pass.mode, x.groups), (y.pass.mode, y.groups));
+            let a = plan(&split, 2);
+            let sizes: Vec<u32> = a
+                .iter()
+                .filter(|d| matches!(d.kernel, Kernel::Smooth | Kernel::Chebyshev))
+                .map(|d| d.pass.count)
+                .collect();
+            let (lo, hi) = (*sizes.iter().min().unwrap(), *sizes.iter().max().unwrap());
+            assert!(lo < hi, "the test's passes differ in size");
+            let mut marked_some = false;
+            for from in [0, hi, u32::MAX] {
+                let rows = Shape {
+                    one_thread_rows_from: from,
+                    ..split.clone()
+                };
+                let b = plan(&rows, 2);
+                assert_eq!(a.len(), b.len());
+                for (x, y) in a.iter().zip(&b) {
+                    assert_eq!(
+                        (x.kernel, x.pass.first, x.pass.count),
+                        (y.kernel, y.pass.first, y.pass.count)
+                    );
+                    assert_eq!(x.pass.mode & ROW_MODE, 0);
+                    if matches!(x.kernel, Kernel::Smooth | Kernel::Chebyshev)
+                        && x.pass.count >= from
+                    {
+                        marked_some |= from > 0;
+                        assert_eq!(y.pass.mode, x.pass.mode | ROW_MODE);
+                        assert_eq!(x.groups, x.pass.count.div_ceil(8));
+                        assert_eq!(y.groups, y.pass.count.div_ceil(WORKGROUP));
+                    } else {
+                        assert_eq!((x.pass.mode, x.groups), (y.pass.mode, y.groups));
+                    }
                 }
             }
+            assert!(marked_some, "a limit at the largest pass marks it");
         }
     }
 
