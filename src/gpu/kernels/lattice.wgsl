@@ -203,34 +203,33 @@ fn hourglass_amplitudes(b: u32, x: array<vec3<f32>, 8>, rt: mat3x3<f32>) -> arra
     return c;
 }
 
-// Element energy (J) from its deformation gradient f and hourglass amplitudes c, with
-// rotation r held (core::multigrid::element_energy): μ V |sym(Rᵀ F) − I|² + ½ λ V (det F −
-// 1)² + ½ Σ k_m V/h² c_m².
-fn energy_of(e: u32, f: mat3x3<f32>, c: array<f32, 12>, r: mat3x3<f32>) -> f32 {
+// Element e's elastic energy (J) from its deformation gradient f with rotation r held:
+// μ V |sym(Rᵀ F) − I|² + ½ λ V (det F − 1)² (core::multigrid::element_energy without
+// the hourglass term).
+fn elastic_energy(e: u32, f: mat3x3<f32>, r: mat3x3<f32>) -> f32 {
     let info = elems[3u * e + 2u];
-    let b = info.y;
-    let size = bitcast<f32>(info.z);
-    let volume = bitcast<f32>(info.w);
-    let lame = mats[b * MAT_STRIDE];
+    let lame = mats[info.y * MAT_STRIDE];
     let rtf = transpose(r) * f;
     let s = (rtf + transpose(rtf)) * 0.5 - identity3();
     let ee = dot(s[0], s[0]) + dot(s[1], s[1]) + dot(s[2], s[2]);
     let j = determinant(f) - 1.0;
-    let elastic = volume * (lame.x * ee + 0.5 * lame.y * (j * j));
-    let scale = volume / (size * size);
+    return bitcast<f32>(info.w) * (lame.x * ee + 0.5 * lame.y * (j * j));
+}
+
+// Element energy (J) from its deformation gradient f and hourglass amplitudes c, with
+// rotation r held (core::multigrid::element_energy): the elastic energy plus
+// ½ Σ k_m V/h² c_m².
+fn energy_of(e: u32, f: mat3x3<f32>, c: array<f32, 12>, r: mat3x3<f32>) -> f32 {
+    let info = elems[3u * e + 2u];
+    let b = info.y;
+    let size = bitcast<f32>(info.z);
+    let scale = bitcast<f32>(info.w) / (size * size);
     var hourglass = 0.0;
     for (var m = 0u; m < MODES; m = m + 1u) {
         let k = mats[b * MAT_STRIDE + 1u + m / 4u][m % 4u];
         hourglass = hourglass + 0.5 * k * scale * (c[m] * c[m]);
     }
-    return elastic + hourglass;
-}
-
-// Element energy (J) at corners x with rotation r held.
-fn element_energy(e: u32, x: array<vec3<f32>, 8>, r: mat3x3<f32>) -> f32 {
-    let info = elems[3u * e + 2u];
-    let f = element_gradient(x, bitcast<f32>(info.z));
-    return energy_of(e, f, hourglass_amplitudes(info.y, x, transpose(r)), r);
+    return elastic_energy(e, f, r) + hourglass;
 }
 
 fn load_x(e: u32, region: u32) -> array<vec3<f32>, 8> {
@@ -434,19 +433,40 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                     acc[k] = acc[k] + (energy_of(e, f0 + f1 * a, c, r) - base);
                 }
             } else {
-                var base = 0.0;
-                for (var k = 0u; k < kc; k = k + 1u) {
-                    let a = candidate(k0 + k, mode);
-                    var xc: array<vec3<f32>, 8>;
-                    for (var c = 0u; c < 8u; c = c + 1u) {
-                        xc[c] = y[c] + d[c] * a;
+                // The first iterate: each candidate's rotation refined from q0 along
+                // F(y + a d) = F(y) + a F(d). The hourglass amplitudes are
+                // c_m = R : Σ_q (x_q − x_0) g_mqᵀ, whose matrices are linear along the step,
+                // so each mode's are summed once for every candidate.
+                let f0 = element_gradient(y, size);
+                let f1 = element_gradient(d, size);
+                var rs: array<mat3x3<f32>, 4>;
+                var en: array<f32, 4>;
+                for (var k = 0u; k < FIRST_CANDIDATES; k = k + 1u) {
+                    let f = f0 + f1 * candidate(k, 0u);
+                    let r = quat_mat(extract_rotation(f, q0, params.rot_iters));
+                    rs[k] = r;
+                    en[k] = elastic_energy(e, f, r);
+                }
+                let base = info.y * MAT_STRIDE;
+                let scale = bitcast<f32>(info.w) / (size * size);
+                for (var m = 0u; m < MODES; m = m + 1u) {
+                    var m0 = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+                    var m1 = m0;
+                    for (var q = 1u; q < 8u; q = q + 1u) {
+                        let g = mats[base + 4u + m * 8u + q].xyz;
+                        m0 = m0 + outer(y[q] - y[0], g);
+                        m1 = m1 + outer(d[q] - d[0], g);
                     }
-                    let q = extract_rotation(element_gradient(xc, size), q0, params.rot_iters);
-                    let g = element_energy(e, xc, quat_mat(q));
-                    if (k == 0u) {
-                        base = g;
+                    let km = 0.5 * mats[base + 1u + m / 4u][m % 4u] * scale;
+                    for (var k = 0u; k < FIRST_CANDIDATES; k = k + 1u) {
+                        let mm = m0 + m1 * candidate(k, 0u);
+                        let r = rs[k];
+                        let c = frob(r, mm);
+                        en[k] = en[k] + km * (c * c);
                     }
-                    acc[k] = acc[k] + (g - base);
+                }
+                for (var k = 0u; k < FIRST_CANDIDATES; k = k + 1u) {
+                    acc[k] = acc[k] + (en[k] - en[0]);
                 }
             }
         } else {
