@@ -184,25 +184,6 @@ fn identity3() -> mat3x3<f32> {
     return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
 }
 
-// Hourglass amplitudes c_m = Σ_q g_mq · Rᵀ (x_q − x_0) of an element of material b
-// (linear in x: along a line y + a d they are c(y) + a c(d)).
-fn hourglass_amplitudes(b: u32, x: array<vec3<f32>, 8>, rt: mat3x3<f32>) -> array<f32, 12> {
-    var lx: array<vec3<f32>, 8>;
-    for (var q = 0u; q < 8u; q = q + 1u) {
-        lx[q] = rt * (x[q] - x[0]);
-    }
-    var c: array<f32, 12>;
-    let base = b * MAT_STRIDE;
-    for (var m = 0u; m < MODES; m = m + 1u) {
-        var cm = 0.0;
-        for (var q = 0u; q < 8u; q = q + 1u) {
-            cm = cm + dot(mats[base + 4u + m * 8u + q].xyz, lx[q]);
-        }
-        c[m] = cm;
-    }
-    return c;
-}
-
 // Element e's elastic energy (J) from its deformation gradient f with rotation r held:
 // μ V |sym(Rᵀ F) − I|² + ½ λ V (det F − 1)² (core::multigrid::element_energy without
 // the hourglass term).
@@ -421,8 +402,30 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 let rt = transpose(r);
                 let f0 = element_gradient(y, size);
                 let f1 = element_gradient(d, size);
-                let c0 = hourglass_amplitudes(info.y, y, rt);
-                let c1 = hourglass_amplitudes(info.y, d, rt);
+                // The hourglass amplitudes c_m = Σ_q g_mq · Rᵀ (x_q − x_0) at y and along
+                // d, each mode's vectors g_mq loaded once for both.
+                var c0: array<f32, 12>;
+                var c1: array<f32, 12>;
+                {
+                    var ly: array<vec3<f32>, 8>;
+                    var ld: array<vec3<f32>, 8>;
+                    for (var q = 0u; q < 8u; q = q + 1u) {
+                        ly[q] = rt * (y[q] - y[0]);
+                        ld[q] = rt * (d[q] - d[0]);
+                    }
+                    let mb = info.y * MAT_STRIDE;
+                    for (var m = 0u; m < MODES; m = m + 1u) {
+                        var a0 = 0.0;
+                        var a1 = 0.0;
+                        for (var q = 0u; q < 8u; q = q + 1u) {
+                            let g = mats[mb + 4u + m * 8u + q].xyz;
+                            a0 = a0 + dot(g, ly[q]);
+                            a1 = a1 + dot(g, ld[q]);
+                        }
+                        c0[m] = a0;
+                        c1[m] = a1;
+                    }
+                }
                 let base = energy_of(e, f0, c0, r);
                 for (var k = 0u; k < kc; k = k + 1u) {
                     let a = candidate(k0 + k, mode);
@@ -846,8 +849,13 @@ fn element_term(ec: u32, off: u32) -> vec3<f32> {
 fn element_apply(e: u32, a: u32, x0: vec3<f32>, x1: vec3<f32>, x2: vec3<f32>, x3: vec3<f32>,
                  x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>, x7: vec3<f32>) -> vec3<f32> {
     let ki = kinfo(e);
-    let kb = bitcast<u32>(ki.x);
-    let r = quat_mat(rot[e]);
+    return rotated_row(bitcast<u32>(ki.x), a, ki.y, quat_mat(rot[e]), x0, x1, x2, x3, x4, x5, x6, x7);
+}
+
+// R Σ_b K_ab Rᵀ x_b times `scale`: row a of the stiffness blocks from `kb`, turned by r.
+fn rotated_row(kb: u32, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
+               x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
+               x7: vec3<f32>) -> vec3<f32> {
     let rt = transpose(r);
     var acc = kblock(kb, a, 0u) * (rt * x0);
     acc = acc + kblock(kb, a, 1u) * (rt * x1);
@@ -857,7 +865,7 @@ fn element_apply(e: u32, a: u32, x0: vec3<f32>, x1: vec3<f32>, x2: vec3<f32>, x3
     acc = acc + kblock(kb, a, 5u) * (rt * x5);
     acc = acc + kblock(kb, a, 6u) * (rt * x6);
     acc = acc + kblock(kb, a, 7u) * (rt * x7);
-    return r * acc * ki.y;
+    return r * acc * scale;
 }
 
 // (A x)_j with A = M/h² + S + Σ_e R K Rᵀ, x the `vecs` region `region`
@@ -1209,73 +1217,52 @@ fn xs_set(sel: u32, local: u32, v: vec3<f32>) {
     xs[o + 2u] = v.z;
 }
 
-// `apply_part` on the body's iterate `sel` in `xs` (its nodes from `base`).
-fn apply_part_xs(j: u32, sel: u32, base: u32, slot: u32) -> vec3<f32> {
-    var y = vec3<f32>(0.0);
-    if (slot == 0u) {
-        let xj = xs_get(sel, j - base);
-        y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
+// What a thread of `smooth_coarsest` keeps of one of its node's elements from sweep to
+// sweep: the row's turn r and scale, the blocks' base and the node's corner a, and the
+// element's corners as indices into the body's iterates (a corner past `COARSEST_NODES`:
+// no element).
+struct CoarsestSlot {
+    r: mat3x3<f32>,
+    scale: f32,
+    kb: u32,
+    a: u32,
+    c0: vec4<u32>,
+    c1: vec4<u32>,
+};
+
+// Slot s of node j's elements (none past its last), its corners local to `base`.
+fn coarsest_slot(j: u32, s: u32, base: u32) -> CoarsestSlot {
+    var out = CoarsestSlot(identity3(), 0.0, 0u, 0u, vec4<u32>(COARSEST_NODES), vec4<u32>(COARSEST_NODES));
+    let at = topo[j] + s;
+    if (at < topo[j + 1u]) {
+        let ec = topo[at];
+        let e = ec >> 3u;
+        let ki = kinfo(e);
+        out = CoarsestSlot(quat_mat(rot[e]), ki.y, bitcast<u32>(ki.x), ec & 7u,
+                           elems[3u * e] - vec4<u32>(base), elems[3u * e + 1u] - vec4<u32>(base));
     }
-    let s = topo[j] + slot;
-    if (s >= topo[j + 1u]) {
-        return y;
-    }
-    let ec = topo[s];
-    let e = ec >> 3u;
-    let c0 = elems[3u * e] - vec4<u32>(base);
-    let c1 = elems[3u * e + 1u] - vec4<u32>(base);
-    return y + element_apply(e, ec & 7u, xs_get(sel, c0.x), xs_get(sel, c0.y), xs_get(sel, c0.z),
-                             xs_get(sel, c0.w), xs_get(sel, c1.x), xs_get(sel, c1.y),
-                             xs_get(sel, c1.z), xs_get(sel, c1.w));
+    return out;
 }
 
-// `split_row` for a 256-thread workgroup, eight threads a node, on the body's iterate
-// `sel` in `xs`: thread `lid` adds its element's part of (A x)_j into `wide`, the node's
-// first thread gets the sum.
-fn split_row_wide(j: u32, valid: bool, sel: u32, base: u32, lid: u32) -> vec3<f32> {
-    var p = vec3<f32>(0.0);
-    if (valid) {
-        p = apply_part_xs(j, sel, base, lid % 8u);
+// Slot `t`'s part of (A x) on the body's iterate `sel` in `xs` (0 for no element).
+fn coarsest_part(t: CoarsestSlot, sel: u32) -> vec3<f32> {
+    if (t.c0.x >= COARSEST_NODES) {
+        return vec3<f32>(0.0);
     }
-    wide[lid] = array<f32, 3>(p.x, p.y, p.z);
-    for (var st = 4u; st > 0u; st = st / 2u) {
-        workgroupBarrier();
-        if (lid % 8u < st) {
-            let o = wide[lid + st];
-            wide[lid] = array<f32, 3>(wide[lid][0] + o[0], wide[lid][1] + o[1], wide[lid][2] + o[2]);
-        }
-    }
-    workgroupBarrier();
-    return vec3<f32>(wide[lid][0], wide[lid][1], wide[lid][2]);
-}
-
-// `chebyshev_node` on the body's iterates in `xs` (node j at `local`).
-fn chebyshev_node_xs(j: u32, local: u32, ax: vec3<f32>, l: u32, k: u32) {
-    let odd = (k & 1u) == 1u;
-    let src = select(0u, 1u, odd);
-    let dst = select(1u, 0u, odd);
-    let cur = xs_get(src, local);
-    var next = cur;
-    if (!held(j)) {
-        let o = 3u * j;
-        let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
-        let c = params.cheb[l];
-        let xh = cur + dinv * (vecs[V_RHS * params.n_total + j].xyz - ax) * c.x;
-        var prev = cur;
-        if (k > 0u) {
-            prev = xs_get(dst, local);
-        }
-        next = (xh - prev) * chebyshev_weight(k, c.y) + prev;
-    }
-    xs_set(dst, local, next);
+    return rotated_row(t.kb, t.a, t.scale, t.r, xs_get(sel, t.c0.x), xs_get(sel, t.c0.y),
+                       xs_get(sel, t.c0.z), xs_get(sel, t.c0.w), xs_get(sel, t.c1.x),
+                       xs_get(sel, t.c1.y), xs_get(sel, t.c1.z), xs_get(sel, t.c1.w));
 }
 
 // The coarsest level's pc.mode Chebyshev sweeps (level pc.level, its reduction table
-// from pc.first) in one dispatch, with the arithmetic of that many `smooth_chebyshev`
-// dispatches: a workgroup per body (striding over the bodies), eight threads a node and
-// 32 nodes at a time. A body's coarsest nodes couple only with each other, so its
-// workgroup needs no other, and their iterates stay in workgroup memory from the first
-// sweep to the last (read from `vecs` before, written back after).
+// from pc.first) in one dispatch, as that many `smooth_chebyshev` dispatches do them
+// (but for the order of a row's sums): a workgroup per body (striding over the bodies).
+// A body's coarsest nodes couple only with each other, so its workgroup needs no other.
+// All of a body's nodes (at most `COARSEST_NODES`) are swept at once: 8, 4 or 2 threads
+// a node (up to 32, 64 or 128 nodes), each with 1, 2 or 4 of its elements. What does not
+// change between sweeps stays in registers (each element's turn, blocks and corners; the
+// node's mass, inverse diagonal block and right-hand side; the Chebyshev weight), the
+// iterates in workgroup memory (read from `vecs` before, written back after).
 @compute @workgroup_size(256)
 fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                    @builtin(local_invocation_index) lid: u32) {
@@ -1294,19 +1281,84 @@ fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
             wide_range = range;
         }
         let range = workgroupUniformLoad(&wide_range);
+        let nn = range.y - range.x;
         for (var i = range.x + lid; i < range.y; i = i + 256u) {
             xs_set(0u, i - range.x, vecs[V_DELTA * n + i].xyz);
             xs_set(1u, i - range.x, vecs[V_PE * n + i].xyz);
         }
+        // Threads a node and elements a thread.
+        var per = 8u;
+        if (nn > 64u) {
+            per = 2u;
+        } else if (nn > 32u) {
+            per = 4u;
+        }
+        let slots = 8u / per;
+        let local = lid / per;
+        let sub = lid % per;
+        let valid = local < nn;
+        let j = range.x + min(local, max(nn, 1u) - 1u);
+        var t: array<CoarsestSlot, 4>;
+        for (var q = 0u; q < 4u; q = q + 1u) {
+            var s = CoarsestSlot(identity3(), 0.0, 0u, 0u, vec4<u32>(COARSEST_NODES), vec4<u32>(COARSEST_NODES));
+            if (valid && q < slots) {
+                s = coarsest_slot(j, sub * slots + q, range.x);
+            }
+            t[q] = s;
+        }
+        // The node's own terms (its first thread's).
+        let mass = nodes[j].x / params.h2;
+        let extra = extra_block(j);
+        let o = 3u * j;
+        let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+        let rhs = vecs[V_RHS * n + j].xyz;
+        let fixed = held(j);
+        let c = params.cheb[l];
+        var w = 1.0;
         workgroupBarrier();
         for (var k = 0u; k < pc.mode; k = k + 1u) {
             let src = select(0u, 1u, (k & 1u) == 1u);
-            for (var base = range.x; base < range.y; base = base + 32u) {
-                let i = base + lid / 8u;
-                let ax = split_row_wide(i, i < range.y, src, range.x, lid);
-                if (lid % 8u == 0u && i < range.y) {
-                    chebyshev_node_xs(i, i - range.x, ax, l, k);
+            let dst = 1u - src;
+            var p = vec3<f32>(0.0);
+            if (valid) {
+                if (sub == 0u) {
+                    let xj = xs_get(src, local);
+                    p = xj * mass + extra * xj;
                 }
+                for (var q = 0u; q < 4u; q = q + 1u) {
+                    if (q < slots) {
+                        p = p + coarsest_part(t[q], src);
+                    }
+                }
+            }
+            wide[lid] = array<f32, 3>(p.x, p.y, p.z);
+            for (var st = per / 2u; st > 0u; st = st / 2u) {
+                workgroupBarrier();
+                if (sub < st) {
+                    let v = wide[lid + st];
+                    wide[lid] = array<f32, 3>(wide[lid][0] + v[0], wide[lid][1] + v[1], wide[lid][2] + v[2]);
+                }
+            }
+            workgroupBarrier();
+            // chebyshev_weight(k, ρ²), one sweep at a time.
+            if (k == 1u) {
+                w = 2.0 / (2.0 - c.y);
+            } else if (k > 1u) {
+                w = 4.0 / (4.0 - c.y * w);
+            }
+            if (valid && sub == 0u) {
+                let ax = vec3<f32>(wide[lid][0], wide[lid][1], wide[lid][2]);
+                let cur = xs_get(src, local);
+                var next = cur;
+                if (!fixed) {
+                    let xh = cur + dinv * (rhs - ax) * c.x;
+                    var prev = cur;
+                    if (k > 0u) {
+                        prev = xs_get(dst, local);
+                    }
+                    next = (xh - prev) * w + prev;
+                }
+                xs_set(dst, local, next);
             }
             workgroupBarrier();
         }
