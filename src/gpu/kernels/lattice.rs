@@ -6,7 +6,7 @@
 //! prepended. [`SLOTS`] is the one binding table of these kernels: each kernel's layout
 //! and bind group hold only the slots its entry point uses ([`ENTRIES`]), so every
 //! pipeline fits WebGPU's guaranteed limits (at most 8 storage buffers per stage, one
-//! bind group, at most 256 invocations and 4 KiB of workgroup memory per workgroup).
+//! bind group, at most 256 invocations and 6 KiB of workgroup memory per workgroup).
 
 use crate::core::TissueError;
 use bevy::render::render_resource::{
