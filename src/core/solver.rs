@@ -1228,6 +1228,8 @@ impl Solver {
             let x = &state.x;
             let step: Vec<Vec3> = (0..n).map(|j| self.p[j] - x[j]).collect();
             let start = |j: usize| if held[j] { self.p[j] } else { x[j] };
+            // Each body's energy at s, and its inertia and elasticity alone (the
+            // energy's scale).
             let at_s = |s: f32| {
                 let at = |j: usize| {
                     if held[j] {
@@ -1245,13 +1247,18 @@ impl Solver {
                     (&[], control),
                     &at,
                 );
+                let scale = g.clone();
                 self.pair_overlap_energy(model, &held, h2, &start, &at, &mut g);
-                g
+                (g, scale)
             };
-            let mut best: Vec<(f64, f32)> = at_s(1.0).into_iter().map(|g| (g, 1.0)).collect();
+            // Another s is taken only where it lowers the body's energy by more than
+            // FIRST_ITERATE_TIE of its scale: closer, the energies tie to rounding (a body
+            // at rest) and s = 1 stays, whatever the rounding of the sums.
+            let (ones, scale) = at_s(1.0);
+            let mut best: Vec<(f64, f32)> = ones.into_iter().map(|g| (g, 1.0)).collect();
             for s in [0.5f32, 0.25, 0.0] {
-                for (b, g) in at_s(s).into_iter().enumerate() {
-                    if g < best[b].0 {
+                for (b, g) in at_s(s).0.into_iter().enumerate() {
+                    if g < best[b].0 - FIRST_ITERATE_TIE * scale[b].abs() {
                         best[b] = (g, s);
                     }
                 }
@@ -2272,6 +2279,11 @@ fn contact_stiffness(model: &Model, j: usize, h2: f32) -> f32 {
     };
     PENALTY * (model.mass[j] / h2 + modulus * body.spacing)
 }
+
+/// The substep's first iterate ties: a candidate start lowering a body's energy by less
+/// than this fraction of its inertial and elastic energy is not taken (the energies are
+/// equal to rounding there).
+const FIRST_ITERATE_TIE: f64 = 1e-5;
 
 /// The substep energy of positions `y`, each body's own (J, indexed by body): the
 /// inertia of its free particles, its elements' energy, and the penalty energy of the

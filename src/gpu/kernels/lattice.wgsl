@@ -12,6 +12,8 @@ const GRASPER: u32 = 4u;
 const LINE_CANDIDATES: u32 = 13u;
 // First iterate: y = x + s (y − x) for s = 1, ½, ¼, 0.
 const FIRST_CANDIDATES: u32 = 4u;
+// The first iterate's ties: candidates closer than this fraction of the energy.
+const FIRST_TIE: f32 = 1.0e-5;
 // Partial sums per workgroup (a reduction's chunk) at the start of `red`.
 const RED_STRIDE: u32 = 16u;
 // Per-body scalars in `red` (`body_slot`): every step the Newton iteration takes is
@@ -471,6 +473,8 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 for (var k = 0u; k < FIRST_CANDIDATES; k = k + 1u) {
                     acc[k] = acc[k] + (en[k] - en[0]);
                 }
+                // The energy's scale at the first candidate, for `pick`'s ties.
+                acc[FIRST_CANDIDATES] = acc[FIRST_CANDIDATES] + abs(en[0]);
             }
         } else {
             let j = i - params.ne;
@@ -482,6 +486,9 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 for (var k = 0u; k < kc; k = k + 1u) {
                     let a = candidate(k0 + k, mode);
                     acc[k] = acc[k] + w * a * (2.0 * dot(d, u) + a * dot(d, d));
+                }
+                if (mode == 0u) {
+                    acc[FIRST_CANDIDATES] = acc[FIRST_CANDIDATES] + w * dot(u, u);
                 }
                 // Penalty contacts (line search only): ½ k depth² along the step.
                 let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
@@ -545,7 +552,8 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
     for (var k = 0u; k < 16u; k = k + 1u) {
         wsum[lid][k] = acc[k];
     }
-    reduce_partials(lid, wg.x, kc);
+    // The first iterate's sums carry the energy's scale after its candidates.
+    reduce_partials(lid, wg.x, select(kc, kc + 1u, mode == 0u));
 }
 
 // Per body (workgroups striding over the bodies): sums the body's chunks' partial sums
@@ -565,7 +573,7 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
     var used = 2u;
     var table = 0u;
     if (mode == 0u) {
-        used = FIRST_CANDIDATES;
+        used = FIRST_CANDIDATES + 1u;
     } else if (mode == 1u) {
         used = part_a();
     } else if (mode == 4u) {
@@ -616,9 +624,13 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
 // `pick`'s choice for body b from the sums in wsum[0].
 fn pick_body(b: u32, mode: u32) {
     if (mode == 0u) {
+        // A candidate is taken only where it lowers the energy by more than FIRST_TIE of
+        // its scale; closer, the energies tie to rounding and s = 1 stays
+        // (core::solver's first iterate).
         var best = 0u;
+        let tie = FIRST_TIE * wsum[0][FIRST_CANDIDATES];
         for (var k = 1u; k < FIRST_CANDIDATES; k = k + 1u) {
-            if (wsum[0][k] < wsum[0][best]) {
+            if (wsum[0][k] < wsum[0][best] - tie) {
                 best = k;
             }
         }
