@@ -1097,7 +1097,9 @@ fn lattice_settings() -> SolverSettings {
 /// (5,265 particles), with every line-search candidate in the second pass and in the
 /// first; Gauss–Seidel by colour; the hybrid (Gauss–Seidel on level 0, Chebyshev below);
 /// conjugate gradients of 2 and 3 V-cycles; V-cycles of other sweep counts; and the bar
-/// in one batch with a box falling freely beside it, each body taking its own steps.
+/// in one batch with a box falling freely beside it, each body taking its own steps; the
+/// coarsest level's sweeps in one dispatch (bodies of up to 32, 64 and 128 nodes there)
+/// and a dispatch a sweep; each smoothing pass's row in one thread and in eight.
 #[test]
 fn lattice_newton_multigrid_matches_the_cpu() {
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
@@ -1132,6 +1134,8 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     let f = LatticeOptions::default().fused_coarsest;
     // The last: the smoothing passes one thread a node (always) or eight (never).
     let (always, never) = (true, false);
+    use bevy_tissue::core::multigrid::{LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    let mut widths = [false; 3];
     for (spacing, first, smoother, cycles, two, sweeps, fused, one_thread) in [
         (0.0075f32, 4, Chebyshev, 1, false, d, f, never),
         (0.00375, 4, Chebyshev, 1, false, d, f, never),
@@ -1152,6 +1156,9 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         (0.00375, 4, Hybrid, 2, false, d, f, always),
         (0.0075, 4, Chebyshev, 1, false, d, 0, always),
         (0.0075, 4, Hybrid, 2, true, d, f, always),
+        // The bar's coarsest level has 99 nodes here (two threads a node when fused).
+        (0.006, 4, Hybrid, 2, true, d, f, never),
+        (0.006, 4, Hybrid, 2, true, d, 0, never),
     ] {
         let mut model = lattice_bar(spacing);
         if two {
@@ -1159,6 +1166,23 @@ fn lattice_newton_multigrid_matches_the_cpu() {
                 Vec3::splat(0.016),
                 Vec3::new(0.0, 0.5, 0.5),
             ));
+        }
+        if fused > 0 && smoother != GaussSeidel {
+            // Which of the fused kernel's ways the rows take: 8, 4 or 2 threads a node
+            // for at most 32, 64 or 128 nodes a body.
+            let mg = LatticeMultigrid::new(&model, MIN_NODES, MAX_LEVELS);
+            let most = mg.levels.last().map_or(0, |lv| {
+                lv.body_start
+                    .windows(2)
+                    .map(|w| w[1] - w[0])
+                    .max()
+                    .unwrap_or(0)
+            });
+            widths[match most {
+                0..=32 => 0,
+                33..=64 => 1,
+                _ => 2,
+            }] = true;
         }
         let s = SolverSettings {
             smoother,
@@ -1223,6 +1247,10 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             );
         }
     }
+    assert!(
+        widths[1] && widths[2],
+        "the fused coarsest level's four- and two-thread ways are both tested: {widths:?}"
+    );
 }
 
 /// A GPU lattice made from its bodies' own levels, each built from a model of that body
