@@ -102,24 +102,18 @@ impl GpuProfiler {
             .contains(bevy::render::render_resource::WgpuFeatures::TIMESTAMP_QUERY_INSIDE_PASSES)
     }
 
-    /// Reads `count` resolved timestamps from index `first` back (blocking), in ms on
-    /// the GPU's clock (only differences mean anything). Resets for the next submission.
-    pub fn read_stamps(
-        &mut self,
-        device: &RenderDevice,
-        queue: &RenderQueue,
-        first: u32,
-        count: u32,
-    ) -> Vec<f64> {
+    /// Reads every timestamp reserved since the last read back (blocking), in ms on the
+    /// GPU's clock (only differences mean anything), indexed as
+    /// [`GpuProfiler::reserve`] gave them. Resets for the next submission.
+    pub fn read_stamps(&mut self, device: &RenderDevice, queue: &RenderQueue) -> Vec<f64> {
         let used = self.names.len() as u64 * 2;
         self.names.clear();
-        if u64::from(first + count) > used {
+        if used == 0 {
             return Vec::new();
         }
         let bytes = super::world::read_buffer(device, queue, &self.resolve, 0, used * 8);
         let ts: &[u64] = bytemuck::cast_slice(&bytes);
-        ts[first as usize..(first + count) as usize]
-            .iter()
+        ts.iter()
             .map(|&t| t as f64 * self.period_ns as f64 * 1e-6)
             .collect()
     }

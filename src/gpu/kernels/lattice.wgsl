@@ -1242,11 +1242,12 @@ struct CoarsestSlot {
     c1: vec4<u32>,
 };
 
-// Slot s of node j's elements (none past its last), its corners local to `base`.
-fn coarsest_slot(j: u32, s: u32, base: u32) -> CoarsestSlot {
+// Slot s of node j's elements (none past its last, nor where `used` is false), its
+// corners local to `base`.
+fn coarsest_slot(j: u32, s: u32, base: u32, used: bool) -> CoarsestSlot {
     var out = CoarsestSlot(identity3(), 0.0, 0u, 0u, vec4<u32>(COARSEST_NODES), vec4<u32>(COARSEST_NODES));
     let at = topo[j] + s;
-    if (at < topo[j + 1u]) {
+    if (used && at < topo[j + 1u]) {
         let ec = topo[at];
         let e = ec >> 3u;
         let ki = kinfo(e);
@@ -1312,11 +1313,7 @@ fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
         let j = range.x + min(local, max(nn, 1u) - 1u);
         var t: array<CoarsestSlot, 4>;
         for (var q = 0u; q < 4u; q = q + 1u) {
-            var s = CoarsestSlot(identity3(), 0.0, 0u, 0u, vec4<u32>(COARSEST_NODES), vec4<u32>(COARSEST_NODES));
-            if (valid && q < slots) {
-                s = coarsest_slot(j, sub * slots + q, range.x);
-            }
-            t[q] = s;
+            t[q] = coarsest_slot(j, sub * slots + q, range.x, valid && q < slots);
         }
         // The node's own terms (its first thread's).
         let mass = nodes[j].x / params.h2;

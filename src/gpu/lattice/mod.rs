@@ -1079,17 +1079,22 @@ impl GpuLattice {
             label: Some("tissue lattice"),
             timestamp_writes,
         });
-        let clear = LatticeKernels::index(Kernel::ForceClear);
         for i in 0..steps * self.substeps {
             if i % self.substeps == 0 {
-                pass.set_pipeline(&kernels.pipelines[clear].0);
-                pass.set_bind_group(0, &self.groups[clear], &[]);
-                pass.dispatch_workgroups(1, 1, 1);
+                self.encode_clear(&mut pass, kernels);
             }
             for i in 0..self.dispatches.len() {
                 self.encode(&mut pass, kernels, i);
             }
         }
+    }
+
+    /// Encodes the clearing of the colliders' force sums, once a step.
+    fn encode_clear(&self, pass: &mut wgpu::ComputePass<'_>, kernels: &LatticeKernels) {
+        let clear = LatticeKernels::index(Kernel::ForceClear);
+        pass.set_pipeline(&kernels.pipelines[clear].0);
+        pass.set_bind_group(0, &self.groups[clear], &[]);
+        pass.dispatch_workgroups(1, 1, 1);
     }
 
     /// Encodes dispatch `i` of the plan into `pass`: its pipeline, its bind group at its
@@ -1192,16 +1197,11 @@ impl GpuLattice {
             timestamp_writes: None,
         });
         let mut names = Vec::new();
-        let clear = LatticeKernels::index(Kernel::ForceClear);
         pass.write_timestamp(set, first);
-        for s in 0..self.substeps {
-            if s == 0 {
-                pass.set_pipeline(&kernels.pipelines[clear].0);
-                pass.set_bind_group(0, &self.groups[clear], &[]);
-                pass.dispatch_workgroups(1, 1, 1);
-                names.push("force_clear");
-                pass.write_timestamp(set, first + names.len() as u32);
-            }
+        self.encode_clear(&mut pass, kernels);
+        names.push("force_clear");
+        pass.write_timestamp(set, first + 1);
+        for _ in 0..self.substeps {
             for (i, d) in self.dispatches.iter().enumerate() {
                 self.encode(&mut pass, kernels, i);
                 names.push(Self::dispatch_name(d));
