@@ -199,22 +199,6 @@ fn elastic_energy(e: u32, f: mat3x3<f32>, r: mat3x3<f32>) -> f32 {
     return bitcast<f32>(info.w) * (lame.x * ee + 0.5 * lame.y * (j * j));
 }
 
-// Element energy (J) from its deformation gradient f and hourglass amplitudes c, with
-// rotation r held (core::multigrid::element_energy): the elastic energy plus
-// ½ Σ k_m V/h² c_m².
-fn energy_of(e: u32, f: mat3x3<f32>, c: array<f32, 12>, r: mat3x3<f32>) -> f32 {
-    let info = elems[3u * e + 2u];
-    let b = info.y;
-    let size = bitcast<f32>(info.z);
-    let scale = bitcast<f32>(info.w) / (size * size);
-    var hourglass = 0.0;
-    for (var m = 0u; m < MODES; m = m + 1u) {
-        let k = mats[b * MAT_STRIDE + 1u + m / 4u][m % 4u];
-        hourglass = hourglass + 0.5 * k * scale * (c[m] * c[m]);
-    }
-    return elastic_energy(e, f, r) + hourglass;
-}
-
 fn load_x(e: u32, region: u32) -> array<vec3<f32>, 8> {
     var x: array<vec3<f32>, 8>;
     for (var k = 0u; k < 8u; k = k + 1u) {
@@ -404,10 +388,15 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 let rt = transpose(r);
                 let f0 = element_gradient(y, size);
                 let f1 = element_gradient(d, size);
-                // The hourglass amplitudes c_m = Σ_q g_mq · Rᵀ (x_q − x_0) at y and along
-                // d, each mode's vectors g_mq loaded once for both.
-                var c0: array<f32, 12>;
-                var c1: array<f32, 12>;
+                // Along the step the energy is a polynomial in a: the hourglass term
+                // ½ Σ k_m V/h² c_m² and μ V |sym(Rᵀ F) − I|² are quadratic (F and c_m
+                // linear in a), det F cubic. Each candidate's change from a = 0 is summed
+                // from the coefficients (lin a + quad a², and the volume term apart).
+                let mb = info.y * MAT_STRIDE;
+                let vol = bitcast<f32>(info.w);
+                let scale = vol / (size * size);
+                var h1 = 0.0;
+                var h2 = 0.0;
                 {
                     var ly: array<vec3<f32>, 8>;
                     var ld: array<vec3<f32>, 8>;
@@ -415,7 +404,6 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                         ly[q] = rt * (y[q] - y[0]);
                         ld[q] = rt * (d[q] - d[0]);
                     }
-                    let mb = info.y * MAT_STRIDE;
                     for (var m = 0u; m < MODES; m = m + 1u) {
                         var a0 = 0.0;
                         var a1 = 0.0;
@@ -424,18 +412,27 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                             a0 = a0 + dot(g, ly[q]);
                             a1 = a1 + dot(g, ld[q]);
                         }
-                        c0[m] = a0;
-                        c1[m] = a1;
+                        let km = mats[mb + 1u + m / 4u][m % 4u] * scale;
+                        h1 = h1 + km * a0 * a1;
+                        h2 = h2 + 0.5 * km * a1 * a1;
                     }
                 }
-                let base = energy_of(e, f0, c0, r);
+                let lame = mats[mb];
+                let rtf0 = rt * f0;
+                let rtf1 = rt * f1;
+                let s0 = (rtf0 + transpose(rtf0)) * 0.5 - identity3();
+                let s1 = (rtf1 + transpose(rtf1)) * 0.5;
+                let e01 = dot(s0[0], s1[0]) + dot(s0[1], s1[1]) + dot(s0[2], s1[2]);
+                let e11 = dot(s1[0], s1[0]) + dot(s1[1], s1[1]) + dot(s1[2], s1[2]);
+                let j0 = determinant(f0);
+                let lin = vol * lame.x * 2.0 * e01 + h1;
+                let quad = vol * lame.x * e11 + h2;
                 for (var k = 0u; k < kc; k = k + 1u) {
                     let a = candidate(k0 + k, mode);
-                    var c: array<f32, 12>;
-                    for (var m = 0u; m < MODES; m = m + 1u) {
-                        c[m] = c0[m] + c1[m] * a;
-                    }
-                    acc[k] = acc[k] + (energy_of(e, f0 + f1 * a, c, r) - base);
+                    // ½ λ V ((J_a − 1)² − (J_0 − 1)²) as a product, without cancellation.
+                    let ja = determinant(f0 + f1 * a);
+                    let vol_term = 0.5 * vol * lame.y * ((ja - j0) * (ja + j0 - 2.0));
+                    acc[k] = acc[k] + a * (lin + a * quad) + vol_term;
                 }
             } else {
                 // The first iterate: each candidate's rotation refined from q0 along
@@ -444,13 +441,25 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 // so each mode's are summed once for every candidate.
                 let f0 = element_gradient(y, size);
                 let f1 = element_gradient(d, size);
-                var rs: array<mat3x3<f32>, 4>;
-                var en: array<f32, 4>;
-                for (var k = 0u; k < FIRST_CANDIDATES; k = k + 1u) {
-                    let f = f0 + f1 * candidate(k, 0u);
-                    let r = quat_mat(extract_rotation(f, q0, params.rot_iters));
-                    rs[k] = r;
-                    en[k] = elastic_energy(e, f, r);
+                // The FIRST_CANDIDATES (4) candidates s = 0, −½, −¾, −1 (`candidate`)
+                // written out, so that their rotations and energies stay in registers.
+                let fa = f0 + f1 * 0.0;
+                let fb = f0 + f1 * -0.5;
+                let fc = f0 + f1 * -0.75;
+                let fd = f0 + f1 * -1.0;
+                let ra = quat_mat(extract_rotation(fa, q0, params.rot_iters));
+                let rb = quat_mat(extract_rotation(fb, q0, params.rot_iters));
+                let rc = quat_mat(extract_rotation(fc, q0, params.rot_iters));
+                let rd = quat_mat(extract_rotation(fd, q0, params.rot_iters));
+                var ea = elastic_energy(e, fa, ra);
+                var eb = elastic_energy(e, fb, rb);
+                var ec = elastic_energy(e, fc, rc);
+                var ed = elastic_energy(e, fd, rd);
+                var dy: array<vec3<f32>, 8>;
+                var dd: array<vec3<f32>, 8>;
+                for (var q = 1u; q < 8u; q = q + 1u) {
+                    dy[q] = y[q] - y[0];
+                    dd[q] = d[q] - d[0];
                 }
                 let base = info.y * MAT_STRIDE;
                 let scale = bitcast<f32>(info.w) / (size * size);
@@ -459,22 +468,27 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                     var m1 = m0;
                     for (var q = 1u; q < 8u; q = q + 1u) {
                         let g = mats[base + 4u + m * 8u + q].xyz;
-                        m0 = m0 + outer(y[q] - y[0], g);
-                        m1 = m1 + outer(d[q] - d[0], g);
+                        m0 = m0 + outer(dy[q], g);
+                        m1 = m1 + outer(dd[q], g);
                     }
                     let km = 0.5 * mats[base + 1u + m / 4u][m % 4u] * scale;
-                    for (var k = 0u; k < FIRST_CANDIDATES; k = k + 1u) {
-                        let mm = m0 + m1 * candidate(k, 0u);
-                        let r = rs[k];
-                        let c = frob(r, mm);
-                        en[k] = en[k] + km * (c * c);
-                    }
+                    let ca = frob(ra, m0 + m1 * 0.0);
+                    let cb = frob(rb, m0 + m1 * -0.5);
+                    let cc = frob(rc, m0 + m1 * -0.75);
+                    let cd = frob(rd, m0 + m1 * -1.0);
+                    ea = ea + km * (ca * ca);
+                    eb = eb + km * (cb * cb);
+                    ec = ec + km * (cc * cc);
+                    ed = ed + km * (cd * cd);
                 }
-                for (var k = 0u; k < FIRST_CANDIDATES; k = k + 1u) {
-                    acc[k] = acc[k] + (en[k] - en[0]);
-                }
+                // Each candidate's change from the first (0, or NaN where the energy is
+                // not finite).
+                acc[0] = acc[0] + (ea - ea);
+                acc[1] = acc[1] + (eb - ea);
+                acc[2] = acc[2] + (ec - ea);
+                acc[3] = acc[3] + (ed - ea);
                 // The energy's scale at the first candidate, for `pick`'s ties.
-                acc[FIRST_CANDIDATES] = acc[FIRST_CANDIDATES] + abs(en[0]);
+                acc[FIRST_CANDIDATES] = acc[FIRST_CANDIDATES] + abs(ea);
             }
         } else {
             let j = i - params.ne;
