@@ -1098,8 +1098,9 @@ fn lattice_settings() -> SolverSettings {
 /// first; Gauss–Seidel by colour; the hybrid (Gauss–Seidel on level 0, Chebyshev below);
 /// conjugate gradients of 2 and 3 V-cycles; V-cycles of other sweep counts; and the bar
 /// in one batch with a box falling freely beside it, each body taking its own steps; the
-/// coarsest level's sweeps in one dispatch (bodies of up to 32, 64 and 128 nodes there)
-/// and a dispatch a sweep; each smoothing pass's row in one thread and in eight.
+/// coarsest level's sweeps in one dispatch (bodies of up to 32 nodes there, the small
+/// bodies' kernel; of up to 64 and 128) and a dispatch a sweep; each smoothing pass's row
+/// in one thread and in eight.
 #[test]
 fn lattice_newton_multigrid_matches_the_cpu() {
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
@@ -1159,6 +1160,9 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         // The bar's coarsest level has 99 nodes here (two threads a node when fused).
         (0.006, 4, Hybrid, 2, true, d, f, never),
         (0.006, 4, Hybrid, 2, true, d, 0, never),
+        // And at most 32 here (eight threads a node, the small bodies' kernel).
+        (0.01, 4, Hybrid, 2, true, d, f, never),
+        (0.01, 4, Hybrid, 2, true, d, 0, never),
     ] {
         let mut model = lattice_bar(spacing);
         if two {
@@ -1168,8 +1172,8 @@ fn lattice_newton_multigrid_matches_the_cpu() {
             ));
         }
         if fused > 0 && smoother != GaussSeidel {
-            // Which of the fused kernel's ways the rows take: 8, 4 or 2 threads a node
-            // for at most 32, 64 or 128 nodes a body.
+            // Which of the fused kernels' ways the rows take: 8 (`smooth_coarsest_small`),
+            // 4 or 2 threads a node for at most 32, 64 or 128 nodes a body.
             let mg = LatticeMultigrid::new(&model, MIN_NODES, MAX_LEVELS);
             let most = mg.levels.last().map_or(0, |lv| {
                 lv.body_start
@@ -1248,8 +1252,8 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         }
     }
     assert!(
-        widths[1] && widths[2],
-        "the fused coarsest level's four- and two-thread ways are both tested: {widths:?}"
+        widths.iter().all(|&w| w),
+        "the fused coarsest level's eight-, four- and two-thread ways are all tested: {widths:?}"
     );
 }
 

@@ -148,6 +148,10 @@ pub enum Kernel {
     /// `smooth_coarsest`: every Chebyshev sweep of the coarsest level, a workgroup per
     /// body.
     Coarsest,
+    /// `smooth_coarsest_small`: as `smooth_coarsest`, where no body has more than
+    /// [`SMALL_COARSEST`](crate::gpu::lattice::SMALL_COARSEST) nodes on the coarsest
+    /// level (each thread holds one element from sweep to sweep, not up to four).
+    CoarsestSmall,
     /// `fine_residual`: a level's residual before restriction.
     FineResidual,
     /// `restrict_residual`: the next coarser level's right-hand side.
@@ -268,6 +272,13 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Coarsest,
         name: "smooth_coarsest",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::CoarsestSmall,
+        name: "smooth_coarsest_small",
         uses: &[
             "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
         ],

@@ -609,17 +609,15 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
     }
     for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
         let r = body_chunks(table, b);
-        var acc: array<f32, 16>;
-        for (var w = r.x + lid; w < r.y; w = w + LWG) {
-            let o = w * RED_STRIDE;
-            for (var k = 0u; k < used; k = k + 1u) {
-                acc[k] = acc[k] + red[o + k];
-            }
-        }
         // The last body's sums have been read.
         workgroupBarrier();
+        // Each sum in its own loop over the chunks (no array indexed at run time).
         for (var k = 0u; k < used; k = k + 1u) {
-            wsum[lid][k] = acc[k];
+            var a = 0.0;
+            for (var w = r.x + lid; w < r.y; w = w + LWG) {
+                a = a + red[w * RED_STRIDE + k];
+            }
+            wsum[lid][k] = a;
         }
         for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
             workgroupBarrier();
@@ -1286,13 +1284,13 @@ fn coarsest_part(t: CoarsestSlot, sel: u32) -> vec3<f32> {
 // (but for the order of a row's sums): a workgroup per body (striding over the bodies).
 // A body's coarsest nodes couple only with each other, so its workgroup needs no other.
 // All of a body's nodes (at most `COARSEST_NODES`) are swept at once: 8, 4 or 2 threads
-// a node (up to 32, 64 or 128 nodes), each with 1, 2 or 4 of its elements. What does not
-// change between sweeps stays in registers (each element's turn, blocks and corners; the
-// node's mass, inverse diagonal block and right-hand side; the Chebyshev weight), the
-// iterates in workgroup memory (read from `vecs` before, written back after).
-@compute @workgroup_size(256)
-fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-                   @builtin(local_invocation_index) lid: u32) {
+// a node (up to 32, 64 or 128 nodes), each with 1, 2 or 4 of its elements; with `most`
+// 1, always 8 (bodies of at most 32 nodes). What does not change between sweeps stays in
+// registers (each element's turn, blocks and corners; the node's mass, inverse diagonal
+// block and right-hand side; the Chebyshev weight), the iterates in workgroup memory
+// (read from `vecs` before, written back after). `most` is a constant of each entry
+// point, so that one whose threads take one element holds the registers of one.
+fn coarsest_sweeps(wg: vec3<u32>, nwg: vec3<u32>, lid: u32, most: u32) {
     let l = pc.level;
     let n = params.n_total;
     for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
@@ -1315,9 +1313,9 @@ fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
         }
         // Threads a node and elements a thread.
         var per = 8u;
-        if (nn > 64u) {
+        if (nn > 64u && most > 2u) {
             per = 2u;
-        } else if (nn > 32u) {
+        } else if (nn > 32u && most > 1u) {
             per = 4u;
         }
         let slots = 8u / per;
@@ -1326,7 +1324,7 @@ fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
         let valid = local < nn;
         let j = range.x + min(local, max(nn, 1u) - 1u);
         var t: array<CoarsestSlot, 4>;
-        for (var q = 0u; q < 4u; q = q + 1u) {
+        for (var q = 0u; q < most; q = q + 1u) {
             t[q] = coarsest_slot(j, sub * slots + q, range.x, valid && q < slots);
         }
         // The node's own terms (its first thread's).
@@ -1348,7 +1346,7 @@ fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
                     let xj = xs_get(src, local);
                     p = xj * mass + extra * xj;
                 }
-                for (var q = 0u; q < 4u; q = q + 1u) {
+                for (var q = 0u; q < most; q = q + 1u) {
                     if (q < slots) {
                         p = p + coarsest_part(t[q], src);
                     }
@@ -1392,6 +1390,22 @@ fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
         // Every thread has read this body's range and iterates before the next's.
         workgroupBarrier();
     }
+}
+
+// `coarsest_sweeps` for bodies of up to `COARSEST_NODES` nodes on the coarsest level.
+@compute @workgroup_size(256)
+fn smooth_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                   @builtin(local_invocation_index) lid: u32) {
+    coarsest_sweeps(wg, nwg, lid, 4u);
+}
+
+// `coarsest_sweeps` for bodies of up to 32 nodes on the coarsest level: eight threads a
+// node, one element each (the same sums as `smooth_coarsest` makes of such a body).
+@compute @workgroup_size(256)
+fn smooth_coarsest_small(@builtin(workgroup_id) wg: vec3<u32>,
+                         @builtin(num_workgroups) nwg: vec3<u32>,
+                         @builtin(local_invocation_index) lid: u32) {
+    coarsest_sweeps(wg, nwg, lid, 1u);
 }
 
 // Partial sums of eᵀ r and eᵀ A e over a chunk of level pc.level's nodes (workgroup

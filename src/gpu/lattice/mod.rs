@@ -63,6 +63,11 @@ const ROW_MODE: u32 = 0x10000;
 /// nodes a sweep in a body's workgroup, the body's iterates in its workgroup memory
 /// (`COARSEST_NODES` in the shader).
 pub const FUSED_COARSEST: u32 = 128;
+/// Where no body has more than this many nodes on a fused coarsest level, its sweeps run
+/// in `smooth_coarsest_small`, whose threads (eight a node) each hold one element's data
+/// from sweep to sweep rather than room for four: fewer registers, more bodies at once
+/// on the GPU. The same sums as `smooth_coarsest`'s.
+pub const SMALL_COARSEST: u32 = 32;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -154,8 +159,9 @@ pub struct Shape {
 }
 
 impl Shape {
-    /// Whether the coarsest level's sweeps run in one dispatch (`smooth_coarsest`, a
-    /// workgroup per body): it is smoothed by Chebyshev, below level 0, and no body has
+    /// Whether the coarsest level's sweeps run in one dispatch (`smooth_coarsest`, or
+    /// `smooth_coarsest_small` up to [`SMALL_COARSEST`] nodes a body; a workgroup per
+    /// body): it is smoothed by Chebyshev, below level 0, and no body has
     /// more than [`Shape::fused_coarsest`] nodes there (nor more than
     /// [`FUSED_COARSEST`]).
     pub fn coarsest_fused(&self) -> bool {
@@ -371,14 +377,12 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
             // Every sweep in one dispatch, a workgroup per body (its nodes from the
             // level's reduction table).
             let [t0, tn] = shape.tables[1 + l];
-            push(
-                Kernel::Coarsest,
-                t0,
-                tn,
-                l as u32,
-                count,
-                pick_groups(shape),
-            );
+            let kernel = if shape.most_coarsest <= SMALL_COARSEST {
+                Kernel::CoarsestSmall
+            } else {
+                Kernel::Coarsest
+            };
+            push(kernel, t0, tn, l as u32, count, pick_groups(shape));
         } else {
             sweeps(shape, l, count, push);
         }
@@ -1605,7 +1609,11 @@ mod tests {
         };
         assert!(fused.coarsest_fused());
         let p = plan(&fused, 2);
-        let one: Vec<&Dispatch> = p.iter().filter(|d| d.kernel == Kernel::Coarsest).collect();
+        let fused_kernel =
+            |d: &&Dispatch| matches!(d.kernel, Kernel::Coarsest | Kernel::CoarsestSmall);
+        // Its bodies have at most 3 nodes there: the small bodies' kernel.
+        assert!(p.iter().all(|d| d.kernel != Kernel::Coarsest));
+        let one: Vec<&Dispatch> = p.iter().filter(fused_kernel).collect();
         // Two Newton iterations, one V-cycle each.
         assert_eq!(one.len(), 2);
         for d in &one {
@@ -1627,6 +1635,21 @@ mod tests {
             2,
         );
         assert_eq!(apart.len(), p.len() - 2 + 2 * 30);
+        // A body past SMALL_COARSEST nodes there takes the general kernel.
+        let larger = Shape {
+            most_coarsest: SMALL_COARSEST + 1,
+            fused_coarsest: FUSED_COARSEST,
+            ..fused.clone()
+        };
+        let general = plan(&larger, 2);
+        assert_eq!(
+            general
+                .iter()
+                .filter(|d| d.kernel == Kernel::Coarsest)
+                .count(),
+            2
+        );
+        assert!(general.iter().all(|d| d.kernel != Kernel::CoarsestSmall));
         for unfused in [
             Shape {
                 most_coarsest: 4,
@@ -1646,7 +1669,7 @@ mod tests {
             assert!(
                 plan(&unfused, 2)
                     .iter()
-                    .all(|d| d.kernel != Kernel::Coarsest)
+                    .all(|d| !matches!(d.kernel, Kernel::Coarsest | Kernel::CoarsestSmall))
             );
         }
     }
