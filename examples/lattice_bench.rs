@@ -32,7 +32,9 @@
 //! `--cycles N,...` (V-cycles per Newton iteration to compare, more than 1 being
 //! conjugate gradients; default 1), `--sweeps F/C/K,...` (the V-cycle's smoothing
 //! sweeps to compare: on level 0, the levels between and the coarsest,
-//! `SolverSettings::sweeps`; default the library's), `--no-touching` (speed: leave out
+//! `SolverSettings::sweeps`; `F/C/Kx`: the coarsest level solved exactly where its
+//! bodies are small enough, `Sweeps::exact_coarsest`; default the library's,
+//! `1/2/30x`), `--no-touching` (speed: leave out
 //! the touching cubes),
 //! `--smoother hybrid|chebyshev|gs`, `--first N,...` (speed only: line-search candidates
 //! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
@@ -573,14 +575,22 @@ impl StepsOf {
 }
 
 fn sweeps_name(s: Sweeps) -> String {
-    format!("{}/{}/{}", s.fine, s.coarse, s.coarsest)
+    let exact = if s.exact_coarsest { "x" } else { "" };
+    format!("{}/{}/{}{exact}", s.fine, s.coarse, s.coarsest)
 }
 
-/// `--sweeps 2/2/30,1/2/10`: each entry fine/coarse/coarsest.
+/// `--sweeps 2/2/30,1/2/30x`: each entry fine/coarse/coarsest, the coarsest count
+/// followed by `x` where the coarsest level is solved exactly where its bodies are small
+/// enough (`Sweeps::exact_coarsest`; the count then only for larger bodies).
 fn parse_sweeps(text: &str) -> Vec<Sweeps> {
     text.split(',')
         .map(|one| {
-            let n: Vec<u32> = one
+            let one = one.trim();
+            let (counts, exact_coarsest) = match one.strip_suffix('x') {
+                Some(rest) => (rest, true),
+                None => (one, false),
+            };
+            let n: Vec<u32> = counts
                 .split('/')
                 .map(|v| v.trim().parse().unwrap_or_else(|e| fail("--sweeps", e)))
                 .collect();
@@ -589,8 +599,12 @@ fn parse_sweeps(text: &str) -> Vec<Sweeps> {
                     fine,
                     coarse,
                     coarsest,
+                    exact_coarsest,
                 },
-                _ => fail("--sweeps", format!("{one}: expected fine/coarse/coarsest")),
+                _ => fail(
+                    "--sweeps",
+                    format!("{one}: expected fine/coarse/coarsest[x]"),
+                ),
             }
         })
         .collect()

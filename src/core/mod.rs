@@ -9,6 +9,7 @@
 //! * [`element`] — hexahedral elements on the lattice (centre gradient + hourglass modes);
 //! * [`colliders`] — kinematic plane, sphere, capsule and box with friction;
 //! * [`colouring`] — cluster colouring for a coloured Gauss–Seidel iteration;
+//! * [`dense`] — packed `L D Lᵀ` solves of small dense systems (the multigrid's coarsest);
 //! * [`diagnose`] — where a divergence happened, its likely cause and remedy, in words;
 //! * [`model`] — the batched rest data of all bodies;
 //! * [`multigrid`] — geometric multigrid on lattice bodies (Newton's linear solve);
@@ -32,6 +33,7 @@
 pub mod colliders;
 pub mod colouring;
 pub mod constraints;
+pub mod dense;
 pub mod diagnose;
 pub mod element;
 pub mod error;

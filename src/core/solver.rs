@@ -180,7 +180,9 @@ pub struct SolverSettings {
     /// [`ElementSolver::Multigrid`]: the V-cycle's smoothing sweeps on level 0, on the
     /// levels between and on the coarsest ([`super::multigrid::Sweeps`]; in pairs where
     /// [`Self::smoother`] smooths a level by Chebyshev). Default one sweep before and after
-    /// on level 0, two on the levels between, 30 on the coarsest.
+    /// on level 0, two on the levels between, and the coarsest level solved exactly where
+    /// no body has more than [`super::multigrid::EXACT_COARSEST`] nodes there (30 sweeps
+    /// elsewhere).
     pub sweeps: super::multigrid::Sweeps,
 }
 

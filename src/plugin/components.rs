@@ -549,9 +549,11 @@ pub struct TissueSettings {
     /// where one V-cycle lags.
     pub newton_cycles: u32,
     /// The V-cycle's smoothing sweeps on the particles, on the levels between and on the
-    /// coarsest level, for lattice bodies (default 1/2/30; each from 1 to 1,000).
-    /// The coarsest level's sweeps carry a stiff body's bending: fewer leave a 1 MPa
-    /// body too soft at real-time settings ([`crate::core::solver::SolverSettings::sweeps`]).
+    /// coarsest level, for lattice bodies (default 1/2/30; each from 1 to 1,000), and
+    /// whether the coarsest level is solved exactly where its bodies are small enough
+    /// (default on; the 30 sweeps then only for bodies too large for it). The coarsest
+    /// level's solve carries a stiff body's bending: fewer sweeps leave a 1 MPa body too
+    /// soft at real-time settings ([`crate::core::solver::SolverSettings::sweeps`]).
     #[reflect(ignore)]
     pub sweeps: Sweeps,
 }
@@ -734,6 +736,7 @@ mod tests {
             fine: 2,
             coarse: 3,
             coarsest: 12,
+            exact_coarsest: false,
         };
         let s = TissueSettings {
             sweeps,

@@ -333,10 +333,18 @@ pub(crate) fn settings_widgets(
         "coarsest-level sweeps",
     ));
     e.add(&r.on_hover_text(
-        "Smoothing sweeps on the coarsest multigrid level of lattice bodies (default 30): \
-         they carry a stiff body's bending; fewer are faster but leave a 1 MPa body too \
-         soft",
+        "Smoothing sweeps on the coarsest multigrid level of lattice bodies where it is \
+         not solved exactly (default 30): they carry a stiff body's bending; fewer are \
+         faster but leave a 1 MPa body too soft",
     ));
+    let r = ui.checkbox(&mut s.sweeps.exact_coarsest, "exact coarsest solve");
+    e.add(&r.on_hover_text(format!(
+        "Solve the coarsest multigrid level of lattice bodies exactly (a dense L D Lᵀ \
+         factorisation of each body's small system) where every body has at most {} \
+         nodes there, instead of sweeping it (default on: stiffer bodies come closer to \
+         their material, and the GPU takes one pass for it)",
+        crate::core::multigrid::EXACT_COARSEST
+    )));
     ui.horizontal(|ui| {
         let r = ui.radio_value(&mut s.backend, TissueBackend::Auto, "GPU")
             | ui.radio_value(&mut s.backend, TissueBackend::Cpu, "CPU only");

@@ -6,9 +6,11 @@
 //! prepended. [`SLOTS`] is the one binding table of these kernels: each kernel's layout
 //! and bind group hold only the slots its entry point uses ([`ENTRIES`]), so every
 //! pipeline fits WebGPU's guaranteed limits (at most 8 storage buffers per stage, one
-//! bind group, at most 256 invocations and 6 KiB of workgroup memory per workgroup).
+//! bind group, at most 256 invocations and 16 KiB of workgroup memory per workgroup).
 
 use crate::core::TissueError;
+use crate::core::dense::packed_len;
+use crate::core::multigrid::EXACT_COARSEST;
 use bevy::render::render_resource::{
     BindGroupLayout, BindGroupLayoutEntry, BindingType, BufferBindingType, ComputePipeline,
     PipelineCompilationOptions, PipelineLayoutDescriptor, RawComputePipelineDescriptor,
@@ -152,6 +154,10 @@ pub enum Kernel {
     /// [`SMALL_COARSEST`](crate::gpu::lattice::SMALL_COARSEST) nodes on the coarsest
     /// level (each thread holds one element from sweep to sweep, not up to four).
     CoarsestSmall,
+    /// `solve_coarsest`: the coarsest level solved exactly, a workgroup per body (its
+    /// system factorised, `L D Lᵀ`, in workgroup memory), where no body has more than
+    /// [`EXACT_COARSEST`](crate::core::multigrid::EXACT_COARSEST) nodes there.
+    CoarsestExact,
     /// `fine_residual`: a level's residual before restriction.
     FineResidual,
     /// `restrict_residual`: the next coarser level's right-hand side.
@@ -284,6 +290,13 @@ pub const ENTRIES: &[Entry] = &[
         ],
     },
     Entry {
+        kernel: Kernel::CoarsestExact,
+        name: "solve_coarsest",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
         kernel: Kernel::FineResidual,
         name: "fine_residual",
         uses: &[
@@ -408,9 +421,21 @@ pub fn slot(name: &str) -> Option<u32> {
     SLOTS.iter().position(|s| s.name == name).map(|i| i as u32)
 }
 
-/// The module's WGSL: `common.wgsl`, the declarations of [`SLOTS`], `lattice.wgsl`.
+/// The module's WGSL: `common.wgsl`, the declarations of [`SLOTS`], the size of the
+/// exact coarsest solve ([`EXACT_COARSEST`] nodes), `lattice.wgsl`.
 pub fn source() -> String {
     let mut s = String::from(include_str!("common.wgsl"));
+    let rows = 3 * EXACT_COARSEST;
+    s.push_str(&format!(
+        "\n// The exact coarsest solve's most nodes a body, its rows, the rows and the packed\n\
+         // length of its bordered matrix (core::multigrid::EXACT_COARSEST).\n\
+         const EXACT_NODES: u32 = {EXACT_COARSEST}u;\n\
+         const EXACT_ROWS: u32 = {rows}u;\n\
+         const EXACT_COLUMN: u32 = {}u;\n\
+         const EXACT_PACKED: u32 = {}u;\n",
+        rows + 1,
+        packed_len(rows + 1)
+    ));
     s.push_str("\n// Bindings (src/gpu/kernels/lattice.rs, SLOTS).\n");
     // The declarations refer to the structs of lattice.wgsl; WGSL resolves them in any
     // order.

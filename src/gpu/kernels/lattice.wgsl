@@ -1241,6 +1241,19 @@ fn xs_set(sel: u32, local: u32, v: vec3<f32>) {
     xs[o + 2u] = v.z;
 }
 
+// Body b's nodes on level l (from its chunks of the level's reduction table, which starts
+// at pc.first), at most `most` of them.
+fn body_nodes(b: u32, l: u32, most: u32) -> vec2<u32> {
+    let r = body_chunks(1u + l, b);
+    var range = vec2<u32>(0u, 0u);
+    if (r.x < r.y) {
+        let last = chunk(pc.first + r.y - 1u);
+        range = vec2<u32>(chunk(pc.first + r.x).x, last.x + last.y);
+    }
+    range.y = min(range.y, range.x + most);
+    return range;
+}
+
 // What a thread of `smooth_coarsest` keeps of one of its node's elements from sweep to
 // sweep: the row's turn r and scale, the blocks' base and the node's corner a, and the
 // element's corners as indices into the body's iterates (a corner past `COARSEST_NODES`:
@@ -1295,15 +1308,8 @@ fn coarsest_sweeps(wg: vec3<u32>, nwg: vec3<u32>, lid: u32, most: u32) {
     let n = params.n_total;
     for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
         if (lid == 0u) {
-            let r = body_chunks(1u + l, b);
-            var range = vec2<u32>(0u, 0u);
-            if (r.x < r.y) {
-                let last = chunk(pc.first + r.y - 1u);
-                range = vec2<u32>(chunk(pc.first + r.x).x, last.x + last.y);
-            }
             // The plan fuses only levels whose bodies fit `xs`.
-            range.y = min(range.y, range.x + COARSEST_NODES);
-            wide_range = range;
+            wide_range = body_nodes(b, l, COARSEST_NODES);
         }
         let range = workgroupUniformLoad(&wide_range);
         let nn = range.y - range.x;
@@ -1406,6 +1412,158 @@ fn smooth_coarsest_small(@builtin(workgroup_id) wg: vec3<u32>,
                          @builtin(num_workgroups) nwg: vec3<u32>,
                          @builtin(local_invocation_index) lid: u32) {
     coarsest_sweeps(wg, nwg, lid, 1u);
+}
+
+// The exact coarsest solve: a body's system (3 rows a node, its nodes in order) bordered
+// by its right-hand side, [[A, .], [bᵀ, .]], as a packed lower triangle (row r, column
+// c <= r at `packed(r, c)`; A's m rows first, b as row m), factorised in place into
+// A = L D Lᵀ (L unit lower; column k left unscaled, l_ik d_k, the border row becoming
+// z = L⁻¹ b); the pivot column of each elimination step, copied contiguously (two, the
+// next one written as it is made); D⁻¹ z, then the solution x.
+var<workgroup> chol: array<f32, EXACT_PACKED>;
+var<workgroup> pivot_cols: array<array<f32, EXACT_COLUMN>, 2>;
+var<workgroup> exact_y: array<f32, EXACT_ROWS>;
+var<workgroup> exact_range: vec2<u32>;
+
+fn packed(r: u32, c: u32) -> u32 {
+    return r * (r + 1u) / 2u + c;
+}
+
+// Adds block `blk` at local nodes (i, k), k <= i (its lower part where i = k).
+fn chol_add(i: u32, k: u32, blk: mat3x3<f32>) {
+    for (var r = 0u; r < 3u; r = r + 1u) {
+        for (var c = 0u; c < 3u; c = c + 1u) {
+            if (3u * k + c <= 3u * i + r) {
+                let p = packed(3u * i + r, 3u * k + c);
+                chol[p] = chol[p] + blk[c][r];
+            }
+        }
+    }
+}
+
+// The coarsest level (pc.level, its reduction table from pc.first) solved exactly, a
+// workgroup per body (striding over the bodies), as core::multigrid's solve_coarsest
+// (core::dense::solve_bordered): the body's matrix M/h² + S + Σ_e R K Rᵀ over its free
+// nodes assembled (held nodes' rows and columns the identity's, their right-hand side 0;
+// each node's own terms, then its elements' blocks one element slot a round, the lattice
+// giving a node at most eight) with the right-hand side as its last row, eliminated in
+// place (right-looking LDLᵀ: one trailing update a column, the border row's part of it
+// the forward substitution), then solved backward. A body whose matrix has a pivot that
+// is not positive keeps a zero correction. The plan takes this kernel only where no body
+// has more than EXACT_NODES nodes on the level.
+@compute @workgroup_size(256)
+fn solve_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                  @builtin(local_invocation_index) lid: u32) {
+    let l = pc.level;
+    let n = params.n_total;
+    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
+        if (lid == 0u) {
+            exact_range = body_nodes(b, l, EXACT_NODES);
+        }
+        let range = workgroupUniformLoad(&exact_range);
+        let nn = range.y - range.x;
+        let m = 3u * nn;
+        for (var q = lid; q < (m + 1u) * (m + 2u) / 2u; q = q + 256u) {
+            chol[q] = 0.0;
+        }
+        workgroupBarrier();
+        if (lid < nn) {
+            let j = range.x + lid;
+            var d = identity3();
+            var rhs = vec3<f32>(0.0);
+            if (!held(j)) {
+                let mass = nodes[j].x / params.h2;
+                d = mat3x3<f32>(vec3<f32>(mass, 0.0, 0.0), vec3<f32>(0.0, mass, 0.0),
+                                vec3<f32>(0.0, 0.0, mass)) + extra_block(j);
+                rhs = vecs[V_RHS * n + j].xyz;
+            }
+            chol_add(lid, lid, d);
+            chol[packed(m, 3u * lid)] = rhs.x;
+            chol[packed(m, 3u * lid + 1u)] = rhs.y;
+            chol[packed(m, 3u * lid + 2u)] = rhs.z;
+        }
+        // Eight threads a node, one a corner of the node's element in this round: within
+        // a round each thread adds to its own node's rows at its own corner's columns.
+        let local = lid / 8u;
+        let cb = lid % 8u;
+        let j = range.x + min(local, max(nn, 1u) - 1u);
+        let free = local < nn && !held(j);
+        for (var s = 0u; s < 8u; s = s + 1u) {
+            workgroupBarrier();
+            let at = topo[j] + s;
+            if (free && at < topo[j + 1u]) {
+                let ec = topo[at];
+                let e = ec >> 3u;
+                let k = corner(e, cb);
+                if (k <= j && !held(k)) {
+                    let ki = kinfo(e);
+                    let r = quat_mat(rot[e]);
+                    let blk = r * (kblock(bitcast<u32>(ki.x), ec & 7u, cb) * ki.y) * transpose(r);
+                    chol_add(local, k - range.x, blk);
+                }
+            }
+        }
+        workgroupBarrier();
+        for (var i = lid; i <= m; i = i + 256u) {
+            pivot_cols[0][i] = chol[packed(i, 0u)];
+        }
+        // Elimination, a column at a time: a_ij -= a_ik (a_jk / d_k) over the rows and
+        // columns past k (the border row's entries included). Every thread reads the
+        // same pivot, so `ok` is the workgroup's.
+        var ok = true;
+        for (var k = 0u; k < m; k = k + 1u) {
+            workgroupBarrier();
+            let cur = k % 2u;
+            let d = pivot_cols[cur][k];
+            ok = ok && d > 0.0;
+            let inv = select(0.0, 1.0 / d, d > 0.0);
+            // The trailing triangle (rows m + 1 and columns m past k), entry q at its row
+            // ii and column jj (q = ii (ii + 1) / 2 + jj).
+            let t = m - k;
+            for (var q = lid; q < t * (t + 1u) / 2u; q = q + 256u) {
+                var ii = u32((sqrt(8.0 * f32(q) + 1.0) - 1.0) * 0.5);
+                if ((ii + 1u) * (ii + 2u) / 2u <= q) {
+                    ii = ii + 1u;
+                }
+                if (ii * (ii + 1u) / 2u > q) {
+                    ii = ii - 1u;
+                }
+                let jj = q - ii * (ii + 1u) / 2u;
+                let i = k + 1u + ii;
+                let p = packed(i, k + 1u + jj);
+                let v = chol[p] - pivot_cols[cur][i] * (pivot_cols[cur][k + 1u + jj] * inv);
+                chol[p] = v;
+                if (jj == 0u) {
+                    pivot_cols[1u - cur][i] = v;
+                }
+            }
+        }
+        workgroupBarrier();
+        // y = D⁻¹ z, then Lᵀ x = y backward (y becoming x).
+        var own = 0.0;
+        if (lid < m) {
+            own = 1.0 / chol[packed(lid, lid)];
+            exact_y[lid] = chol[packed(m, lid)] * own;
+        }
+        for (var kk = m; kk > 0u; kk = kk - 1u) {
+            let k = kk - 1u;
+            workgroupBarrier();
+            let xk = exact_y[k];
+            if (lid < k) {
+                exact_y[lid] = exact_y[lid] - chol[packed(k, lid)] * own * xk;
+            }
+        }
+        workgroupBarrier();
+        for (var i = lid; i < nn; i = i + 256u) {
+            var x = vec3<f32>(exact_y[3u * i], exact_y[3u * i + 1u], exact_y[3u * i + 2u]);
+            if (!ok || held(range.x + i)) {
+                x = vec3<f32>(0.0);
+            }
+            vecs[V_DELTA * n + range.x + i] = vec4<f32>(x, 0.0);
+        }
+        // Every thread has read this body's range and solution before the next's.
+        workgroupBarrier();
+    }
 }
 
 // Partial sums of eᵀ r and eᵀ A e over a chunk of level pc.level's nodes (workgroup

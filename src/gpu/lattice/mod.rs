@@ -20,7 +20,7 @@ use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{
-    COLOURS, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother, Sweeps,
+    COLOURS, EXACT_COARSEST, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother, Sweeps,
 };
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
@@ -169,6 +169,15 @@ impl Shape {
         l > 0
             && self.smoother.on_level(l) == Smoother::Chebyshev
             && self.most_coarsest <= self.fused_coarsest.min(FUSED_COARSEST)
+    }
+
+    /// Whether the coarsest level is solved exactly (`solve_coarsest`, a workgroup per
+    /// body; [`LatticeMultigrid::coarsest_exact`]): [`Sweeps::exact_coarsest`], below
+    /// level 0, and no body has more than [`EXACT_COARSEST`] nodes there.
+    pub fn coarsest_exact(&self) -> bool {
+        self.sweeps.exact_coarsest
+            && self.levels.len() > 1
+            && self.most_coarsest as usize <= EXACT_COARSEST
     }
 }
 
@@ -373,7 +382,17 @@ fn sweeps(
 fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, u32, u32)) {
     if l + 1 == shape.levels.len() {
         let count = shape.sweeps.on_level(l, true, shape.smoother);
-        if shape.coarsest_fused() {
+        if shape.coarsest_exact() {
+            let [t0, tn] = shape.tables[1 + l];
+            push(
+                Kernel::CoarsestExact,
+                t0,
+                tn,
+                l as u32,
+                0,
+                pick_groups(shape),
+            );
+        } else if shape.coarsest_fused() {
             // Every sweep in one dispatch, a workgroup per body (its nodes from the
             // level's reduction table).
             let [t0, tn] = shape.tables[1 + l];
@@ -1539,6 +1558,7 @@ mod tests {
                 fine: 2,
                 coarse: 2,
                 coarsest: 30,
+                exact_coarsest: false,
             },
             // The coarsest level's sweeps a dispatch each (what these tests count).
             most_coarsest: 3,
@@ -1674,6 +1694,89 @@ mod tests {
         }
     }
 
+    /// Where the coarsest level is solved exactly (asked for, below level 0, no body
+    /// past `EXACT_COARSEST` nodes there), each V-cycle takes one `solve_coarsest`
+    /// dispatch there (a workgroup per body, its range the level's reduction table) in
+    /// place of every sweep of it, whatever the smoother and the fused limit; otherwise
+    /// none.
+    #[test]
+    fn small_coarsest_levels_are_solved_exactly_where_asked() {
+        let exact = |base: Shape| Shape {
+            sweeps: Sweeps {
+                exact_coarsest: true,
+                ..base.sweeps
+            },
+            ..base
+        };
+        for base in [
+            shape(),
+            Shape {
+                smoother: Smoother::Hybrid,
+                fused_coarsest: 3,
+                ..shape()
+            },
+        ] {
+            let swept = plan(&base, 2);
+            let solved = exact(base.clone());
+            assert!(solved.coarsest_exact());
+            let p = plan(&solved, 2);
+            let one: Vec<&Dispatch> = p
+                .iter()
+                .filter(|d| d.kernel == Kernel::CoarsestExact)
+                .collect();
+            assert_eq!(one.len(), 2, "two Newton iterations, one V-cycle each");
+            for d in &one {
+                assert_eq!(d.pass.level, 2);
+                assert_eq!([d.pass.first, d.pass.count], solved.tables[3]);
+                assert_eq!(d.groups, 3);
+            }
+            // No sweep of the coarsest level is left; everything else is as swept.
+            assert!(p.iter().all(|d| d.pass.level != 2
+                || !matches!(
+                    d.kernel,
+                    Kernel::Chebyshev | Kernel::Smooth | Kernel::Coarsest | Kernel::CoarsestSmall
+                )));
+            let without = |v: &[Dispatch]| -> Vec<Kernel> {
+                v.iter()
+                    .filter(|d| {
+                        d.pass.level != 2
+                            || !matches!(
+                                d.kernel,
+                                Kernel::Chebyshev
+                                    | Kernel::Smooth
+                                    | Kernel::Coarsest
+                                    | Kernel::CoarsestSmall
+                                    | Kernel::CoarsestExact
+                            )
+                    })
+                    .map(|d| d.kernel)
+                    .collect()
+            };
+            assert_eq!(without(&p), without(&swept));
+        }
+        for swept in [
+            // A body past the most nodes the exact solve takes.
+            Shape {
+                most_coarsest: EXACT_COARSEST as u32 + 1,
+                ..exact(shape())
+            },
+            // Not asked for.
+            shape(),
+            // A single level (level 0 is never solved exactly).
+            Shape {
+                levels: shape().levels[..1].to_vec(),
+                ..exact(shape())
+            },
+        ] {
+            assert!(!swept.coarsest_exact(), "{swept:?}");
+            assert!(
+                plan(&swept, 2)
+                    .iter()
+                    .all(|d| d.kernel != Kernel::CoarsestExact)
+            );
+        }
+    }
+
     /// Each level is smoothed as many times as the settings' sweeps say: level 0 `fine`
     /// times before and after, the levels between `coarse`, the coarsest `coarsest`,
     /// each Gauss–Seidel sweep a dispatch per non-empty colour.
@@ -1684,6 +1787,7 @@ mod tests {
                 fine: 1,
                 coarse: 3,
                 coarsest: 5,
+                exact_coarsest: false,
             },
             ..shape()
         };
