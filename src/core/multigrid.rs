@@ -1638,19 +1638,16 @@ mod tests {
         let rot: Vec<Quat> = (0..model.elements.len())
             .map(|e| Quat::from_axis_angle(Vec3::new(1.0, 2.0, 0.5).normalize(), 0.01 * e as f32))
             .collect();
-        let mut work = MgWork::default();
-        work.extra = vec![
-            (0..model.particle_count())
-                .map(|j| {
-                    if j % 7 == 0 {
-                        let nrm = Vec3::Y;
-                        Mat3::from_cols(nrm * nrm.x, nrm * nrm.y, nrm * nrm.z) * 1e4
-                    } else {
-                        Mat3::ZERO
-                    }
-                })
-                .collect(),
-        ];
+        // A contact penalty k n nᵀ (n = y) on every seventh particle.
+        let contact = Mat3::from_diagonal(Vec3::new(0.0, 1e4, 0.0));
+        let mut work = MgWork {
+            extra: vec![
+                (0..model.particle_count())
+                    .map(|j| if j % 7 == 0 { contact } else { Mat3::ZERO })
+                    .collect(),
+            ],
+            ..Default::default()
+        };
         mg.prepare(&rot, h2, &mut work);
         let lv = &mg.levels[l];
         let rhs: Vec<Vec3> = (0..lv.nodes)
