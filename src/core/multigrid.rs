@@ -182,9 +182,9 @@ pub struct LatticeMultigrid {
 /// Most levels a hierarchy has.
 pub const MAX_LEVELS: usize = 8;
 /// A hierarchy is coarsened while its bodies have more than this many nodes each (on
-/// average) on its coarsest level: [`EXACT_COARSEST`], so that the coarsest level of a
-/// body coarsened down to it can be solved exactly.
-pub const MIN_NODES: usize = EXACT_COARSEST;
+/// average) on its coarsest level ([`EXACT_COARSEST`] instead where the coarsest level is
+/// to be solved exactly, [`Sweeps::min_nodes`]).
+pub const MIN_NODES: usize = 64;
 /// Most nodes a body may have on the coarsest level for that level to be solved exactly
 /// ([`Sweeps::exact_coarsest`]): 84 unknowns, whose packed factor bordered by the
 /// right-hand side (14.3 KiB) the GPU keeps in one workgroup's memory within the 16 KiB
@@ -1313,25 +1313,27 @@ pub struct Sweeps {
     pub coarsest: u32,
     /// Solve the coarsest level exactly (each body's system factorised, `L D Lᵀ`,
     /// [`super::dense`]) instead of sweeping it, where it is below level 0 and no body has
-    /// more than [`EXACT_COARSEST`] nodes there ([`LatticeMultigrid::coarsest_exact`]).
-    /// The coarsest level carries a stiff body's bending: solved exactly, a 1 MPa body
-    /// comes closer to its material at the real-time setting than after `coarsest`
-    /// sweeps, and on the GPU the solve takes one pass of a body's workgroup where the
-    /// sweeps take `coarsest` rounds.
+    /// more than [`EXACT_COARSEST`] nodes there ([`LatticeMultigrid::coarsest_exact`];
+    /// hierarchies are then coarsened that far, [`Sweeps::min_nodes`]). The coarsest
+    /// level carries a stiff body's bending: solved exactly, a 1 MPa body comes closer to
+    /// its material at the real-time setting than after `coarsest` sweeps, for about the
+    /// sweeps' GPU time. Off by default: the coarse levels do not hold grasped nodes, and
+    /// an exact coarse answer that moves them makes a grasped body's step far more
+    /// sensitive to rounding (the GPU and the CPU then part by a few µm where they agree
+    /// to 0.03 µm with the sweeps).
     pub exact_coarsest: bool,
 }
 
 impl Sweeps {
-    /// One sweep before and after on level 0, two on the levels between, the coarsest
-    /// solved exactly where its bodies are small enough and by 30 sweeps elsewhere: as
-    /// accurate as two on level 0 at a real-time step (the coarsest level's solve
-    /// carries a stiff body's bending, each V-cycle's translation step its rigid
-    /// motion), for half of level 0's work.
+    /// One sweep before and after on level 0, two on the levels between, 30 on the
+    /// coarsest: as accurate as two on level 0 at a real-time step (the coarsest
+    /// level's solve carries a stiff body's bending, each V-cycle's translation step
+    /// its rigid motion), for half of level 0's work.
     pub const DEFAULT: Sweeps = Sweeps {
         fine: 1,
         coarse: 2,
         coarsest: 30,
-        exact_coarsest: true,
+        exact_coarsest: false,
     };
 
     /// The sweeps `smoother` takes on level `l`: before and after the coarse correction
@@ -1349,6 +1351,17 @@ impl Sweeps {
             n + n % 2
         } else {
             n
+        }
+    }
+
+    /// How far hierarchies are coarsened for these sweeps: while their bodies have more
+    /// than this many nodes each on average on the coarsest level ([`EXACT_COARSEST`]
+    /// where the coarsest level is to be solved exactly, else [`MIN_NODES`]).
+    pub fn min_nodes(&self) -> usize {
+        if self.exact_coarsest {
+            EXACT_COARSEST
+        } else {
+            MIN_NODES
         }
     }
 
@@ -1623,10 +1636,13 @@ mod tests {
     fn the_exact_coarsest_solve_leaves_no_coarsest_residual() {
         let mut model = bar(0.006);
         model.append(&bar(0.0075));
-        let mut mg = LatticeMultigrid::new(&model, MIN_NODES, MAX_LEVELS);
+        let exact = Sweeps {
+            exact_coarsest: true,
+            ..Sweeps::DEFAULT
+        };
+        let mut mg = LatticeMultigrid::new(&model, exact.min_nodes(), MAX_LEVELS);
         mg.smoother = Smoother::Hybrid;
         let l = mg.levels.len() - 1;
-        let exact = Sweeps::DEFAULT;
         assert!(mg.coarsest_exact(exact), "levels {}", mg.levels.len());
         assert_eq!(mg.levels[l].body_start.len(), 3);
         let swept = Sweeps {

@@ -180,9 +180,7 @@ pub struct SolverSettings {
     /// [`ElementSolver::Multigrid`]: the V-cycle's smoothing sweeps on level 0, on the
     /// levels between and on the coarsest ([`super::multigrid::Sweeps`]; in pairs where
     /// [`Self::smoother`] smooths a level by Chebyshev). Default one sweep before and after
-    /// on level 0, two on the levels between, and the coarsest level solved exactly where
-    /// no body has more than [`super::multigrid::EXACT_COARSEST`] nodes there (30 sweeps
-    /// elsewhere).
+    /// on level 0, two on the levels between, 30 on the coarsest (not solved exactly).
     pub sweeps: super::multigrid::Sweeps,
 }
 
@@ -1201,7 +1199,7 @@ impl Solver {
         if stale {
             self.mg = Some(Box::new(LatticeMultigrid::new(
                 model,
-                super::multigrid::MIN_NODES,
+                self.settings.sweeps.min_nodes(),
                 super::multigrid::MAX_LEVELS,
             )));
         }

@@ -551,9 +551,9 @@ pub struct TissueSettings {
     /// The V-cycle's smoothing sweeps on the particles, on the levels between and on the
     /// coarsest level, for lattice bodies (default 1/2/30; each from 1 to 1,000), and
     /// whether the coarsest level is solved exactly where its bodies are small enough
-    /// (default on; the 30 sweeps then only for bodies too large for it). The coarsest
-    /// level's solve carries a stiff body's bending: fewer sweeps leave a 1 MPa body too
-    /// soft at real-time settings ([`crate::core::solver::SolverSettings::sweeps`]).
+    /// (default off; see [`Sweeps::exact_coarsest`]). The coarsest level's solve carries
+    /// a stiff body's bending: fewer sweeps leave a 1 MPa body too soft at real-time
+    /// settings ([`crate::core::solver::SolverSettings::sweeps`]).
     #[reflect(ignore)]
     pub sweeps: Sweeps,
 }

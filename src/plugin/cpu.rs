@@ -38,7 +38,7 @@ use crate::core::TissueError;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
 use crate::core::model::Model;
 use crate::core::model::{Discretisation, Material};
-use crate::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+use crate::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS};
 use crate::core::skin::{skin_normals, skin_positions};
 use crate::core::solver::{Control, Solver, SolverSettings, State};
 use crate::gpu::kernels::lattice::{LatticeKernels, MAX_COLLIDERS};
@@ -934,7 +934,7 @@ fn make_batch(
             })
             .collect();
         let parts: Vec<&BodyLevels> = own.iter().map(Arc::as_ref).collect();
-        LatticeMultigrid::from_bodies(&parts, MIN_NODES, MAX_LEVELS)
+        LatticeMultigrid::from_bodies(&parts, settings.sweeps.min_nodes(), MAX_LEVELS)
     });
     let (levels, world) = match (levels, gpu) {
         (Some(mg), Some((device, kernels))) => {

@@ -20,7 +20,7 @@ use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{
-    COLOURS, EXACT_COARSEST, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, MIN_NODES, Smoother, Sweeps,
+    COLOURS, EXACT_COARSEST, LatticeMultigrid, MAX_LEVELS as MG_LEVELS, Smoother, Sweeps,
 };
 use crate::core::solver::{SolverSettings, State};
 use bevy::render::render_resource::{
@@ -697,7 +697,7 @@ impl GpuLattice {
         settings: &SolverSettings,
         options: LatticeOptions,
     ) -> Result<Self, TissueError> {
-        let mg = LatticeMultigrid::new(model, MIN_NODES, MG_LEVELS);
+        let mg = LatticeMultigrid::new(model, settings.sweeps.min_nodes(), MG_LEVELS);
         Self::with_levels(device, kernels, model, mg, state, settings, options)
     }
 
