@@ -1002,11 +1002,20 @@ impl LatticeMultigrid {
         use super::dense::{packed, packed_len, solve_bordered};
         let l = self.levels.len() - 1;
         let lv = &self.levels[l];
+        // A, bordered by the right-hand side as row m: one buffer for every body, the
+        // largest body's length.
+        let most = lv
+            .body_start
+            .windows(2)
+            .map(|w| w[1].saturating_sub(w[0]) as usize)
+            .max()
+            .unwrap_or(0);
+        let mut buffer = vec![0.0f32; packed_len(3 * most + 1)];
         for w in lv.body_start.windows(2) {
             let (base, nn) = (w[0] as usize, w[1].saturating_sub(w[0]) as usize);
             let m = 3 * nn;
-            // A, bordered by the right-hand side as row m.
-            let mut a = vec![0.0f32; packed_len(m + 1)];
+            let a = &mut buffer[..packed_len(m + 1)];
+            a.fill(0.0);
             // Adds block `blk` at nodes (i, k) (local, k ≤ i), its lower part where i = k.
             let add = |a: &mut [f32], i: usize, k: usize, blk: Mat3| {
                 for r in 0..3 {
@@ -1020,14 +1029,14 @@ impl LatticeMultigrid {
             for i in 0..nn {
                 let j = base + i;
                 if lv.fixed[j] {
-                    add(&mut a, i, i, Mat3::IDENTITY);
+                    add(a, i, i, Mat3::IDENTITY);
                     continue;
                 }
                 let mut d = Mat3::from_diagonal(Vec3::splat(lv.mass[j] / h2));
                 if let Some(s) = work.extra[l].get(j) {
                     d += *s;
                 }
-                add(&mut a, i, i, d);
+                add(a, i, i, d);
                 for (r, v) in work.rhs[l][j].to_array().into_iter().enumerate() {
                     a[packed(m, 3 * i + r)] = v;
                 }
@@ -1049,11 +1058,11 @@ impl LatticeMultigrid {
                             continue;
                         }
                         let blk = r * (k[8 * corner + b] * sc) * r.transpose();
-                        add(&mut a, i, node - base, blk);
+                        add(a, i, node - base, blk);
                     }
                 }
             }
-            let x = solve_bordered(&mut a, m);
+            let x = solve_bordered(a, m);
             for i in 0..nn {
                 let j = base + i;
                 work.delta[l][j] = match &x {
