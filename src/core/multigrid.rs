@@ -16,7 +16,9 @@
 
 use super::constraints::{Hyperelastic, extract_rotation};
 use super::element::corotated_stress;
-use super::element::{CORNERS, HOURGLASS_MODES, HexModes, cube_stiffness, element_gradient};
+use super::element::{
+    CORNERS, CubeOperator, HOURGLASS_MODES, HexModes, cube_stiffness, element_gradient,
+};
 use super::error::TissueError;
 use super::model::{Discretisation, Material, Model};
 use glam::{DMat3, DVec3, IVec3, Mat3, Quat, Vec3};
@@ -168,6 +170,8 @@ pub struct LatticeMultigrid {
     pub unit: Vec<Option<Vec<f32>>>,
     /// `unit` as 3 × 3 blocks (64 per body, `8 a + b`).
     pub unit_blocks: Vec<Option<Vec<Mat3>>>,
+    /// Per body: `unit` in factored form, which level 0's rows are applied with.
+    pub unit_operator: Vec<Option<CubeOperator>>,
     /// Per body: its material's Lamé parameters and hourglass modes.
     pub material: Vec<Option<(Hyperelastic, HexModes)>>,
     /// The smoother of every level.
@@ -231,6 +235,8 @@ pub struct BodyLevels {
     pub unit: Option<Vec<f32>>,
     /// `unit` as 3 × 3 blocks (`8 a + b`).
     pub unit_blocks: Option<Vec<Mat3>>,
+    /// `unit` in factored form, which level 0's rows are applied with.
+    pub unit_operator: Option<CubeOperator>,
     /// The material's Lamé parameters and hourglass modes.
     pub material: Option<(Hyperelastic, HexModes)>,
     /// Per level: the Chebyshev smoother's `1/θ` and `ρ²` for this body alone (see
@@ -248,24 +254,30 @@ impl BodyLevels {
                 .element_body
                 .partition_point(|&b| (b as usize) <= body);
         let info = &model.bodies[body];
-        let (unit, unit_blocks, material) = match (info.discretisation, info.material) {
-            (
-                Discretisation::Lattice,
-                Material::Hyperelastic {
-                    youngs_modulus,
-                    poisson_ratio,
-                },
-            ) => {
-                let mat = Hyperelastic::new(youngs_modulus, poisson_ratio);
-                let k: Vec<f32> = cube_stiffness(mat.mu as f64, mat.lambda as f64)
-                    .iter()
-                    .map(|&v| v as f32)
-                    .collect();
-                let blocks = to_blocks(&k);
-                (Some(k), Some(blocks), Some((mat, HexModes::of(&mat))))
-            }
-            _ => (None, None, None),
-        };
+        let (unit, unit_blocks, unit_operator, material) =
+            match (info.discretisation, info.material) {
+                (
+                    Discretisation::Lattice,
+                    Material::Hyperelastic {
+                        youngs_modulus,
+                        poisson_ratio,
+                    },
+                ) => {
+                    let mat = Hyperelastic::new(youngs_modulus, poisson_ratio);
+                    let (mu, lambda) = (mat.mu as f64, mat.lambda as f64);
+                    let k64 = cube_stiffness(mu, lambda);
+                    let k: Vec<f32> = k64.iter().map(|&v| v as f32).collect();
+                    let blocks = to_blocks(&k);
+                    let op = CubeOperator::from_stiffness(mu, lambda, &k64);
+                    (
+                        Some(k),
+                        Some(blocks),
+                        Some(op),
+                        Some((mat, HexModes::of(&mat))),
+                    )
+                }
+                _ => (None, None, None, None),
+            };
         let range = info.range();
         let (p0, e0) = (range.start, erange.start);
         let pinned: std::collections::HashSet<u32> = model
@@ -337,6 +349,7 @@ impl BodyLevels {
             levels,
             unit,
             unit_blocks,
+            unit_operator,
             material,
             chebyshev: Vec::new(),
         };
@@ -406,6 +419,7 @@ impl LatticeMultigrid {
                 .collect(),
             unit: parts.iter().map(|p| p.unit.clone()).collect(),
             unit_blocks: parts.iter().map(|p| p.unit_blocks.clone()).collect(),
+            unit_operator: parts.iter().map(|p| p.unit_operator).collect(),
             material: parts.iter().map(|p| p.material.clone()).collect(),
             smoother: Smoother::default(),
             chebyshev: Vec::new(),
@@ -506,11 +520,23 @@ impl LatticeMultigrid {
         let mut y = Vec3::ZERO;
         for &ec in &lv.inv[lv.inv_start[j] as usize..lv.inv_start[j + 1] as usize] {
             let (e, a) = ((ec >> 3) as usize, (ec & 7) as usize);
+            let r = rot[e];
+            let rt = r.transpose();
+            if lv.blocks.is_empty() {
+                // Level 0: the body's unit cube in factored form, as the GPU applies it.
+                let Some(op) = &self.unit_operator[lv.body[e] as usize] else {
+                    continue;
+                };
+                let xs = lv.elements[e].map(|q| x[q as usize]);
+                let (g, q) = CubeOperator::moments(&xs);
+                let q = q.map(|v| rt * v);
+                let (sigma, resp) = op.response(&(rt * g), &q);
+                y += r * CubeOperator::row(a, &sigma, &resp) * lv.scale[e];
+                continue;
+            }
             let Some((k, sc)) = self.element_stiffness(l, e) else {
                 continue;
             };
-            let r = rot[e];
-            let rt = r.transpose();
             let mut acc = Vec3::ZERO;
             for (kab, &q) in k[8 * a..8 * a + 8].iter().zip(&lv.elements[e]) {
                 acc += *kab * (rt * x[q as usize]);

@@ -432,9 +432,12 @@ pub fn source() -> String {
          const EXACT_NODES: u32 = {EXACT_COARSEST}u;\n\
          const EXACT_ROWS: u32 = {rows}u;\n\
          const EXACT_COLUMN: u32 = {}u;\n\
-         const EXACT_PACKED: u32 = {}u;\n",
+         const EXACT_PACKED: u32 = {}u;\n\
+         // Vec4s of a body's material record in `mats` (gpu::lattice's MAT_RECORD).\n\
+         const MAT_STRIDE: u32 = {}u;\n",
         rows + 1,
-        packed_len(rows + 1)
+        packed_len(rows + 1),
+        crate::gpu::lattice::MAT_RECORD,
     ));
     s.push_str("\n// Bindings (src/gpu/kernels/lattice.rs, SLOTS).\n");
     // The declarations refer to the structs of lattice.wgsl; WGSL resolves them in any

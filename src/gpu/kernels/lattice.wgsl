@@ -38,10 +38,10 @@ const V_RHS: u32 = 0u;
 const V_DELTA: u32 = 1u;
 const V_RES: u32 = 2u;
 const V_PE: u32 = 3u;
-// Material record per body in `mat` (vec4s): (μ, λ), 12 mode stiffnesses, 12 × 8 mode
-// vectors.
-const MAT_STRIDE: u32 = 100u;
-const MODES: u32 = 12u;
+// Material record per body in `mats` (vec4s, MAT_STRIDE of them, from Rust): (μ, λ,
+// contact radius, spacing), then the unit cube operator (five vec4, as in `kmat`: see
+// `cube_row`).
+const MAT_OP: u32 = 1u;
 // Regions of `ccol` (× n): this substep's collider corrections (xyz, m; w: the last
 // collider's index, −1: none); the collider touched in the last substep (x, −1: none)
 // and this iteration's penalty contacts (y: a bit per collider).
@@ -395,28 +395,18 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 let mb = info.y * MAT_STRIDE;
                 let vol = bitcast<f32>(info.w);
                 let scale = vol / (size * size);
-                var h1 = 0.0;
-                var h2 = 0.0;
-                {
-                    var ly: array<vec3<f32>, 8>;
-                    var ld: array<vec3<f32>, 8>;
-                    for (var q = 0u; q < 8u; q = q + 1u) {
-                        ly[q] = rt * (y[q] - y[0]);
-                        ld[q] = rt * (d[q] - d[0]);
-                    }
-                    for (var m = 0u; m < MODES; m = m + 1u) {
-                        var a0 = 0.0;
-                        var a1 = 0.0;
-                        for (var q = 0u; q < 8u; q = q + 1u) {
-                            let g = mats[mb + 4u + m * 8u + q].xyz;
-                            a0 = a0 + dot(g, ly[q]);
-                            a1 = a1 + dot(g, ld[q]);
-                        }
-                        let km = mats[mb + 1u + m / 4u][m % 4u] * scale;
-                        h1 = h1 + km * a0 * a1;
-                        h2 = h2 + 0.5 * km * a1 * a1;
-                    }
+                // Hourglass: ½ (V/h²) qᵀ Q q with q = Rᵀ q(y + a d), linear in a.
+                var ly: array<vec3<f32>, 8>;
+                var ld: array<vec3<f32>, 8>;
+                for (var q = 0u; q < 8u; q = q + 1u) {
+                    ly[q] = y[q] - y[0];
+                    ld[q] = d[q] - d[0];
                 }
+                let qy = hg_turn(rt, hourglass_coords(ly));
+                let qd = hg_turn(rt, hourglass_coords(ld));
+                let rd = hourglass_response(material_op(info.y), qd);
+                let h1 = scale * hg_dot(qy, rd);
+                let h2 = 0.5 * scale * hg_dot(qd, rd);
                 let lame = mats[mb];
                 let rtf0 = rt * f0;
                 let rtf1 = rt * f1;
@@ -436,9 +426,9 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 }
             } else {
                 // The first iterate: each candidate's rotation refined from q0 along
-                // F(y + a d) = F(y) + a F(d). The hourglass amplitudes are
-                // c_m = R : Σ_q (x_q − x_0) g_mqᵀ, whose matrices are linear along the step,
-                // so each mode's are summed once for every candidate.
+                // F(y + a d) = F(y) + a F(d). The hourglass coordinates are linear along
+                // the step too, so they are summed once and turned into each candidate's
+                // rotation.
                 let f0 = element_gradient(y, size);
                 let f1 = element_gradient(d, size);
                 // The FIRST_CANDIDATES (4) candidates s = 0, −½, −¾, −1 (`candidate`)
@@ -457,30 +447,24 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                 var ed = elastic_energy(e, fd, rd);
                 var dy: array<vec3<f32>, 8>;
                 var dd: array<vec3<f32>, 8>;
-                for (var q = 1u; q < 8u; q = q + 1u) {
+                for (var q = 0u; q < 8u; q = q + 1u) {
                     dy[q] = y[q] - y[0];
                     dd[q] = d[q] - d[0];
                 }
-                let base = info.y * MAT_STRIDE;
-                let scale = bitcast<f32>(info.w) / (size * size);
-                for (var m = 0u; m < MODES; m = m + 1u) {
-                    var m0 = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
-                    var m1 = m0;
-                    for (var q = 1u; q < 8u; q = q + 1u) {
-                        let g = mats[base + 4u + m * 8u + q].xyz;
-                        m0 = m0 + outer(dy[q], g);
-                        m1 = m1 + outer(dd[q], g);
-                    }
-                    let km = 0.5 * mats[base + 1u + m / 4u][m % 4u] * scale;
-                    let ca = frob(ra, m0 + m1 * 0.0);
-                    let cb = frob(rb, m0 + m1 * -0.5);
-                    let cc = frob(rc, m0 + m1 * -0.75);
-                    let cd = frob(rd, m0 + m1 * -1.0);
-                    ea = ea + km * (ca * ca);
-                    eb = eb + km * (cb * cb);
-                    ec = ec + km * (cc * cc);
-                    ed = ed + km * (cd * cd);
-                }
+                // Hourglass: ½ (V/h²) qᵀ Q q with q = R_aᵀ q(y + a d) in each candidate's
+                // own rotation.
+                let op = material_op(info.y);
+                let hy = hourglass_coords(dy);
+                let hd = hourglass_coords(dd);
+                let half = 0.5 * bitcast<f32>(info.w) / (size * size);
+                let qa = hg_turn(transpose(ra), hg_add(hy, hd, 0.0));
+                let qb = hg_turn(transpose(rb), hg_add(hy, hd, -0.5));
+                let qc = hg_turn(transpose(rc), hg_add(hy, hd, -0.75));
+                let qd = hg_turn(transpose(rd), hg_add(hy, hd, -1.0));
+                ea = ea + half * hg_dot(qa, hourglass_response(op, qa));
+                eb = eb + half * hg_dot(qb, hourglass_response(op, qb));
+                ec = ec + half * hg_dot(qc, hourglass_response(op, qc));
+                ed = ed + half * hg_dot(qd, hourglass_response(op, qd));
                 // Each candidate's change from the first (0, or NaN where the energy is
                 // not finite).
                 acc[0] = acc[0] + (ea - ea);
@@ -757,22 +741,15 @@ fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var j = 0u; j < 8u; j = j + 1u) {
         out[j] = -(pv * (corner_sign(j) / (4.0 * size)));
     }
+    // Hourglass: −R Σ_α h_α(j) (Q q)_α (V/h²) with q = Rᵀ q(x).
     let scale = volume / (size * size);
-    let rt = transpose(r);
     var lx: array<vec3<f32>, 8>;
     for (var q2 = 0u; q2 < 8u; q2 = q2 + 1u) {
-        lx[q2] = rt * (x[q2] - x[0]);
+        lx[q2] = x[q2] - x[0];
     }
-    let base = b * MAT_STRIDE;
-    for (var m = 0u; m < MODES; m = m + 1u) {
-        var c = 0.0;
-        for (var q2 = 0u; q2 < 8u; q2 = q2 + 1u) {
-            c = c + dot(mats[base + 4u + m * 8u + q2].xyz, lx[q2]);
-        }
-        let kc = mats[base + 1u + m / 4u][m % 4u] * scale * c;
-        for (var j = 0u; j < 8u; j = j + 1u) {
-            out[j] = out[j] - r * mats[base + 4u + m * 8u + j].xyz * kc;
-        }
+    let rq = hourglass_response(material_op(b), hg_turn(transpose(r), hourglass_coords(lx)));
+    for (var j = 0u; j < 8u; j = j + 1u) {
+        out[j] = out[j] - r * (hourglass_row(j, rq) * scale);
     }
     for (var j = 0u; j < 8u; j = j + 1u) {
         ef[8u * e + j] = vec4<f32>(out[j], 0.0);
@@ -857,8 +834,9 @@ fn extra_block(j: u32) -> mat3x3<f32> {
 }
 
 // One element's part of (A x)_j: R Σ_b K_ab Rᵀ x_b (times its scale) over its eight
-// corners b (the element and corner a packed as `ec`, x at `vecs[off ..]`). Written out
-// corner by corner, so that the eight loads of x are issued together.
+// corners b (the element and corner a packed as `ec`, x at `vecs[off ..]`): on level 0
+// by its body's unit cube operator, above from its own blocks. Written out corner by
+// corner, so that the eight loads of x are issued together.
 fn element_term(ec: u32, off: u32) -> vec3<f32> {
     let e = ec >> 3u;
     let c0 = elems[3u * e];
@@ -872,8 +850,152 @@ fn element_term(ec: u32, off: u32) -> vec3<f32> {
 // its corners' values x0 .. x7.
 fn element_apply(e: u32, a: u32, x0: vec3<f32>, x1: vec3<f32>, x2: vec3<f32>, x3: vec3<f32>,
                  x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>, x7: vec3<f32>) -> vec3<f32> {
-    let ki = kinfo(e);
-    return rotated_row(bitcast<u32>(ki.x), a, ki.y, quat_mat(rot[e]), x0, x1, x2, x3, x4, x5, x6, x7);
+    let info = elems[3u * e + 2u];
+    let size = bitcast<f32>(info.z);
+    let r = quat_mat(rot[e]);
+    if (size > 0.0) {
+        let scale = bitcast<f32>(info.w) / (size * size);
+        return cube_row(info.x, a, scale, r, x0, x1, x2, x3, x4, x5, x6, x7);
+    }
+    return rotated_row(info.x, a, 1.0, r, x0, x1, x2, x3, x4, x5, x6, x7);
+}
+
+// A level-0 element's R K Rᵀ x at corner a (times `scale`, V/h²) from its body's unit
+// cube operator (core::element::CubeOperator: the one-point stress and the hourglass
+// block's pairs, triple and singles), stored in the five vec4 after the body's 64 unit
+// blocks in `kmat`: μ, λ, the pairs' (0,0) (0,1) (1,1), the triple's diagonal and
+// (0,1) (1,2) (2,0), the singles.
+fn cube_row(kb: u32, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
+            x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
+            x7: vec3<f32>) -> vec3<f32> {
+    return cube_op_row(cube_op(kb), a, scale, r, x0, x1, x2, x3, x4, x5, x6, x7);
+}
+
+// A body's unit cube operator (see `cube_row`).
+struct CubeOp {
+    k0: vec4<f32>,
+    k1: vec4<f32>,
+    k2: vec4<f32>,
+    k3: vec4<f32>,
+    k4: vec4<f32>,
+};
+
+// The unit cube operator stored after the 64 unit blocks at `kb`.
+fn cube_op(kb: u32) -> CubeOp {
+    let o = 3u * (kb + 64u);
+    return CubeOp(kmat[o], kmat[o + 1u], kmat[o + 2u], kmat[o + 3u], kmat[o + 4u]);
+}
+
+// Level-0 element e's part of (A x) at its corner a (packed as `ec`) with its body's
+// operator `op` already loaded, x at `vecs[off ..]`.
+fn cube_term(ec: u32, off: u32, op: CubeOp) -> vec3<f32> {
+    let e = ec >> 3u;
+    let c0 = elems[3u * e];
+    let c1 = elems[3u * e + 1u];
+    let info = elems[3u * e + 2u];
+    let size = bitcast<f32>(info.z);
+    return cube_op_row(op, ec & 7u, bitcast<f32>(info.w) / (size * size), quat_mat(rot[e]),
+                       vecs[off + c0.x].xyz, vecs[off + c0.y].xyz, vecs[off + c0.z].xyz,
+                       vecs[off + c0.w].xyz, vecs[off + c1.x].xyz, vecs[off + c1.y].xyz,
+                       vecs[off + c1.z].xyz, vecs[off + c1.w].xyz);
+}
+
+fn cube_op_row(op: CubeOp, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
+               x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
+               x7: vec3<f32>) -> vec3<f32> {
+    // Moments: g = Σ x_j c_jᵀ and the hourglass coordinates (CubeOperator::moments).
+    let s01 = x1 + x0;
+    let d01 = x1 - x0;
+    let s23 = x3 + x2;
+    let d23 = x3 - x2;
+    let s45 = x5 + x4;
+    let d45 = x5 - x4;
+    let s67 = x7 + x6;
+    let d67 = x7 - x6;
+    let rt = transpose(r);
+    let g = rt * mat3x3<f32>((d01 + d23) + (d45 + d67), (s23 - s01) + (s67 - s45),
+                             (s45 + s67) - (s01 + s23));
+    let q = Hg(rt * ((d23 - d01) + (d67 - d45)), rt * ((s67 - s45) - (s23 - s01)),
+               rt * ((d45 + d67) - (d01 + d23)), rt * ((d67 - d45) - (d23 - d01)));
+    // Response (CubeOperator::response).
+    let e = (g + transpose(g)) * 0.25;
+    let tr = e[0].x + e[1].y + e[2].z;
+    let lt = 0.5 * op.k0.y * tr;
+    let sigma = e * op.k0.x + mat3x3<f32>(vec3<f32>(lt, 0.0, 0.0), vec3<f32>(0.0, lt, 0.0),
+                                          vec3<f32>(0.0, 0.0, lt));
+    let rq = hourglass_response(op, q);
+    // Row a (CubeOperator::row).
+    let c = corner_sign(a);
+    let f = sigma * (c * 0.25) + hourglass_row(a, rq);
+    return r * f * scale;
+}
+
+// An element's four hourglass coordinates q_α = Σ_j h_α(c_j) x_j (α = ξη, ηζ, ζξ, ξηζ;
+// core::element::hourglass_base), each a vector over the directions.
+struct Hg {
+    xy: vec3<f32>,
+    yz: vec3<f32>,
+    zx: vec3<f32>,
+    xyz: vec3<f32>,
+};
+
+// The hourglass coordinates of corner values x (pass values relative to a corner where
+// they are positions: the coordinates do not change, their rounding does).
+fn hourglass_coords(x: array<vec3<f32>, 8>) -> Hg {
+    let s01 = x[1] + x[0];
+    let d01 = x[1] - x[0];
+    let s23 = x[3] + x[2];
+    let d23 = x[3] - x[2];
+    let s45 = x[5] + x[4];
+    let d45 = x[5] - x[4];
+    let s67 = x[7] + x[6];
+    let d67 = x[7] - x[6];
+    return Hg((d23 - d01) + (d67 - d45), (s67 - s45) - (s23 - s01), (d45 + d67) - (d01 + d23),
+              (d67 - d45) - (d23 - d01));
+}
+
+// Hourglass coordinates turned by m (each direction vector times m).
+fn hg_turn(m: mat3x3<f32>, q: Hg) -> Hg {
+    return Hg(m * q.xy, m * q.yz, m * q.zx, m * q.xyz);
+}
+
+fn hg_add(a: Hg, b: Hg, t: f32) -> Hg {
+    return Hg(a.xy + b.xy * t, a.yz + b.yz * t, a.zx + b.zx * t, a.xyz + b.xyz * t);
+}
+
+fn hg_dot(a: Hg, b: Hg) -> f32 {
+    return dot(a.xy, b.xy) + dot(a.yz, b.yz) + dot(a.zx, b.zx) + dot(a.xyz, b.xyz);
+}
+
+// The unit cube's hourglass block times coordinates q, Q q: its three pairs, its triple
+// and its singles (core::element::CubeOperator::response). ½ qᵀ Q q is a unit cube's
+// hourglass energy, Σ_α h_α(a) (Q q)_α its corner a's hourglass force.
+fn hourglass_response(op: CubeOp, q: Hg) -> Hg {
+    let k0 = op.k0;
+    let k1 = op.k1;
+    let k2 = op.k2;
+    let k3 = op.k3;
+    let k4 = op.k4;
+    return Hg(
+        vec3<f32>(k0.z * q.xy.x + k0.w * q.yz.z, k1.y * q.xy.y + k1.z * q.zx.z,
+                  k2.w * q.xy.z + k3.z * q.yz.x + k4.x * q.zx.y),
+        vec3<f32>(k3.z * q.xy.z + k3.x * q.yz.x + k3.w * q.zx.y, k2.x * q.yz.y + k2.y * q.zx.x,
+                  k0.w * q.xy.x + k1.x * q.yz.z),
+        vec3<f32>(k2.y * q.yz.y + k2.z * q.zx.x, k4.x * q.xy.z + k3.w * q.yz.x + k3.y * q.zx.y,
+                  k1.z * q.xy.y + k1.w * q.zx.z),
+        q.xyz * k4.yzw);
+}
+
+// Corner a's hourglass force Σ_α h_α(a) (Q q)_α from the response rq.
+fn hourglass_row(a: u32, rq: Hg) -> vec3<f32> {
+    let c = corner_sign(a);
+    return (rq.xy * (c.x * c.y) + rq.yz * (c.y * c.z)) + (rq.zx * (c.z * c.x) + rq.xyz * (c.x * c.y * c.z));
+}
+
+// Body b's unit cube operator, from its material record.
+fn material_op(b: u32) -> CubeOp {
+    let o = b * MAT_STRIDE + MAT_OP;
+    return CubeOp(mats[o], mats[o + 1u], mats[o + 2u], mats[o + 3u], mats[o + 4u]);
 }
 
 // R Σ_b K_ab Rᵀ x_b times `scale`: row a of the stiffness blocks from `kb`, turned by r.
@@ -902,7 +1024,20 @@ fn apply_row(j: u32, region: u32) -> vec3<f32> {
 fn apply_row_at(j: u32, off: u32) -> vec3<f32> {
     let xj = vecs[off + j].xyz;
     var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
-    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
+    let s0 = topo[j];
+    let s1 = topo[j + 1u];
+    if (s0 < s1) {
+        // Level 0: every element of the node is its body's, with one operator.
+        let info = elems[3u * (topo[s0] >> 3u) + 2u];
+        if (bitcast<f32>(info.z) > 0.0) {
+            let op = cube_op(info.x);
+            for (var s = s0; s < s1; s = s + 1u) {
+                y = y + cube_term(topo[s], off, op);
+            }
+            return y;
+        }
+    }
+    for (var s = s0; s < s1; s = s + 1u) {
         y = y + element_term(topo[s], off);
     }
     return y;

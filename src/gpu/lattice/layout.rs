@@ -11,11 +11,12 @@
 //! bodies are appended.
 
 use super::{MAX_BODY_CHUNKS, MAX_LEVELS, WORKGROUP};
+use crate::core::element::CubeOperator;
 use crate::core::model::Model;
 use crate::core::multigrid::{COLOURS, LatticeMultigrid};
 use crate::core::solver::State;
 use glam::{Mat3, Vec3};
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 
 /// A segment: where it starts and how many items it can hold and holds (in the
 /// buffer's own items: u32 in `topo`, vec4 records in `elems`, blocks in `kmat`).
@@ -199,7 +200,7 @@ fn extent(mg: &LatticeMultigrid, b: usize, s: &BodySlice) -> Extent {
         }
     }
     if mg.unit_blocks[b].is_some() {
-        e.kmat += 64;
+        e.kmat += UNIT_SET;
     }
     // Chunks: the energy's (elements and nodes), then each level's nodes.
     let count = |n: u32| {
@@ -292,8 +293,9 @@ impl Writes {
     }
 }
 
-/// Floats of a body's material record in `mats` (vec4s).
-pub(super) const MAT_RECORD: usize = 100;
+/// Vec4s of a body's material record in `mats`: (μ, λ, contact radius, spacing), then
+/// its unit cube operator ([`operator_words`] less its padding).
+pub(crate) const MAT_RECORD: usize = 6;
 
 fn vec4(v: Vec3) -> [f32; 4] {
     v.extend(0.0).to_array()
@@ -321,6 +323,33 @@ fn fingerprint(blocks: &[Mat3]) -> u128 {
         h ^ (h >> 33)
     };
     ((mix(a) as u128) << 64) | mix(b ^ blocks.len() as u64) as u128
+}
+
+/// Blocks of `kmat` a body's unit-cube set takes: its 64 stiffness blocks, then its
+/// factored operator (`CubeOperator`, [`operator_words`]) in the room of two.
+const UNIT_SET: u32 = 64 + 2;
+
+/// Blocks of `kmat` a set takes: a unit cube's with its operator after it, a coarse
+/// element's its 64 blocks.
+fn set_room(unit: bool) -> u32 {
+    if unit { UNIT_SET } else { 64 }
+}
+
+/// A body's unit-cube operator as the six vec4 the lattice kernels read after its unit
+/// blocks: μ, λ, the pairs' entries, the triple's, the singles' (`cube_row` in
+/// lattice.wgsl), zero-padded.
+fn operator_words(op: &CubeOperator) -> [[f32; 4]; 6] {
+    let [p0, p1, p2] = op.pairs;
+    let t = op.triple;
+    let s = op.singles;
+    [
+        [op.mu, op.lambda, p0[0], p0[1]],
+        [p0[2], p1[0], p1[1], p1[2]],
+        [p2[0], p2[1], p2[2], t[0]],
+        [t[1], t[2], t[3], t[4]],
+        [t[5], s[0], s[1], s[2]],
+        [0.0; 4],
+    ]
 }
 
 /// Body `b`'s stiffness block sets in packing order: its unit cube's (a lattice body),
@@ -380,15 +409,18 @@ impl Layout {
         let mut total = Extent::zero(nl);
         let mut most = Extent::zero(nl);
         // The distinct block sets: only those take room in `kmat`.
-        let mut distinct = HashSet::new();
+        let mut distinct = HashMap::new();
         for b in 0..bodies {
             let s = slice(mg, b, &starts);
             let e = extent(mg, b, &s);
             total.add(&e);
             most.max(&e);
-            distinct.extend(block_sets(mg, b, &s).map(fingerprint));
+            let unit = mg.unit_blocks[b].is_some();
+            for (i, p) in block_sets(mg, b, &s).map(fingerprint).enumerate() {
+                distinct.insert(p, set_room(unit && i == 0));
+            }
         }
-        total.kmat = 64 * distinct.len() as u32;
+        total.kmat = distinct.values().sum();
         let caps = |t: &Vec<u32>, m: &Vec<u32>| -> Vec<u32> {
             t.iter()
                 .zip(m)
@@ -554,12 +586,14 @@ impl Layout {
         let mut ext = extent(mg, b, &s);
         // The body's block sets in packing order; those not in the world yet take room.
         let prints: Vec<u128> = block_sets(mg, b, &s).map(fingerprint).collect();
-        let fresh: HashSet<u128> = prints
+        let unit = mg.unit_blocks[b].is_some();
+        let fresh: HashMap<u128, u32> = prints
             .iter()
-            .filter(|p| !self.shared.contains_key(p))
-            .copied()
+            .enumerate()
+            .filter(|(_, p)| !self.shared.contains_key(p))
+            .map(|(i, &p)| (p, set_room(unit && i == 0)))
             .collect();
-        ext.kmat = 64 * fresh.len() as u32;
+        ext.kmat = fresh.values().sum();
         if !self.fits(&ext) {
             return false;
         }
@@ -580,7 +614,7 @@ impl Layout {
         let kbase = self.kmat.end();
         let shared = &mut self.shared;
         let mut print = prints.into_iter();
-        let mut place = |blocks: &[Mat3]| -> u32 {
+        let mut place = |blocks: &[Mat3], op: Option<&CubeOperator>| -> u32 {
             let p = print.next().unwrap_or_else(|| fingerprint(blocks));
             debug_assert_eq!(p, fingerprint(blocks));
             *shared.entry(p).or_insert_with(|| {
@@ -588,10 +622,16 @@ impl Layout {
                 for m in blocks {
                     kmat.extend([vec4(m.x_axis), vec4(m.y_axis), vec4(m.z_axis)]);
                 }
+                if let Some(op) = op {
+                    kmat.extend(operator_words(op));
+                }
                 base
             })
         };
-        let unit_base = mg.unit_blocks[b].as_deref().map_or(kbase, &mut place);
+        let unit_base = match (&mg.unit_blocks[b], &mg.unit_operator[b]) {
+            (Some(blocks), Some(op)) => place(blocks, Some(op)),
+            _ => kbase,
+        };
         for l in 0..nl {
             let lv = &mg.levels[l];
             // Element records.
@@ -604,7 +644,7 @@ impl Layout {
                     let r = &model.element_rest[e as usize];
                     recs.push([unit_base, body, r.size.to_bits(), r.volume.to_bits()]);
                 } else {
-                    let base = place(&lv.blocks[64 * e as usize..64 * (e as usize + 1)]);
+                    let base = place(&lv.blocks[64 * e as usize..64 * (e as usize + 1)], None);
                     recs.push([base, body, 0, 0]);
                 }
             }
@@ -770,17 +810,10 @@ impl Layout {
         out.put(Buf::Bodyt, self.bodies.cap + body, vec![0]);
         // The material record.
         let mut rec = vec![[0.0f32; 4]; MAT_RECORD];
-        if let Some((mat, modes)) = &mg.material[b] {
+        if let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) {
             let info = &model.bodies[b];
             rec[0] = [mat.mu, mat.lambda, info.radius, info.spacing];
-            for (i, k) in modes.stiffness.iter().enumerate() {
-                rec[1 + i / 4][i % 4] = *k;
-            }
-            for (m, v) in modes.vectors.iter().enumerate() {
-                for (q, g) in v.iter().enumerate() {
-                    rec[4 + m * 8 + q] = vec4(*g);
-                }
-            }
+            rec[1..].copy_from_slice(&operator_words(op)[..MAT_RECORD - 1]);
         }
         out.vec4s(Buf::Mats, body * MAT_RECORD as u32, rec);
         // The reductions' chunks: the energy's (elements, then nodes as items past the
@@ -835,6 +868,7 @@ mod tests {
     use crate::core::multigrid::{MAX_LEVELS, MIN_NODES};
     use crate::core::procedural;
     use crate::core::sampling::Resolution;
+    use std::collections::HashSet;
 
     /// Three lattice boxes: two of one material (the second a moved copy of the first),
     /// one stiffer.
@@ -917,6 +951,12 @@ mod tests {
                 bits(mg.unit_blocks[b].as_ref().unwrap()),
                 "body {b}'s unit cube"
             );
+            // Its operator after its blocks.
+            let words = operator_words(mg.unit_operator[b].as_ref().unwrap());
+            let o = 4 * 3 * (unit as usize + 64);
+            let got: Vec<u32> = kmat[o..o + 24].to_vec();
+            let want: Vec<u32> = words.iter().flatten().map(|v| v.to_bits()).collect();
+            assert_eq!(got, want, "body {b}'s unit operator");
             sets += 1;
             for l in 1..mg.levels.len() {
                 for e in s.elems[l].clone() {
@@ -936,8 +976,9 @@ mod tests {
                 .len() as u32
         };
         let (one, stiff) = (distinct(0), distinct(2));
-        // The copy shares every set of the first body; the stiffer one shares none.
-        assert_eq!(layout.kmat.used, 64 * (one + stiff));
+        // The copy shares every set of the first body; the stiffer one shares none. Each
+        // has one unit set (with its operator) and coarse sets of 64 blocks.
+        assert_eq!(layout.kmat.used, 64 * (one + stiff) + 2 * (UNIT_SET - 64));
         assert!(
             layout.kmat.used < 64 * sets,
             "{} of {}",

@@ -35,6 +35,7 @@ use layout::{Buf, Layout, Writes};
 mod append;
 mod carry;
 mod layout;
+pub(crate) use layout::MAT_RECORD;
 
 pub use append::{AppendBasis, PreparedAppend};
 pub use carry::StateRun;
