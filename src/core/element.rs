@@ -301,14 +301,30 @@ impl CubeOperator {
         (Mat3::from_cols(gx, gy, gz), [xy, yz, zx, xyz])
     }
 
+    /// The hourglass coordinates `q_α = Σ_j h_α(c_j) x_j` of corner values `x` alone
+    /// (the second part of [`Self::moments`]; pass values relative to a corner where
+    /// they are positions: the coordinates do not change, their rounding does).
+    #[inline]
+    pub fn hourglass_coords(x: &[Vec3; CORNERS]) -> [Vec3; 4] {
+        Self::moments(x).1
+    }
+
     /// The operator's response to moments `(g, q)` ([`Self::moments`]): the stress
     /// `σ = 2μ ε + λ tr(ε) I` of the strain `ε = sym(g) / 4` (Pa), and the hourglass
-    /// block times the coordinates, `(Q q)_α` (N/m times m).
+    /// block times the coordinates, `(Q q)_α` ([`Self::hourglass`]).
     #[inline]
     pub fn response(&self, g: &Mat3, q: &[Vec3; 4]) -> (Mat3, [Vec3; 4]) {
         let e = (*g + g.transpose()) * 0.25;
         let tr = e.x_axis.x + e.y_axis.y + e.z_axis.z;
         let sigma = e * self.mu + Mat3::from_diagonal(Vec3::splat(0.5 * self.lambda * tr));
+        (sigma, self.hourglass(q))
+    }
+
+    /// The hourglass block times hourglass coordinates `q`, `(Q q)_α` (N/m times m, a
+    /// 1 m cube): `½ qᵀ Q q` is the unit cube's hourglass energy and
+    /// [`Self::hourglass_row`] its corners' forces.
+    #[inline]
+    pub fn hourglass(&self, q: &[Vec3; 4]) -> [Vec3; 4] {
         let (x, y, z) = (q[0], q[1], q[2]);
         let [p0, p1, p2] = self.pairs;
         let t = self.triple;
@@ -330,7 +346,15 @@ impl CubeOperator {
             p1[1] * x.y + p1[2] * z.z,
         );
         let r_xyz = q[3] * Vec3::from_array(s);
-        (sigma, [r_xy, r_yz, r_zx, r_xyz])
+        [r_xy, r_yz, r_zx, r_xyz]
+    }
+
+    /// Corner `a`'s share of the hourglass response `r` ([`Self::hourglass`]),
+    /// `Σ_α h_α(a) r_α`.
+    #[inline]
+    pub fn hourglass_row(a: usize, r: &[Vec3; 4]) -> Vec3 {
+        let h = hourglass_base(a);
+        (r[0] * h[0] + r[1] * h[1]) + (r[2] * h[2] + r[3] * h[3])
     }
 
     /// Row `a` of the unit cube's stiffness times the corner values the response
@@ -338,9 +362,7 @@ impl CubeOperator {
     /// in m, a 1 m cube; an element of edge `h` and volume `V` scales it by `V / h²`).
     #[inline]
     pub fn row(a: usize, sigma: &Mat3, r: &[Vec3; 4]) -> Vec3 {
-        let c = corner_sign(a);
-        let h = hourglass_base(a);
-        *sigma * (c * 0.25) + (r[0] * h[0] + r[1] * h[1]) + (r[2] * h[2] + r[3] * h[3])
+        *sigma * (corner_sign(a) * 0.25) + Self::hourglass_row(a, r)
     }
 
     /// The unit cube's stiffness times corner values `x`, every row (N for x in m).

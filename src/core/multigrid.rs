@@ -16,9 +16,7 @@
 
 use super::constraints::{Hyperelastic, extract_rotation};
 use super::element::corotated_stress;
-use super::element::{
-    CORNERS, CubeOperator, HOURGLASS_MODES, HexModes, cube_stiffness, element_gradient,
-};
+use super::element::{CORNERS, CubeOperator, HexModes, cube_stiffness, element_gradient};
 use super::error::TissueError;
 use super::model::{Discretisation, Material, Model};
 use glam::{DMat3, DVec3, IVec3, Mat3, Quat, Vec3};
@@ -831,7 +829,7 @@ pub fn element_forces(
     size: f32,
     volume: f32,
     mat: &Hyperelastic,
-    modes: &HexModes,
+    op: &CubeOperator,
     rot: &mut Quat,
     rotation_iterations: u32,
 ) -> [Vec3; CORNERS] {
@@ -842,29 +840,28 @@ pub fn element_forces(
     let pv = p * volume;
     let mut out: [Vec3; CORNERS] =
         std::array::from_fn(|j| -(pv * super::element::gradient_weight(j, size)));
+    // Hourglass: −R Σ_α h_α(j) (Q q)_α (V/h²) with q = Rᵀ q(x) (the GPU's `forces`).
     let scale = volume / (size * size);
     let rt = r.transpose();
-    let o = x[0];
-    for m in 0..HOURGLASS_MODES {
-        let gm = &modes.vectors[m];
-        let c: f32 = (0..CORNERS).map(|q| gm[q].dot(rt * (x[q] - o))).sum();
-        let kc = modes.stiffness[m] * scale * c;
-        for (j, o) in out.iter_mut().enumerate() {
-            *o -= r * gm[j] * kc;
-        }
+    let rel = x.map(|p| p - x[0]);
+    let rq = op.hourglass(&CubeOperator::hourglass_coords(&rel).map(|v| rt * v));
+    for (j, o) in out.iter_mut().enumerate() {
+        *o -= r * (CubeOperator::hourglass_row(j, &rq) * scale);
     }
     out
 }
 
 /// The elastic energy (J) of one element at corner positions `x` with its rotation `r`
-/// held: `V (μ ‖sym(Rᵀ F) − I‖² + λ/2 (det F − 1)²) + ½ Σ_m k_m c_m²`, whose gradient
-/// with `R` frozen is [`element_forces`]' negative. For line searches.
+/// held: `V (μ ‖sym(Rᵀ F) − I‖² + λ/2 (det F − 1)²) + ½ (V/h²) qᵀ Q q` (`q` the
+/// hourglass coordinates in the element's frame, `Q` the operator's hourglass block:
+/// the twelve modes' `½ Σ_m k_m c_m²`), whose gradient with `R` frozen is
+/// [`element_forces`]' negative. For line searches.
 pub fn element_energy(
     x: &[Vec3; CORNERS],
     size: f32,
     volume: f32,
     mat: &Hyperelastic,
-    modes: &HexModes,
+    op: &CubeOperator,
     r: &Mat3,
 ) -> f64 {
     let f = element_gradient(x, size);
@@ -872,17 +869,15 @@ pub fn element_energy(
     let e = (rtf + rtf.transpose()) * 0.5 - Mat3::IDENTITY;
     let ee = e.x_axis.length_squared() + e.y_axis.length_squared() + e.z_axis.length_squared();
     let j = f.determinant() - 1.0;
-    let mut out =
+    let out =
         volume as f64 * (mat.mu as f64 * ee as f64 + 0.5 * mat.lambda as f64 * (j * j) as f64);
     let scale = (volume / (size * size)) as f64;
     let rt = r.transpose();
-    let o = x[0];
-    for m in 0..HOURGLASS_MODES {
-        let gm = &modes.vectors[m];
-        let c: f32 = (0..CORNERS).map(|q| gm[q].dot(rt * (x[q] - o))).sum();
-        out += 0.5 * modes.stiffness[m] as f64 * scale * (c * c) as f64;
-    }
-    out
+    let rel = x.map(|p| p - x[0]);
+    let q = CubeOperator::hourglass_coords(&rel).map(|v| rt * v);
+    let rq = op.hourglass(&q);
+    let qq: f32 = q.iter().zip(&rq).map(|(a, b)| a.dot(*b)).sum();
+    out + 0.5 * scale * qq as f64
 }
 
 /// Work space of the V-cycle, one entry per level.

@@ -1272,20 +1272,13 @@ impl Solver {
         }
         let mut force = vec![Vec3::ZERO; n];
         for (e, nodes) in model.elements.iter().enumerate() {
-            let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
+            let b = model.element_body[e] as usize;
+            let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
                 continue;
             };
             let r = &model.element_rest[e];
             let x = nodes.map(|j| self.p[j as usize]);
-            let f = element_forces(
-                &x,
-                r.size,
-                r.volume,
-                mat,
-                modes,
-                &mut state.element_rot[e],
-                ri,
-            );
+            let f = element_forces(&x, r.size, r.volume, mat, op, &mut state.element_rot[e], ri);
             for (k, &j) in nodes.iter().enumerate() {
                 force[j as usize] += f[k];
             }
@@ -2228,7 +2221,8 @@ fn reaction_on_collider(
     let mut r = (target.0 - p[j]) * (model.mass[j] / target.1);
     for &ec in model.elements_of(j) {
         let (e, corner) = ((ec >> 3) as usize, (ec & 7) as usize);
-        let Some((mat, modes)) = &mg.material[model.element_body[e] as usize] else {
+        let b = model.element_body[e] as usize;
+        let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
             continue;
         };
         let nodes = &model.elements[e];
@@ -2239,7 +2233,7 @@ fn reaction_on_collider(
             rest.size,
             rest.volume,
             mat,
-            modes,
+            op,
             &mut q,
             0,
         );
@@ -2307,7 +2301,7 @@ fn substep_energy(
     }
     for (e, nodes) in model.elements.iter().enumerate() {
         let b = model.element_body[e] as usize;
-        let Some((mat, modes)) = &mg.material[b] else {
+        let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
             continue;
         };
         let r = &model.element_rest[e];
@@ -2315,7 +2309,7 @@ fn substep_energy(
         let mut q = rot.1[e];
         extract_rotation(&element_gradient(&x, r.size), &mut q, rot.0);
         g[b] +=
-            super::multigrid::element_energy(&x, r.size, r.volume, mat, modes, &Mat3::from_quat(q));
+            super::multigrid::element_energy(&x, r.size, r.volume, mat, op, &Mat3::from_quat(q));
     }
     for c in contacts.0 {
         let depth = c.depth(model, contacts.1, y);
