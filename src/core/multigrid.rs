@@ -16,7 +16,7 @@
 
 use super::constraints::{Hyperelastic, extract_rotation};
 use super::element::corotated_stress;
-use super::element::{CORNERS, CubeOperator, HexModes, cube_stiffness, element_gradient};
+use super::element::{CORNERS, CubeOperator, cube_stiffness, element_gradient};
 use super::error::TissueError;
 use super::model::{Discretisation, Material, Model};
 use glam::{DMat3, DVec3, IVec3, Mat3, Quat, Vec3};
@@ -170,8 +170,8 @@ pub struct LatticeMultigrid {
     pub unit_blocks: Vec<Option<Vec<Mat3>>>,
     /// Per body: `unit` in factored form, which level 0's rows are applied with.
     pub unit_operator: Vec<Option<CubeOperator>>,
-    /// Per body: its material's Lamé parameters and hourglass modes.
-    pub material: Vec<Option<(Hyperelastic, HexModes)>>,
+    /// Per body: its material's Lamé parameters.
+    pub material: Vec<Option<Hyperelastic>>,
     /// The smoother of every level.
     pub smoother: Smoother,
     /// Per level: the Chebyshev smoother's `1/θ` and `ρ²` (`θ` the centre of the
@@ -235,8 +235,8 @@ pub struct BodyLevels {
     pub unit_blocks: Option<Vec<Mat3>>,
     /// `unit` in factored form, which level 0's rows are applied with.
     pub unit_operator: Option<CubeOperator>,
-    /// The material's Lamé parameters and hourglass modes.
-    pub material: Option<(Hyperelastic, HexModes)>,
+    /// The material's Lamé parameters.
+    pub material: Option<Hyperelastic>,
     /// Per level: the Chebyshev smoother's `1/θ` and `ρ²` for this body alone (see
     /// [`LatticeMultigrid::chebyshev`]), estimated with the levels, so that appending
     /// the body to a world costs no power iteration.
@@ -267,12 +267,7 @@ impl BodyLevels {
                     let k: Vec<f32> = k64.iter().map(|&v| v as f32).collect();
                     let blocks = to_blocks(&k);
                     let op = CubeOperator::from_stiffness(mu, lambda, &k64);
-                    (
-                        Some(k),
-                        Some(blocks),
-                        Some(op),
-                        Some((mat, HexModes::of(&mat))),
-                    )
+                    (Some(k), Some(blocks), Some(op), Some(mat))
                 }
                 _ => (None, None, None, None),
             };
@@ -418,7 +413,7 @@ impl LatticeMultigrid {
             unit: parts.iter().map(|p| p.unit.clone()).collect(),
             unit_blocks: parts.iter().map(|p| p.unit_blocks.clone()).collect(),
             unit_operator: parts.iter().map(|p| p.unit_operator).collect(),
-            material: parts.iter().map(|p| p.material.clone()).collect(),
+            material: parts.iter().map(|p| p.material).collect(),
             smoother: Smoother::default(),
             chebyshev: Vec::new(),
         }

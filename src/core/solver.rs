@@ -1273,7 +1273,7 @@ impl Solver {
         let mut force = vec![Vec3::ZERO; n];
         for (e, nodes) in model.elements.iter().enumerate() {
             let b = model.element_body[e] as usize;
-            let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
+            let (Some(mat), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
                 continue;
             };
             let r = &model.element_rest[e];
@@ -2222,7 +2222,7 @@ fn reaction_on_collider(
     for &ec in model.elements_of(j) {
         let (e, corner) = ((ec >> 3) as usize, (ec & 7) as usize);
         let b = model.element_body[e] as usize;
-        let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
+        let (Some(mat), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
             continue;
         };
         let nodes = &model.elements[e];
@@ -2301,7 +2301,7 @@ fn substep_energy(
     }
     for (e, nodes) in model.elements.iter().enumerate() {
         let b = model.element_body[e] as usize;
-        let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
+        let (Some(mat), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) else {
             continue;
         };
         let r = &model.element_rest[e];

@@ -810,7 +810,7 @@ impl Layout {
         out.put(Buf::Bodyt, self.bodies.cap + body, vec![0]);
         // The material record.
         let mut rec = vec![[0.0f32; 4]; MAT_RECORD];
-        if let (Some((mat, _)), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) {
+        if let (Some(mat), Some(op)) = (&mg.material[b], &mg.unit_operator[b]) {
             let info = &model.bodies[b];
             rec[0] = [mat.mu, mat.lambda, info.radius, info.spacing];
             rec[1..].copy_from_slice(&operator_words(op)[..MAT_RECORD - 1]);
