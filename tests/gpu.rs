@@ -1284,6 +1284,98 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     assert_eq!(exact_rows, 6, "rows that solve the coarsest level exactly");
 }
 
+/// Sweeps taken a workgroup per body (`LatticeOptions::body_sweeps`: level 0's
+/// Gauss–Seidel a sweep a dispatch, `smooth_bodies`, the body's correction in workgroup
+/// memory; a small level between's Chebyshev sweeps in one dispatch) step as the same
+/// sweeps taken a dispatch a colour or a sweep, each node's row in one thread: a clamped
+/// bar (825 particles) beside two free boxes, coarsened to 16 nodes a body so that a
+/// level between is small, the hybrid smoother, conjugate gradients of two V-cycles, 30
+/// steps of 1/60 s. Level 0's updates are the same sums (the states agree to rounding);
+/// the world swept by body records as many fewer dispatches as its plan says. (Each way
+/// is compared with the CPU in `lattice_newton_multigrid_matches_the_cpu`.)
+#[test]
+fn lattice_body_sweeps_match_colour_sweeps() {
+    use bevy_tissue::core::multigrid::{LatticeMultigrid, MAX_LEVELS, Smoother, Sweeps};
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::{BODY_SWEEP_NODES, FUSED_COARSEST, GpuLattice, LatticeOptions};
+    let Some(g) = gpu() else {
+        return;
+    };
+    let (device, queue) = (&g.device, &g.queue);
+    let kernels = LatticeKernels::new(device).expect("the lattice kernels");
+    let mut model = lattice_bar(0.0075);
+    for i in 0..2 {
+        model.append(&common::lattice_box_at(
+            Vec3::splat(0.016),
+            Vec3::new(0.1 * i as f32, 0.5, 0.5),
+        ));
+    }
+    let s = SolverSettings {
+        smoother: Smoother::Hybrid,
+        newton_cycles: 2,
+        sweeps: Sweeps::DEFAULT,
+        ..lattice_settings()
+    };
+    let mg = LatticeMultigrid::new(&model, 16, MAX_LEVELS);
+    let most = |l: usize| {
+        let lv = &mg.levels[l];
+        lv.body_start.windows(2).map(|w| w[1] - w[0]).max().unwrap()
+    };
+    let nl = mg.levels.len();
+    // Levels between level 0 and the coarsest with at most FUSED_COARSEST nodes a body.
+    let between = (1..nl - 1).filter(|&l| most(l) <= FUSED_COARSEST).count();
+    eprintln!(
+        "levels' most nodes a body: {:?}",
+        (0..nl).map(most).collect::<Vec<_>>()
+    );
+    assert!(most(0) <= BODY_SWEEP_NODES && between > 0);
+    let start = State::new(&model);
+    let world = |body_sweeps| {
+        GpuLattice::with_levels(
+            device,
+            &kernels,
+            &model,
+            mg.clone(),
+            &start,
+            &s,
+            LatticeOptions {
+                one_thread_rows_from: 0,
+                body_sweeps,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+    };
+    let (colours, bodies) = (world(0), world(BODY_SWEEP_NODES));
+    // Level 0: 7 fewer for its sweep before and after the coarse correction of each of
+    // the 2 V-cycles; each small level between: 1 fewer for its 2 Chebyshev sweeps
+    // before and after.
+    assert_eq!(
+        colours.dispatch_count() - bodies.dispatch_count(),
+        7 * 4 + between * 4,
+        "{} dispatches a step by colour, {} by body",
+        colours.dispatch_count(),
+        bodies.dispatch_count()
+    );
+    let run = |w: &GpuLattice| {
+        let mut enc = device.create_command_encoder(&Default::default());
+        w.record(&mut enc, &kernels, 30, None);
+        queue.submit([enc.finish()]);
+        let mut state = start.clone();
+        w.download(device, queue, &mut state);
+        state.x
+    };
+    let (a, b) = (run(&colours), run(&bodies));
+    let sag = max_dist(&model.rest, &a);
+    let apart = max_dist(&a, &b);
+    eprintln!("after 30 steps: moved {sag:.3e} m; by body − by colour {apart:.3e} m");
+    assert!(sag > 1e-2, "the bodies fell ({sag} m)");
+    assert!(
+        apart <= 1e-5 * sag,
+        "by body − by colour {apart} m of {sag} m"
+    );
+}
+
 /// A GPU lattice made from its bodies' own levels, each built from a model of that body
 /// alone and joined (`LatticeMultigrid::from_bodies`, what the plugin does when a body
 /// comes or goes), steps to the bit as one that coarsens the whole model itself: a

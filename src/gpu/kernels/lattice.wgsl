@@ -1201,6 +1201,136 @@ fn smooth_colour(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation
     smooth_split(pc.first + wg.x * 8u + lid / 8u, pc.first + pc.count, lid);
 }
 
+// A whole Gauss–Seidel sweep of level 0 in one dispatch, where no body has more than
+// `SWEEP_NODES` nodes there: a workgroup per body (striding over the bodies) takes the
+// colours in turn, its body's correction δ held in workgroup memory from the first
+// colour to the last (read from `vecs` before, written back after). Nodes of one colour
+// share no element, so each colour's updates are those of `smooth_colour` one thread a
+// node, in the same sums: only the dispatches and the loads of δ go.
+var<workgroup> sweep_x: array<f32, 3 * SWEEP_NODES>;
+// Per colour: the body's run in the colour order (first, end).
+var<workgroup> sweep_runs: array<vec2<u32>, 8>;
+
+fn sweep_get(i: u32) -> vec3<f32> {
+    let o = 3u * i;
+    return vec3<f32>(sweep_x[o], sweep_x[o + 1u], sweep_x[o + 2u]);
+}
+
+fn sweep_set(i: u32, v: vec3<f32>) {
+    let o = 3u * i;
+    sweep_x[o] = v.x;
+    sweep_x[o + 1u] = v.y;
+    sweep_x[o + 2u] = v.z;
+}
+
+// The first position in topo[lo .. hi] (a colour's run, which lists the bodies' nodes in
+// body order) whose node is of body b or a later one.
+fn run_bound(lo: u32, hi: u32, b: u32) -> u32 {
+    var a = lo;
+    var z = hi;
+    while (a < z) {
+        let m = (a + z) / 2u;
+        if (node_body(topo[m]) < b) {
+            a = m + 1u;
+        } else {
+            z = m;
+        }
+    }
+    return a;
+}
+
+// Element e's part of (A δ) at its corner a with δ in `sweep_x` (the body's first node
+// at `base`): `element_term`, or with `op` (the body's cube operator) `cube_term`.
+fn sweep_term(ec: u32, base: u32, op: CubeOp, cube: bool) -> vec3<f32> {
+    let e = ec >> 3u;
+    let c0 = elems[3u * e];
+    let c1 = elems[3u * e + 1u];
+    let x0 = sweep_get(c0.x - base);
+    let x1 = sweep_get(c0.y - base);
+    let x2 = sweep_get(c0.z - base);
+    let x3 = sweep_get(c0.w - base);
+    let x4 = sweep_get(c1.x - base);
+    let x5 = sweep_get(c1.y - base);
+    let x6 = sweep_get(c1.z - base);
+    let x7 = sweep_get(c1.w - base);
+    if (cube) {
+        let info = elems[3u * e + 2u];
+        let size = bitcast<f32>(info.z);
+        return cube_op_row(op, ec & 7u, bitcast<f32>(info.w) / (size * size), quat_mat(rot[e]),
+                           x0, x1, x2, x3, x4, x5, x6, x7);
+    }
+    return element_apply(e, ec & 7u, x0, x1, x2, x3, x4, x5, x6, x7);
+}
+
+// `smooth_node` of level-0 node j with δ in `sweep_x` (the body's first node at `base`):
+// the same terms in the same order as `apply_row_at`.
+fn sweep_node(j: u32, base: u32) {
+    if (held(j)) {
+        return;
+    }
+    let xj = sweep_get(j - base);
+    var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
+    let s0 = topo[j];
+    let s1 = topo[j + 1u];
+    var op = CubeOp(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
+    var cube = false;
+    if (s0 < s1) {
+        let info = elems[3u * (topo[s0] >> 3u) + 2u];
+        cube = bitcast<f32>(info.z) > 0.0;
+        if (cube) {
+            op = cube_op(info.x);
+        }
+    }
+    for (var s = s0; s < s1; s = s + 1u) {
+        y = y + sweep_term(topo[s], base, op, cube);
+    }
+    let o = 3u * j;
+    let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+    let r = vecs[V_RHS * params.n_total + j].xyz - y;
+    sweep_set(j - base, xj + dinv * r);
+}
+
+// Level 0's Gauss–Seidel sweep, a workgroup per body (see `sweep_x`); pc.first: level
+// 0's reduction table.
+@compute @workgroup_size(64)
+fn smooth_bodies(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                 @builtin(local_invocation_index) lid: u32) {
+    let n = params.n_total;
+    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
+        if (lid == 0u) {
+            // The plan sweeps bodies this way only where each fits `sweep_x`.
+            wide_range = body_nodes(b, 0u, SWEEP_NODES);
+        }
+        if (lid < 16u) {
+            // Each colour's run, both its ends searched at once.
+            let run = colour_range(0u, lid / 2u);
+            let at = run_bound(run.x, run.y, b + lid % 2u);
+            if (lid % 2u == 0u) {
+                sweep_runs[lid / 2u].x = at;
+            } else {
+                sweep_runs[lid / 2u].y = at;
+            }
+        }
+        let range = workgroupUniformLoad(&wide_range);
+        for (var i = range.x + lid; i < range.y; i = i + LWG) {
+            sweep_set(i - range.x, vecs[V_DELTA * n + i].xyz);
+        }
+        workgroupBarrier();
+        for (var c = 0u; c < 8u; c = c + 1u) {
+            let run = sweep_runs[c];
+            for (var i = run.x + lid; i < run.y; i = i + LWG) {
+                sweep_node(topo[i], range.x);
+            }
+            workgroupBarrier();
+        }
+        for (var i = range.x + lid; i < range.y; i = i + LWG) {
+            vecs[V_DELTA * n + i] = vec4<f32>(sweep_get(i - range.x), 0.0);
+        }
+        // Every thread has read this body's ranges and δ before the next body's.
+        workgroupBarrier();
+    }
+}
+
 // The residual rhs − A δ of level pc.level's nodes (0 on fixed ones).
 @compute @workgroup_size(64)
 fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
