@@ -145,10 +145,6 @@ pub enum Kernel {
     Diag,
     /// `smooth_colour`: one colour of a Gauss–Seidel sweep.
     Smooth,
-    /// `smooth_bodies`: a whole Gauss–Seidel sweep of level 0, a workgroup per body
-    /// (where no body has more than
-    /// [`BODY_SWEEP_NODES`](crate::gpu::lattice::BODY_SWEEP_NODES) nodes there).
-    SmoothBodies,
     /// `smooth_chebyshev`: one Chebyshev–Jacobi sweep of a level.
     Chebyshev,
     /// `smooth_coarsest`: every Chebyshev sweep of the coarsest level, a workgroup per
@@ -268,13 +264,6 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Smooth,
         name: "smooth_colour",
-        uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
-        ],
-    },
-    Entry {
-        kernel: Kernel::SmoothBodies,
-        name: "smooth_bodies",
         uses: &[
             "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
         ],
@@ -445,14 +434,10 @@ pub fn source() -> String {
          const EXACT_COLUMN: u32 = {}u;\n\
          const EXACT_PACKED: u32 = {}u;\n\
          // Vec4s of a body's material record in `mats` (gpu::lattice's MAT_RECORD).\n\
-         const MAT_STRIDE: u32 = {}u;\n\
-         // The most level-0 nodes of a body swept by `smooth_bodies`\n\
-         // (gpu::lattice::BODY_SWEEP_NODES).\n\
-         const SWEEP_NODES: u32 = {}u;\n",
+         const MAT_STRIDE: u32 = {}u;\n",
         rows + 1,
         packed_len(rows + 1),
         crate::gpu::lattice::MAT_RECORD,
-        crate::gpu::lattice::BODY_SWEEP_NODES,
     ));
     s.push_str("\n// Bindings (src/gpu/kernels/lattice.rs, SLOTS).\n");
     // The declarations refer to the structs of lattice.wgsl; WGSL resolves them in any

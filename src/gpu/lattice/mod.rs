@@ -6,9 +6,7 @@
 //! iteration the element forces and rotations, the residual, the Newton step — one
 //! V-cycle of the configured smoother on every level of the hierarchy
 //! (Chebyshev-accelerated block Jacobi, one dispatch a sweep, or block Gauss–Seidel by
-//! colour, one dispatch a colour; where the bodies are small, a workgroup per body takes
-//! a level's sweeps with the body's iterates in its workgroup memory; coarse corrections
-//! taken with their energy-minimising step), or conjugate
+//! colour; coarse corrections taken with their energy-minimising step), or conjugate
 //! gradients preconditioned by several — a trust region and a backtracking line search
 //! on the substep energy; finally the velocity update. The sequence of dispatches
 //! is [`plan`], a pure function of the hierarchy's shape and the settings; recording
@@ -66,11 +64,6 @@ const ROW_MODE: u32 = 0x10000;
 /// nodes a sweep in a body's workgroup, the body's iterates in its workgroup memory
 /// (`COARSEST_NODES` in the shader).
 pub const FUSED_COARSEST: u32 = 128;
-/// The most level-0 nodes a body may have for level 0's Gauss–Seidel sweeps to run a
-/// sweep a dispatch (`smooth_bodies`, a workgroup per body, its correction in workgroup
-/// memory: 12 bytes a node), and [`LatticeOptions::body_sweeps`]'s default and most.
-pub const BODY_SWEEP_NODES: u32 = 1024;
-
 /// Where no body has more than this many nodes on a fused coarsest level, its sweeps run
 /// in `smooth_coarsest_small`, whose threads (eight a node) each hold one element's data
 /// from sweep to sweep rather than room for four: fewer registers, more bodies at once
@@ -164,10 +157,6 @@ pub struct Shape {
     pub fused_coarsest: u32,
     /// [`LatticeOptions::one_thread_rows_from`].
     pub one_thread_rows_from: u32,
-    /// Per level: the most nodes one body has there.
-    pub most_nodes: Vec<u32>,
-    /// [`LatticeOptions::body_sweeps`].
-    pub body_sweeps: u32,
 }
 
 impl Shape {
@@ -181,24 +170,6 @@ impl Shape {
         l > 0
             && self.smoother.on_level(l) == Smoother::Chebyshev
             && self.most_coarsest <= self.fused_coarsest.min(FUSED_COARSEST)
-    }
-
-    /// Whether level `l`'s sweeps before and after its coarse correction run a
-    /// workgroup per body ([`LatticeOptions::body_sweeps`]): there is a coarser level (so
-    /// a reduction table of the level's nodes by body), and no body has more than
-    /// [`Shape::body_sweeps`] nodes there, nor more than the kernel takes: on level 0
-    /// smoothed by Gauss–Seidel [`BODY_SWEEP_NODES`] (`smooth_bodies`, a dispatch a
-    /// sweep), on a level below it smoothed by Chebyshev [`FUSED_COARSEST`]
-    /// (`smooth_coarsest`, all of its sweeps in one dispatch); never on level 0 smoothed
-    /// by Chebyshev.
-    pub fn body_sweeps(&self, l: usize) -> bool {
-        let most = self.most_nodes.get(l).copied().unwrap_or(0);
-        let kernel_most = match self.smoother.on_level(l) {
-            Smoother::GaussSeidel if l == 0 => BODY_SWEEP_NODES,
-            Smoother::Chebyshev if l > 0 => FUSED_COARSEST,
-            _ => 0,
-        };
-        l + 1 < self.levels.len() && most > 0 && most <= self.body_sweeps.min(kernel_most)
     }
 
     /// Whether the coarsest level is solved exactly (`solve_coarsest`, a workgroup per
@@ -235,17 +206,6 @@ pub struct LatticeOptions {
     /// The sums' order differs, so the answers differ by rounding. 0: always one thread a
     /// node; `u32::MAX`: never. Default 16,384.
     pub one_thread_rows_from: u32,
-    /// A level's sweeps before and after its coarse correction run a workgroup per body,
-    /// where no body has more than this many nodes there: level 0's Gauss–Seidel sweeps
-    /// a sweep a dispatch, the colours in turn (up to [`BODY_SWEEP_NODES`] nodes a body),
-    /// instead of a dispatch a colour; the sweeps of a Chebyshev level below level 0 all
-    /// in one dispatch (up to [`FUSED_COARSEST`], as the coarsest level's), instead of a
-    /// dispatch a sweep.
-    /// Each body's iterates stay in its workgroup's memory between sweeps. The updates
-    /// are the same (level 0's as one thread a node's; a Chebyshev row's sums in another
-    /// order). Many small bodies then take far fewer dispatches. 0: never. Default
-    /// [`BODY_SWEEP_NODES`].
-    pub body_sweeps: u32,
 }
 
 /// [`LatticeOptions::one_thread_rows_from`]'s default.
@@ -258,7 +218,6 @@ impl Default for LatticeOptions {
             room: 1.0,
             fused_coarsest: FUSED_COARSEST,
             one_thread_rows_from: ONE_THREAD_ROWS_FROM,
-            body_sweeps: BODY_SWEEP_NODES,
         }
     }
 }
@@ -387,23 +346,6 @@ fn sweeps(
             (0, 8)
         }
     };
-    if shape.body_sweeps(l) {
-        // A workgroup per body, over the level's reduction table.
-        let [t0, tn] = shape.tables[1 + l];
-        if l == 0 {
-            for _ in 0..count {
-                push(Kernel::SmoothBodies, t0, tn, 0, 0, pick_groups(shape));
-            }
-        } else {
-            let kernel = if shape.most_nodes[l] <= SMALL_COARSEST {
-                Kernel::CoarsestSmall
-            } else {
-                Kernel::Coarsest
-            };
-            push(kernel, t0, tn, l as u32, count, pick_groups(shape));
-        }
-        return;
-    }
     if shape.smoother.on_level(l) == Smoother::Chebyshev {
         // An even count ends in the correction's own region (see `chebyshev_node`).
         debug_assert!(count.is_multiple_of(2), "Chebyshev sweeps come in pairs");
@@ -588,7 +530,8 @@ fn shape_of(
     pairs: Option<u32>,
     cycles: u32,
     sweeps: Sweeps,
-    options: &LatticeOptions,
+    fused_coarsest: u32,
+    one_thread_rows_from: u32,
 ) -> Shape {
     Shape {
         levels: layout
@@ -609,10 +552,8 @@ fn shape_of(
         cycles: cycles.max(1),
         sweeps,
         most_coarsest: layout.most_nodes.last().copied().unwrap_or(0),
-        fused_coarsest: options.fused_coarsest,
-        one_thread_rows_from: options.one_thread_rows_from,
-        most_nodes: layout.most_nodes.clone(),
-        body_sweeps: options.body_sweeps,
+        fused_coarsest,
+        one_thread_rows_from,
     }
 }
 
@@ -842,7 +783,8 @@ impl GpuLattice {
             (pair_capacity > 0).then_some(settings.contact_every),
             settings.newton_cycles,
             settings.sweeps,
-            &options,
+            options.fused_coarsest,
+            options.one_thread_rows_from,
         );
         // Every buffer's contents: zero, then the bodies' writes.
         let (n, nt) = (layout.n_slots() as usize, layout.node_slots() as usize);
@@ -1623,9 +1565,6 @@ mod tests {
             most_coarsest: 3,
             fused_coarsest: 0,
             one_thread_rows_from: u32::MAX,
-            // Each level swept a dispatch a colour or a sweep (what these tests count).
-            most_nodes: vec![40, 8, 3],
-            body_sweeps: 0,
         }
     }
 
@@ -1861,132 +1800,6 @@ mod tests {
         };
         // Level 1 has an empty colour.
         assert_eq!((count(0), count(1), count(2)), (2 * 8, 2 * 3 * 7, 5 * 8));
-    }
-
-    /// The plan with `level` (0 or 1) swept a workgroup per body and without: the same
-    /// dispatches but that each of that level's sweeps before and after its coarse
-    /// correction (level 0's 8 colours a sweep; level 1's 2 Chebyshev sweeps) are one
-    /// dispatch of `kernel` over the level's reduction table.
-    fn check_body_sweeps(colours: &Shape, level: usize, kernel: Kernel) {
-        let bodies = Shape {
-            body_sweeps: BODY_SWEEP_NODES,
-            ..colours.clone()
-        };
-        assert!(bodies.body_sweeps(level) && !colours.body_sweeps(level));
-        assert!((0..3).all(|l| l == level || !bodies.body_sweeps(l)));
-        let (a, b) = (plan(colours, 1), plan(&bodies, 1));
-        let old = |d: &Dispatch| {
-            matches!(d.kernel, Kernel::Smooth | Kernel::Chebyshev) && d.pass.level == level as u32
-        };
-        // A sweep's colours, or the sweeps before or after a correction.
-        let per = if level == 0 { 8 } else { 2 };
-        let mut collapsed = Vec::new();
-        let mut run = 0;
-        for d in &a {
-            if old(d) {
-                run += 1;
-                if run == per {
-                    collapsed.push(kernel);
-                    run = 0;
-                }
-            } else {
-                collapsed.push(d.kernel);
-            }
-        }
-        assert_eq!(collapsed, b.iter().map(|d| d.kernel).collect::<Vec<_>>());
-        let new: Vec<&Dispatch> = b.iter().filter(|d| d.kernel == kernel).collect();
-        // Two (level 0: each of its sweeps) before and after the correction, per V-cycle.
-        let runs = if level == 0 { 4 } else { 2 };
-        assert_eq!(new.len(), runs * colours.cycles as usize);
-        let [t0, tn] = colours.tables[1 + level];
-        let mode = if level == 0 { 0 } else { 2 };
-        for d in new {
-            assert_eq!(
-                (
-                    d.pass.first,
-                    d.pass.count,
-                    d.pass.level,
-                    d.pass.mode,
-                    d.groups
-                ),
-                (t0, tn, level as u32, mode, 3)
-            );
-        }
-        // Everything else is the same, in the same order.
-        let rest = |p: &[Dispatch]| -> Vec<Dispatch> {
-            p.iter()
-                .filter(|d| !old(d) && d.kernel != kernel)
-                .copied()
-                .collect()
-        };
-        assert_eq!(rest(&a), rest(&b));
-    }
-
-    /// Small bodies' level 0 takes one `smooth_bodies` dispatch a Gauss–Seidel sweep (a
-    /// workgroup per body) in place of a dispatch a colour; a Chebyshev level between
-    /// takes one `smooth_coarsest` (`smooth_coarsest_small` up to [`SMALL_COARSEST`] nodes
-    /// a body) for its sweeps before and after the correction. Not where a body has more
-    /// nodes there than the option or the kernel allows, on the coarsest level (fused by
-    /// its own option), or with the option 0.
-    #[test]
-    fn small_bodies_take_their_sweeps_a_workgroup_a_body() {
-        for cycles in [1, 2] {
-            let hybrid = Shape {
-                cycles,
-                smoother: Smoother::Hybrid,
-                ..shape()
-            };
-            let level_0 = Shape {
-                most_nodes: vec![40, FUSED_COARSEST + 1, 3],
-                ..hybrid.clone()
-            };
-            check_body_sweeps(&level_0, 0, Kernel::SmoothBodies);
-            let level_1 = Shape {
-                most_nodes: vec![BODY_SWEEP_NODES + 1, 8, 3],
-                ..hybrid.clone()
-            };
-            check_body_sweeps(&level_1, 1, Kernel::CoarsestSmall);
-            let level_1 = Shape {
-                most_nodes: vec![BODY_SWEEP_NODES + 1, SMALL_COARSEST + 1, 3],
-                ..hybrid.clone()
-            };
-            check_body_sweeps(&level_1, 1, Kernel::Coarsest);
-        }
-        let base = Shape {
-            smoother: Smoother::Hybrid,
-            body_sweeps: BODY_SWEEP_NODES,
-            ..shape()
-        };
-        for s in [
-            Shape {
-                most_nodes: vec![BODY_SWEEP_NODES + 1, FUSED_COARSEST + 1, 3],
-                body_sweeps: u32::MAX,
-                ..base.clone()
-            },
-            Shape {
-                most_nodes: vec![41, 41, 3],
-                body_sweeps: 40,
-                ..base.clone()
-            },
-            Shape {
-                body_sweeps: 0,
-                ..base.clone()
-            },
-        ] {
-            assert!((0..3).all(|l| !s.body_sweeps(l)), "{:?}", s.most_nodes);
-            assert!(plan(&s, 1).iter().all(|d| {
-                d.kernel != Kernel::SmoothBodies
-                    && !(matches!(d.kernel, Kernel::Coarsest | Kernel::CoarsestSmall))
-            }));
-        }
-        // Level 0 smoothed by Chebyshev is not taken a workgroup per body; the coarsest
-        // level is left to its own option (`fused_coarsest`, 0 in these shapes).
-        let chebyshev = Shape {
-            smoother: Smoother::Chebyshev,
-            most_nodes: vec![40, FUSED_COARSEST + 1, 3],
-            ..base.clone()
-        };
-        assert!((0..3).all(|l| !chebyshev.body_sweeps(l)));
     }
 
     /// Particle contacts are projected after every `contact_every`-th Newton iteration
