@@ -1284,6 +1284,92 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     assert_eq!(exact_rows, 6, "rows that solve the coarsest level exactly");
 }
 
+/// Level 0's full products made element by element (`LatticeOptions::element_rows_from`:
+/// each element's rows of `A x` once into the element force buffer, then each node's sum;
+/// the residual before restriction, the coarse correction's step, the conjugate
+/// gradients' `A p`) step as the same products made node by node, and as the CPU: a
+/// clamped bar (825 particles) beside two free boxes, the hybrid smoother, conjugate
+/// gradients of 1 and 2 V-cycles, 30 steps of 1/60 s; and the plan with them has two
+/// (one V-cycle) or six (two) more dispatches a step.
+#[test]
+fn lattice_products_by_element_match_by_node() {
+    use bevy_tissue::core::multigrid::{Smoother, Sweeps};
+    use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
+    use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
+    let Some(g) = gpu() else {
+        return;
+    };
+    let (device, queue) = (&g.device, &g.queue);
+    let kernels = LatticeKernels::new(device).expect("the lattice kernels");
+    let mut model = lattice_bar(0.0075);
+    for i in 0..2 {
+        model.append(&common::lattice_box_at(
+            Vec3::splat(0.016),
+            Vec3::new(0.1 * i as f32, 0.5, 0.5),
+        ));
+    }
+    for cycles in [1u32, 2] {
+        let s = SolverSettings {
+            smoother: Smoother::Hybrid,
+            newton_cycles: cycles,
+            sweeps: Sweeps::DEFAULT,
+            ..lattice_settings()
+        };
+        let start = State::new(&model);
+        let world = |element_rows_from| {
+            GpuLattice::new_with(
+                device,
+                &kernels,
+                &model,
+                &start,
+                &s,
+                LatticeOptions {
+                    element_rows_from,
+                    ..Default::default()
+                },
+            )
+            .unwrap()
+        };
+        let (nodes, elements) = (world(u32::MAX), world(0));
+        // An element pass for each V-cycle's residual and step, and for each conjugate
+        // gradient's A p (none with one V-cycle).
+        let cg = if cycles > 1 { cycles } else { 0 };
+        assert_eq!(
+            elements.dispatch_count() - nodes.dispatch_count(),
+            (2 * cycles + cg) as usize,
+            "{cycles} V-cycle(s)"
+        );
+        let mut cpu = start.clone();
+        let mut solver = Solver::new(&model, s.clone()).unwrap();
+        for _ in 0..30 {
+            solver.step(&model, &mut cpu, &Control::default()).unwrap();
+        }
+        let run = |w: &GpuLattice| {
+            let mut enc = device.create_command_encoder(&Default::default());
+            w.record(&mut enc, &kernels, 30, None);
+            queue.submit([enc.finish()]);
+            let mut state = start.clone();
+            w.download(device, queue, &mut state);
+            state.x
+        };
+        let (a, b) = (run(&nodes), run(&elements));
+        // The bar alone (the boxes fall freely).
+        let bar = lattice_bar(0.0075).particle_count();
+        let sag = max_dist(&model.rest[..bar], &cpu.x[..bar]);
+        let apart = max_dist(&a, &b);
+        let (da, db) = (max_dist(&a, &cpu.x), max_dist(&b, &cpu.x));
+        eprintln!(
+            "{cycles} V-cycle(s), after 30 steps: the bar moved {sag:.3e} m; by element − by node {apart:.3e} m; GPU − CPU {da:.3e} m by node, {db:.3e} m by element"
+        );
+        assert!(sag > 1e-3, "the bar moved ({sag} m)");
+        assert!(
+            apart <= 1e-4 * sag,
+            "by element − by node {apart} m of {sag} m"
+        );
+        assert!(db <= 1e-3 * sag + 1e-6, "GPU − CPU {db} m of {sag} m");
+    }
+}
+
 /// A GPU lattice made from its bodies' own levels, each built from a model of that body
 /// alone and joined (`LatticeMultigrid::from_bodies`, what the plugin does when a body
 /// comes or goes), steps to the bit as one that coarsens the whole model itself: a

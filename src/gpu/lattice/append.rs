@@ -6,7 +6,9 @@
 //! on a worker thread.
 
 use super::layout::{Buf, Layout, Writes};
-use super::{Dispatch, GpuLattice, PassRecord, Shape, pass_bytes, passes_of, shape_of};
+use super::{
+    Dispatch, GpuLattice, LatticeOptions, PassRecord, Shape, pass_bytes, passes_of, shape_of,
+};
 use crate::core::TissueError;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{BodyLevels, LatticeMultigrid};
@@ -103,8 +105,12 @@ impl AppendBasis {
             self.shape.pairs,
             self.shape.cycles,
             self.shape.sweeps,
-            self.shape.fused_coarsest,
-            self.shape.one_thread_rows_from,
+            &LatticeOptions {
+                fused_coarsest: self.shape.fused_coarsest,
+                one_thread_rows_from: self.shape.one_thread_rows_from,
+                element_rows_from: self.shape.element_rows_from,
+                ..LatticeOptions::default()
+            },
         );
         let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
         if records.len() > self.pass_room {
