@@ -45,10 +45,7 @@
 //! library's), `--rows N,...` (speed only: the fewest nodes a smoothing pass has for it
 //! to sum each node's row in one thread rather than eight,
 //! `LatticeOptions::one_thread_rows_from`, values to compare, 0 always, 4294967295
-//! never; default the library's), `--element-rows N,...` (speed only: the fewest level-0
-//! nodes for level 0's full products `A x` to be made element by element,
-//! `LatticeOptions::element_rows_from`, values to compare, 0 always, 4294967295 never;
-//! default the library's), `--profile` (GPU time
+//! never; default the library's), `--profile` (GPU time
 //! per kernel of each speed row: timestamps between the dispatches of one pass where the
 //! device writes them there, else every dispatch in its own timed pass).
 //!
@@ -321,14 +318,13 @@ fn speed(
     firsts: &[u32],
     fuseds: &[u32],
     rows: &[u32],
-    element_rows: &[u32],
     room: f32,
     steps_of: &StepsOf,
     touching: bool,
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | one thread a row from (nodes) | level 0's products by element from (nodes) | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | one thread a row from (nodes) | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
@@ -355,11 +351,10 @@ fn speed(
     let mut profiles = Vec::new();
     for (name, model) in &scenes {
         for &sm in smoothers {
-            for (&first, &fused, &row, &er) in firsts.iter().flat_map(|f| {
-                fuseds.iter().flat_map(move |u| {
-                    rows.iter()
-                        .flat_map(move |r| element_rows.iter().map(move |e| (f, u, r, e)))
-                })
+            for (&first, &fused, &row) in firsts.iter().flat_map(|f| {
+                fuseds
+                    .iter()
+                    .flat_map(move |u| rows.iter().map(move |r| (f, u, r)))
             }) {
                 for (it, c, sw) in steps_of.each() {
                     let s = SolverSettings {
@@ -383,11 +378,10 @@ fn speed(
                         room,
                         fused_coarsest: fused,
                         one_thread_rows_from: row,
-                        element_rows_from: er,
                     };
                     let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, options);
                     println!(
-                        "| {name} | {} | {} | {sm:?} | {first} | {fused} | {row} | {er} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
+                        "| {name} | {} | {} | {sm:?} | {first} | {fused} | {row} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
                         model.elements.len(),
                         sweeps_name(sw),
@@ -396,7 +390,7 @@ fn speed(
                     if profile_kernels {
                         profiles.push(profile(
                             g,
-                            &format!("{name}, {sm:?}, rows {row}, element rows {er}, fused {fused}, first {first}, sweeps {}", sweeps_name(sw)),
+                            &format!("{name}, {sm:?}, rows {row}, fused {fused}, first {first}, sweeps {}", sweeps_name(sw)),
                             model,
                             &s,
                             options,
@@ -655,10 +649,6 @@ fn main() {
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
             &a.list("--fused", &[LatticeOptions::default().fused_coarsest]),
             &a.list("--rows", &[LatticeOptions::default().one_thread_rows_from]),
-            &a.list(
-                "--element-rows",
-                &[LatticeOptions::default().element_rows_from],
-            ),
             a.num("--room", LatticeOptions::default().room),
             &steps_of,
             !a.flag("--no-touching"),

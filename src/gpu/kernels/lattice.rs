@@ -160,15 +160,6 @@ pub enum Kernel {
     CoarsestExact,
     /// `fine_residual`: a level's residual before restriction.
     FineResidual,
-    /// `element_rows`: each level-0 element's rows of `A x` at its eight corners, for the
-    /// `*_gathered` passes.
-    ElementRows,
-    /// `fine_residual_gathered`: level 0's residual from its element rows.
-    FineResidualGathered,
-    /// `alpha_terms_gathered`: level 0's `alpha_terms` from its element rows.
-    AlphaTermsGathered,
-    /// `cg_matvec_gathered`: `cg_matvec` from level 0's element rows.
-    CgMatvecGathered,
     /// `restrict_residual`: the next coarser level's right-hand side.
     Restrict,
     /// `prolong`: the coarse correction on the finer level.
@@ -310,30 +301,6 @@ pub const ENTRIES: &[Entry] = &[
         name: "fine_residual",
         uses: &[
             "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
-        ],
-    },
-    Entry {
-        kernel: Kernel::ElementRows,
-        name: "element_rows",
-        uses: &["params", "pc", "rot", "ef", "vecs", "elems", "kmat"],
-    },
-    Entry {
-        kernel: Kernel::FineResidualGathered,
-        name: "fine_residual_gathered",
-        uses: &["params", "pc", "ef", "vecs", "nblk", "topo", "nodes"],
-    },
-    Entry {
-        kernel: Kernel::AlphaTermsGathered,
-        name: "alpha_terms_gathered",
-        uses: &[
-            "params", "pc", "ef", "vecs", "nblk", "red", "elems", "topo", "nodes",
-        ],
-    },
-    Entry {
-        kernel: Kernel::CgMatvecGathered,
-        name: "cg_matvec_gathered",
-        uses: &[
-            "params", "pc", "ef", "vecs", "nblk", "red", "elems", "topo", "nodes",
         ],
     },
     Entry {

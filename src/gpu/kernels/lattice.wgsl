@@ -903,19 +903,6 @@ fn cube_term(ec: u32, off: u32, op: CubeOp) -> vec3<f32> {
 fn cube_op_row(op: CubeOp, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
                x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
                x7: vec3<f32>) -> vec3<f32> {
-    return cube_resp_row(cube_response(op, r, x0, x1, x2, x3, x4, x5, x6, x7), a, scale, r);
-}
-
-// A level-0 element's response to corner values x (its frame turned by r): the centre's
-// stress σ and the hourglass response Q q (CubeOperator::moments, then ::response).
-struct CubeResp {
-    sigma: mat3x3<f32>,
-    rq: Hg,
-};
-
-fn cube_response(op: CubeOp, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>, x2: vec3<f32>,
-                 x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
-                 x7: vec3<f32>) -> CubeResp {
     // Moments: g = Σ x_j c_jᵀ and the hourglass coordinates (CubeOperator::moments).
     let s01 = x1 + x0;
     let d01 = x1 - x0;
@@ -936,13 +923,10 @@ fn cube_response(op: CubeOp, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>, x2: v
     let lt = 0.5 * op.k0.y * tr;
     let sigma = e * op.k0.x + mat3x3<f32>(vec3<f32>(lt, 0.0, 0.0), vec3<f32>(0.0, lt, 0.0),
                                           vec3<f32>(0.0, 0.0, lt));
-    return CubeResp(sigma, hourglass_response(op, q));
-}
-
-// Row a of R K Rᵀ x times `scale` from the element's response (CubeOperator::row).
-fn cube_resp_row(t: CubeResp, a: u32, scale: f32, r: mat3x3<f32>) -> vec3<f32> {
+    let rq = hourglass_response(op, q);
+    // Row a (CubeOperator::row).
     let c = corner_sign(a);
-    let f = t.sigma * (c * 0.25) + hourglass_row(a, t.rq);
+    let f = sigma * (c * 0.25) + hourglass_row(a, rq);
     return r * f * scale;
 }
 
@@ -1148,15 +1132,6 @@ fn fine_residual_node(j: u32) {
     vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
 }
 
-// `fine_residual_node` of a level-0 node with (A δ)_j from its elements' rows in `ef`.
-fn fine_residual_gathered_node(j: u32) {
-    var r = vec3<f32>(0.0);
-    if (!held(j)) {
-        r = vecs[V_RHS * params.n_total + j].xyz - gathered_row(j, V_DELTA * params.n_total);
-    }
-    vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
-}
-
 // Coarse node j's right-hand side (Pᵀ r)_j (0 on held nodes) and a zero correction.
 fn restrict_node(j: u32) {
     let c = params.restr_base + j - params.lv[1].x;
@@ -1190,16 +1165,6 @@ fn alpha_node(j: u32) -> vec2<f32> {
     }
     let e = vecs[V_PE * params.n_total + j].xyz;
     return vec2<f32>(dot(vecs[V_RES * params.n_total + j].xyz, e), dot(apply_row(j, V_PE), e));
-}
-
-// `alpha_node` of a level-0 node with (A e)_j from its elements' rows in `ef`.
-fn alpha_gathered_node(j: u32) -> vec2<f32> {
-    if (held(j)) {
-        return vec2<f32>(0.0);
-    }
-    let e = vecs[V_PE * params.n_total + j].xyz;
-    return vec2<f32>(dot(vecs[V_RES * params.n_total + j].xyz, e),
-                     dot(gathered_row(j, V_PE * params.n_total), e));
 }
 
 // δ_j += α e_j.
@@ -1241,73 +1206,6 @@ fn smooth_colour(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation
 fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x < pc.count) {
         fine_residual_node(pc.first + gid.x);
-    }
-}
-
-// Level 0's x for `element_rows` (pc.mode): 0 the correction δ, 1 the prolongated
-// coarse correction e, 2 the conjugate direction p.
-fn rows_region(mode: u32) -> u32 {
-    if (mode == 2u) {
-        return cg_at(CG_P);
-    }
-    return select(V_DELTA, V_PE, mode == 1u) * params.n_total;
-}
-
-// Each level-0 element's part of (A x) at each of its eight corners, R K Rᵀ x (times
-// V/h²; by its body's unit cube operator, the element's moments and response made once
-// for its eight rows), into ef[8 e + a] (free between the Newton residual and the
-// substep's last forces). A pass over the nodes then sums each node's rows
-// (`gathered_row`): the same terms as `apply_row_at`, in the same order.
-@compute @workgroup_size(64)
-fn element_rows(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let e = gid.x;
-    if (e >= params.lv[0].w) {
-        return;
-    }
-    let off = rows_region(pc.mode);
-    let c0 = elems[3u * e];
-    let c1 = elems[3u * e + 1u];
-    let info = elems[3u * e + 2u];
-    let size = bitcast<f32>(info.z);
-    let r = quat_mat(rot[e]);
-    let x0 = vecs[off + c0.x].xyz;
-    let x1 = vecs[off + c0.y].xyz;
-    let x2 = vecs[off + c0.z].xyz;
-    let x3 = vecs[off + c0.w].xyz;
-    let x4 = vecs[off + c1.x].xyz;
-    let x5 = vecs[off + c1.y].xyz;
-    let x6 = vecs[off + c1.z].xyz;
-    let x7 = vecs[off + c1.w].xyz;
-    if (size > 0.0) {
-        let t = cube_response(cube_op(info.x), r, x0, x1, x2, x3, x4, x5, x6, x7);
-        let scale = bitcast<f32>(info.w) / (size * size);
-        for (var a = 0u; a < 8u; a = a + 1u) {
-            ef[8u * e + a] = vec4<f32>(cube_resp_row(t, a, scale, r), 0.0);
-        }
-    } else {
-        for (var a = 0u; a < 8u; a = a + 1u) {
-            ef[8u * e + a] = vec4<f32>(rotated_row(info.x, a, 1.0, r, x0, x1, x2, x3, x4, x5,
-                                                   x6, x7), 0.0);
-        }
-    }
-}
-
-// (A x)_j of level-0 node j, x at `vecs[off ..]`, its elements' rows already in `ef`
-// (`element_rows` of the same x).
-fn gathered_row(j: u32, off: u32) -> vec3<f32> {
-    let xj = vecs[off + j].xyz;
-    var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
-    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
-        y = y + ef[topo[s]].xyz;
-    }
-    return y;
-}
-
-// `fine_residual` of level 0 from its elements' rows (`element_rows` of δ).
-@compute @workgroup_size(64)
-fn fine_residual_gathered(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x < pc.count) {
-        fine_residual_gathered_node(pc.first + gid.x);
     }
 }
 
@@ -1820,23 +1718,6 @@ fn alpha_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
     reduce_partials(lid, wg.x, 2u);
 }
 
-// `alpha_terms` of level 0 from its elements' rows (`element_rows` of e).
-@compute @workgroup_size(64)
-fn alpha_terms_gathered(@builtin(local_invocation_index) lid: u32,
-                        @builtin(workgroup_id) wg: vec3<u32>) {
-    var num = 0.0;
-    var den = 0.0;
-    let ch = chunk(pc.first + wg.x);
-    for (var i = ch.x + lid; i < ch.x + ch.y; i = i + LWG) {
-        let t = alpha_gathered_node(i);
-        num = num + t.x;
-        den = den + t.y;
-    }
-    wsum[lid][0] = num;
-    wsum[lid][1] = den;
-    reduce_partials(lid, wg.x, 2u);
-}
-
 // Node j's block against a translation of its body: m/h² I plus its contact block.
 fn translation_block(j: u32) -> mat3x3<f32> {
     let m = nodes[j].x / params.h2;
@@ -2321,40 +2202,15 @@ fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
         if (pw.w == 0.0) {
             q = apply_row_at(j, cg_at(CG_P));
         }
-        t = t + cg_node(j, pw.xyz, q);
+        vecs[cg_at(CG_Q) + j] = vec4<f32>(q, 0.0);
+        let p = pw.xyz;
+        let r = vecs[V_RHS * params.n_total + j].xyz;
+        t = t + vec3<f32>(dot(p, q), dot(r, p), dot(r, vecs[V_DELTA * params.n_total + j].xyz));
     }
-    cg_partials(lid, wg.x, t);
-}
-
-// Node j's q (stored) and its terms of pᵀ q, rᵀ p and rᵀ z.
-fn cg_node(j: u32, p: vec3<f32>, q: vec3<f32>) -> vec3<f32> {
-    vecs[cg_at(CG_Q) + j] = vec4<f32>(q, 0.0);
-    let r = vecs[V_RHS * params.n_total + j].xyz;
-    return vec3<f32>(dot(p, q), dot(r, p), dot(r, vecs[V_DELTA * params.n_total + j].xyz));
-}
-
-fn cg_partials(lid: u32, wid: u32, t: vec3<f32>) {
     wsum[lid][0] = t.x;
     wsum[lid][1] = t.y;
     wsum[lid][2] = t.z;
-    reduce_partials(lid, wid, 3u);
-}
-
-// `cg_matvec` from level 0's element rows (`element_rows` of p).
-@compute @workgroup_size(64)
-fn cg_matvec_gathered(@builtin(local_invocation_index) lid: u32,
-                      @builtin(workgroup_id) wg: vec3<u32>) {
-    var t = vec3<f32>(0.0);
-    let ch = chunk(pc.first + wg.x);
-    for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
-        let pw = vecs[cg_at(CG_P) + j];
-        var q = vec3<f32>(0.0);
-        if (pw.w == 0.0) {
-            q = gathered_row(j, cg_at(CG_P));
-        }
-        t = t + cg_node(j, pw.xyz, q);
-    }
-    cg_partials(lid, wg.x, t);
+    reduce_partials(lid, wg.x, 3u);
 }
 
 // x += α p (mode bit 0 clear, the first iteration: x = α p), r −= α q; then the next

@@ -6,9 +6,7 @@
 //! on a worker thread.
 
 use super::layout::{Buf, Layout, Writes};
-use super::{
-    Dispatch, GpuLattice, LatticeOptions, PassRecord, Shape, pass_bytes, passes_of, shape_of,
-};
+use super::{Dispatch, GpuLattice, PassRecord, Shape, pass_bytes, passes_of, shape_of};
 use crate::core::TissueError;
 use crate::core::model::{Discretisation, Material, Model};
 use crate::core::multigrid::{BodyLevels, LatticeMultigrid};
@@ -105,12 +103,8 @@ impl AppendBasis {
             self.shape.pairs,
             self.shape.cycles,
             self.shape.sweeps,
-            &LatticeOptions {
-                fused_coarsest: self.shape.fused_coarsest,
-                one_thread_rows_from: self.shape.one_thread_rows_from,
-                element_rows_from: self.shape.element_rows_from,
-                ..LatticeOptions::default()
-            },
+            self.shape.fused_coarsest,
+            self.shape.one_thread_rows_from,
         );
         let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
         if records.len() > self.pass_room {

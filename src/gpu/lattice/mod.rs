@@ -58,12 +58,6 @@ const BODY_SLOTS: usize = 16;
 const MAX_PICK_GROUPS: u32 = 65_535;
 /// Most workgroups of a Chebyshev sweep (they stride over larger levels).
 const CHEBYSHEV_GROUPS: u32 = 8192;
-/// `element_rows`' modes (`rows_region` in the shader): the rows of the correction δ, of
-/// the prolongated coarse correction e, of the conjugate direction p.
-const ROWS_OF_DELTA: u32 = 0;
-const ROWS_OF_E: u32 = 1;
-const ROWS_OF_P: u32 = 2;
-
 /// A smoothing pass's mode bit (`ROW_MODE` in the shader): one thread a node.
 const ROW_MODE: u32 = 0x10000;
 /// [`LatticeOptions::fused_coarsest`]'s default and its most: up to four rounds of 32
@@ -163,8 +157,6 @@ pub struct Shape {
     pub fused_coarsest: u32,
     /// [`LatticeOptions::one_thread_rows_from`].
     pub one_thread_rows_from: u32,
-    /// [`LatticeOptions::element_rows_from`].
-    pub element_rows_from: u32,
 }
 
 impl Shape {
@@ -178,14 +170,6 @@ impl Shape {
         l > 0
             && self.smoother.on_level(l) == Smoother::Chebyshev
             && self.most_coarsest <= self.fused_coarsest.min(FUSED_COARSEST)
-    }
-
-    /// Whether level 0's full products `A x` are made element by element
-    /// ([`LatticeOptions::element_rows_from`]).
-    pub fn element_rows(&self) -> bool {
-        self.levels
-            .first()
-            .is_some_and(|lv| lv[1] >= self.element_rows_from)
     }
 
     /// Whether the coarsest level is solved exactly (`solve_coarsest`, a workgroup per
@@ -222,20 +206,7 @@ pub struct LatticeOptions {
     /// The sums' order differs, so the answers differ by rounding. 0: always one thread a
     /// node; `u32::MAX`: never. Default 16,384.
     pub one_thread_rows_from: u32,
-    /// Where level 0 has at least this many nodes, its full products `A x` (the residual
-    /// before restriction, the coarse correction's step and the conjugate gradients'
-    /// `A p`) are made element by element: each element's moments and response once for
-    /// its eight corners' rows (`element_rows`, into the element force buffer), then each
-    /// node sums its elements' rows; rather than each node making each of its elements'
-    /// rows itself (eight times the element work, eight gathers of its corners). The same
-    /// terms in the same order; two dispatches for one. The Gauss–Seidel sweeps, which
-    /// need their neighbours' latest values, stay node by node. 0: always; `u32::MAX`:
-    /// never. Default [`ELEMENT_ROWS_FROM`].
-    pub element_rows_from: u32,
 }
-
-/// [`LatticeOptions::element_rows_from`]'s default.
-pub const ELEMENT_ROWS_FROM: u32 = 16_384;
 
 /// [`LatticeOptions::one_thread_rows_from`]'s default.
 pub const ONE_THREAD_ROWS_FROM: u32 = 16_384;
@@ -247,7 +218,6 @@ impl Default for LatticeOptions {
             room: 1.0,
             fused_coarsest: FUSED_COARSEST,
             one_thread_rows_from: ONE_THREAD_ROWS_FROM,
-            element_rows_from: ELEMENT_ROWS_FROM,
         }
     }
 }
@@ -329,12 +299,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
                     push(Kernel::Pick, 0, nc, 0, 5, picks);
                 }
                 push(Kernel::CgDirection, 0, n, 0, k.min(1), groups(n));
-                if shape.element_rows() {
-                    push(Kernel::ElementRows, 0, ne, 0, ROWS_OF_P, groups(ne));
-                    push(Kernel::CgMatvecGathered, n0, nc, 0, 0, nc);
-                } else {
-                    push(Kernel::CgMatvec, n0, nc, 0, 0, nc);
-                }
+                push(Kernel::CgMatvec, n0, nc, 0, 0, nc);
                 push(Kernel::Pick, 0, nc, 0, 6, picks);
                 let last = (k + 1 == shape.cycles) as u32;
                 push(Kernel::CgUpdate, 0, n, 0, k.min(1) | last << 1, groups(n));
@@ -449,27 +414,7 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     let cv = shape.levels[l + 1];
     let ll = l as u32;
     sweeps(shape, l, count, push);
-    let by_elements = l == 0 && shape.element_rows();
-    if by_elements {
-        push(
-            Kernel::ElementRows,
-            0,
-            lv[3],
-            0,
-            ROWS_OF_DELTA,
-            groups(lv[3]),
-        );
-        push(
-            Kernel::FineResidualGathered,
-            lv[0],
-            lv[1],
-            ll,
-            0,
-            groups(lv[1]),
-        );
-    } else {
-        push(Kernel::FineResidual, lv[0], lv[1], ll, 0, groups(lv[1]));
-    }
+    push(Kernel::FineResidual, lv[0], lv[1], ll, 0, groups(lv[1]));
     if l == 0 {
         // Each body's translation step (`translate_bodies`; none with fixed nodes).
         let [n0, nc] = shape.tables[1];
@@ -481,12 +426,7 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     vcycle(shape, l + 1, push);
     push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
     let [c0, cn] = shape.tables[1 + l];
-    if by_elements {
-        push(Kernel::ElementRows, 0, lv[3], 0, ROWS_OF_E, groups(lv[3]));
-        push(Kernel::AlphaTermsGathered, c0, cn, ll, 0, cn);
-    } else {
-        push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
-    }
+    push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
     push(Kernel::Pick, 0, cn, ll, 3, pick_groups(shape));
     push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
     sweeps(shape, l, count, push);
@@ -590,7 +530,8 @@ fn shape_of(
     pairs: Option<u32>,
     cycles: u32,
     sweeps: Sweeps,
-    options: &LatticeOptions,
+    fused_coarsest: u32,
+    one_thread_rows_from: u32,
 ) -> Shape {
     Shape {
         levels: layout
@@ -611,9 +552,8 @@ fn shape_of(
         cycles: cycles.max(1),
         sweeps,
         most_coarsest: layout.most_nodes.last().copied().unwrap_or(0),
-        fused_coarsest: options.fused_coarsest,
-        one_thread_rows_from: options.one_thread_rows_from,
-        element_rows_from: options.element_rows_from,
+        fused_coarsest,
+        one_thread_rows_from,
     }
 }
 
@@ -843,7 +783,8 @@ impl GpuLattice {
             (pair_capacity > 0).then_some(settings.contact_every),
             settings.newton_cycles,
             settings.sweeps,
-            &options,
+            options.fused_coarsest,
+            options.one_thread_rows_from,
         );
         // Every buffer's contents: zero, then the bodies' writes.
         let (n, nt) = (layout.n_slots() as usize, layout.node_slots() as usize);
@@ -1624,8 +1565,6 @@ mod tests {
             most_coarsest: 3,
             fused_coarsest: 0,
             one_thread_rows_from: u32::MAX,
-            // Level 0's products node by node (what these tests count).
-            element_rows_from: u32::MAX,
         }
     }
 
@@ -1861,89 +1800,6 @@ mod tests {
         };
         // Level 1 has an empty colour.
         assert_eq!((count(0), count(1), count(2)), (2 * 8, 2 * 3 * 7, 5 * 8));
-    }
-
-    /// Level 0's full products by element: each of level 0's residual, coarse-correction
-    /// step and conjugate-gradient `A p` passes becomes an `element_rows` dispatch over
-    /// its elements (of δ, e or p) and the pass's gathered kernel, in the same place;
-    /// nothing else changes. The coarse levels keep their passes. Below the threshold,
-    /// or with `u32::MAX`, the plan is node by node.
-    #[test]
-    fn level_0_products_are_made_by_element_from_their_threshold() {
-        for cycles in [1, 2, 3] {
-            let nodes = Shape {
-                cycles,
-                smoother: Smoother::Hybrid,
-                ..shape()
-            };
-            assert!(!nodes.element_rows());
-            let elements = Shape {
-                element_rows_from: 100,
-                ..nodes.clone()
-            };
-            assert!(elements.element_rows());
-            assert!(
-                !Shape {
-                    element_rows_from: 101,
-                    ..nodes.clone()
-                }
-                .element_rows()
-            );
-            let (a, b) = (plan(&nodes, 1), plan(&elements, 1));
-            // Undo the change: drop the element passes, name the gathered kernels by
-            // their node-by-node twins.
-            let undone: Vec<Dispatch> = b
-                .iter()
-                .filter(|d| d.kernel != Kernel::ElementRows)
-                .map(|d| {
-                    let kernel = match d.kernel {
-                        Kernel::FineResidualGathered => Kernel::FineResidual,
-                        Kernel::AlphaTermsGathered => Kernel::AlphaTerms,
-                        Kernel::CgMatvecGathered => Kernel::CgMatvec,
-                        k => k,
-                    };
-                    Dispatch { kernel, ..*d }
-                })
-                .collect();
-            assert_eq!(undone, a);
-            // Each element pass is right before its gathered pass, over level 0's 60
-            // elements, of the region that pass reads.
-            let mut gathered = 0;
-            for (i, d) in b.iter().enumerate() {
-                let mode = match d.kernel {
-                    Kernel::FineResidualGathered => ROWS_OF_DELTA,
-                    Kernel::AlphaTermsGathered => ROWS_OF_E,
-                    Kernel::CgMatvecGathered => ROWS_OF_P,
-                    Kernel::ElementRows => {
-                        assert!(matches!(
-                            b[i + 1].kernel,
-                            Kernel::FineResidualGathered
-                                | Kernel::AlphaTermsGathered
-                                | Kernel::CgMatvecGathered
-                        ));
-                        continue;
-                    }
-                    Kernel::FineResidual | Kernel::AlphaTerms => {
-                        assert_ne!(d.pass.level, 0, "level 0 by element");
-                        continue;
-                    }
-                    k => {
-                        assert_ne!(k, Kernel::CgMatvec);
-                        continue;
-                    }
-                };
-                gathered += 1;
-                assert_eq!(d.pass.level, 0);
-                let e = b[i - 1];
-                assert_eq!(
-                    (e.kernel, e.pass.first, e.pass.count, e.pass.mode, e.groups),
-                    (Kernel::ElementRows, 0, 60, mode, 1)
-                );
-            }
-            // Per V-cycle a residual and a step; per conjugate-gradient iteration an A p.
-            let cg = if cycles > 1 { cycles } else { 0 };
-            assert_eq!(gathered, 2 * cycles + cg);
-        }
     }
 
     /// Particle contacts are projected after every `contact_every`-th Newton iteration
