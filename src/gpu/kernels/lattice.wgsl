@@ -595,13 +595,28 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
         let r = body_chunks(table, b);
         // The last body's sums have been read.
         workgroupBarrier();
-        // Each sum in its own loop over the chunks (no array indexed at run time).
+        // Each sum in its own loop over the chunks (no array indexed at run time). A
+        // body of many chunks (a large one: more than four a thread) is read four chunks
+        // a thread at a time into four sums, so that the loads are in flight together;
+        // up to four a thread, each thread's sum is the plain sum of its chunks.
         for (var k = 0u; k < used; k = k + 1u) {
-            var a = 0.0;
-            for (var w = r.x + lid; w < r.y; w = w + LWG) {
-                a = a + red[w * RED_STRIDE + k];
+            var a0 = 0.0;
+            var a1 = 0.0;
+            var a2 = 0.0;
+            var a3 = 0.0;
+            var w = r.x + lid;
+            if (r.y - r.x > 4u * LWG) {
+                for (; w + 3u * LWG < r.y; w = w + 4u * LWG) {
+                    a0 = a0 + red[w * RED_STRIDE + k];
+                    a1 = a1 + red[(w + LWG) * RED_STRIDE + k];
+                    a2 = a2 + red[(w + 2u * LWG) * RED_STRIDE + k];
+                    a3 = a3 + red[(w + 3u * LWG) * RED_STRIDE + k];
+                }
             }
-            wsum[lid][k] = a;
+            for (; w < r.y; w = w + LWG) {
+                a0 = a0 + red[w * RED_STRIDE + k];
+            }
+            wsum[lid][k] = (a0 + a1) + (a2 + a3);
         }
         for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
             workgroupBarrier();
