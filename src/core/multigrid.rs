@@ -296,8 +296,13 @@ impl BodyLevels {
         };
         for i in range.clone() {
             let own = model.elements_of(i);
+            let at = fine.inv.len();
             fine.inv
                 .extend(own.iter().map(|&ec| ec - ((e0 as u32) << 3)));
+            // A node's elements by where they lie around it (the node is corner `a` of
+            // the element on its `7 − a` side), as the GPU's neighbour records take
+            // them, so that both sum a row in one order.
+            fine.inv[at..].sort_by_key(|&ec| std::cmp::Reverse(ec & 7));
             fine.inv_start.push(fine.inv.len() as u32);
             fine.fixed
                 .push(own.is_empty() || pinned.contains(&(i as u32)));

@@ -100,6 +100,8 @@ struct LatticeParams {
                              // of per-body regions); w: where the per-body scalars start
                              // in `red`
     count: vec4<u32>,        // x: bodies in use
+    nbrs: vec4<u32>,         // x: where level 0's neighbour records start in `elems`
+                             // (9 vec4 a level-0 node slot, see `lattice_terms`)
 };
 
 // One dispatch's range and mode (a dynamic-offset window of the pass buffer).
@@ -901,20 +903,6 @@ fn cube_op(kb: u32) -> CubeOp {
     return CubeOp(kmat[o], kmat[o + 1u], kmat[o + 2u], kmat[o + 3u], kmat[o + 4u]);
 }
 
-// Level-0 element e's part of (A x) at its corner a (packed as `ec`) with its body's
-// operator `op` already loaded, x at `vecs[off ..]`.
-fn cube_term(ec: u32, off: u32, op: CubeOp) -> vec3<f32> {
-    let e = ec >> 3u;
-    let c0 = elems[3u * e];
-    let c1 = elems[3u * e + 1u];
-    let info = elems[3u * e + 2u];
-    let size = bitcast<f32>(info.z);
-    return cube_op_row(op, ec & 7u, bitcast<f32>(info.w) / (size * size), quat_mat(rot[e]),
-                       vecs[off + c0.x].xyz, vecs[off + c0.y].xyz, vecs[off + c0.z].xyz,
-                       vecs[off + c0.w].xyz, vecs[off + c1.x].xyz, vecs[off + c1.y].xyz,
-                       vecs[off + c1.z].xyz, vecs[off + c1.w].xyz);
-}
-
 fn cube_op_row(op: CubeOp, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
                x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
                x7: vec3<f32>) -> vec3<f32> {
@@ -1038,24 +1026,124 @@ fn apply_row(j: u32, region: u32) -> vec3<f32> {
 // (A x)_j with x at `vecs[off ..]`.
 fn apply_row_at(j: u32, off: u32) -> vec3<f32> {
     let xj = vecs[off + j].xyz;
-    var y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
-    let s0 = topo[j];
-    let s1 = topo[j + 1u];
-    if (s0 < s1) {
-        // Level 0: every element of the node is its body's, with one operator.
-        let info = elems[3u * (topo[s0] >> 3u) + 2u];
-        if (bitcast<f32>(info.z) > 0.0) {
-            let op = cube_op(info.x);
-            for (var s = s0; s < s1; s = s + 1u) {
-                y = y + cube_term(topo[s], off, op);
-            }
-            return y;
-        }
+    let y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
+    if (j < params.n) {
+        return y + lattice_terms(j, off, xj);
     }
-    for (var s = s0; s < s1; s = s + 1u) {
-        y = y + element_term(topo[s], off);
+    var k = vec3<f32>(0.0);
+    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
+        k = k + element_term(topo[s], off);
     }
+    return y + k;
+}
+
+// No element on that side of a node (a neighbour record's element word).
+const NBR_NONE: u32 = 0xffffffffu;
+
+// Where level-0 node j's neighbour record starts in `elems` (gpu::lattice::layout's
+// neighbour_record): words 0..26 its 26 lattice neighbours (offset (m % 3, m / 3 % 3,
+// m / 9) − 1 for m in 0..27 but 13, the node itself, at word m below 13 and m − 1
+// above), 26..34 the element on each side s (lowest corner at offset s − 1 per axis; the
+// node is its corner 7 − s) or NBR_NONE, 34 the body's unit cube operator in `kmat`, 35
+// the elements' scale V/h².
+fn nbr_record(j: u32) -> u32 {
+    return params.nbrs.x + 9u * j;
+}
+
+// The element on side s's part of a level-0 row: 0 where there is none.
+fn side_term(e: u32, a: u32, op: CubeOp, scale: f32, x0: vec3<f32>, x1: vec3<f32>,
+             x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
+             x7: vec3<f32>) -> vec3<f32> {
+    if (e == NBR_NONE) {
+        return vec3<f32>(0.0);
+    }
+    return cube_op_row(op, a, scale, quat_mat(rot[e]), x0, x1, x2, x3, x4, x5, x6, x7);
+}
+
+// Level-0 node j's element terms of (A x)_j, Σ_e R K Rᵀ x over its elements in the
+// order of their sides (core::multigrid's stiffness_row takes them in that order), x at
+// `vecs[off ..]` (xj its own value): every address from the node's record, so that the
+// 27 values and 8 rotations are loaded together.
+fn lattice_terms(j: u32, off: u32, xj: vec3<f32>) -> vec3<f32> {
+    let o = nbr_record(j);
+    let r0 = elems[o];
+    let r1 = elems[o + 1u];
+    let r2 = elems[o + 2u];
+    let r3 = elems[o + 3u];
+    let r4 = elems[o + 4u];
+    let r5 = elems[o + 5u];
+    let r6 = elems[o + 6u];
+    let r7 = elems[o + 7u];
+    let r8 = elems[o + 8u];
+    let v0 = vecs[off + r0.x].xyz;
+    let v1 = vecs[off + r0.y].xyz;
+    let v2 = vecs[off + r0.z].xyz;
+    let v3 = vecs[off + r0.w].xyz;
+    let v4 = vecs[off + r1.x].xyz;
+    let v5 = vecs[off + r1.y].xyz;
+    let v6 = vecs[off + r1.z].xyz;
+    let v7 = vecs[off + r1.w].xyz;
+    let v8 = vecs[off + r2.x].xyz;
+    let v9 = vecs[off + r2.y].xyz;
+    let v10 = vecs[off + r2.z].xyz;
+    let v11 = vecs[off + r2.w].xyz;
+    let v12 = vecs[off + r3.x].xyz;
+    let v13 = xj;
+    let v14 = vecs[off + r3.y].xyz;
+    let v15 = vecs[off + r3.z].xyz;
+    let v16 = vecs[off + r3.w].xyz;
+    let v17 = vecs[off + r4.x].xyz;
+    let v18 = vecs[off + r4.y].xyz;
+    let v19 = vecs[off + r4.z].xyz;
+    let v20 = vecs[off + r4.w].xyz;
+    let v21 = vecs[off + r5.x].xyz;
+    let v22 = vecs[off + r5.y].xyz;
+    let v23 = vecs[off + r5.z].xyz;
+    let v24 = vecs[off + r5.w].xyz;
+    let v25 = vecs[off + r6.x].xyz;
+    let v26 = vecs[off + r6.y].xyz;
+    let op = cube_op(r8.z);
+    let sc = bitcast<f32>(r8.w);
+    var y = side_term(r6.z, 7u, op, sc, v0, v1, v3, v4, v9, v10, v12, v13);
+    y = y + side_term(r6.w, 6u, op, sc, v1, v2, v4, v5, v10, v11, v13, v14);
+    y = y + side_term(r7.x, 5u, op, sc, v3, v4, v6, v7, v12, v13, v15, v16);
+    y = y + side_term(r7.y, 4u, op, sc, v4, v5, v7, v8, v13, v14, v16, v17);
+    y = y + side_term(r7.z, 3u, op, sc, v9, v10, v12, v13, v18, v19, v21, v22);
+    y = y + side_term(r7.w, 2u, op, sc, v10, v11, v13, v14, v19, v20, v22, v23);
+    y = y + side_term(r8.x, 1u, op, sc, v12, v13, v15, v16, v21, v22, v24, v25);
+    y = y + side_term(r8.y, 0u, op, sc, v13, v14, v16, v17, v22, v23, v25, v26);
     return y;
+}
+
+// Word w of the record at o.
+fn record_word(o: u32, w: u32) -> u32 {
+    return elems[o + (w >> 2u)][w & 3u];
+}
+
+// The value at neighbour m (0..27) of level-0 node j from its record at o.
+fn nbr_value(o: u32, j: u32, m: u32, off: u32) -> vec3<f32> {
+    var i = j;
+    if (m != 13u) {
+        i = record_word(o, select(m - 1u, m, m < 13u));
+    }
+    return vecs[off + i].xyz;
+}
+
+// Level-0 node j's element on side s's part of (A x)_j (0 where there is none), x at
+// `vecs[off ..]`, from the node's record.
+fn lattice_side(j: u32, off: u32, s: u32) -> vec3<f32> {
+    let o = nbr_record(j);
+    let e = record_word(o, 26u + s);
+    if (e == NBR_NONE) {
+        return vec3<f32>(0.0);
+    }
+    let m = (s & 1u) + 3u * ((s >> 1u) & 1u) + 9u * (s >> 2u);
+    let r8 = elems[o + 8u];
+    return cube_op_row(cube_op(r8.z), 7u - s, bitcast<f32>(r8.w), quat_mat(rot[e]),
+                       nbr_value(o, j, m, off), nbr_value(o, j, m + 1u, off),
+                       nbr_value(o, j, m + 3u, off), nbr_value(o, j, m + 4u, off),
+                       nbr_value(o, j, m + 9u, off), nbr_value(o, j, m + 10u, off),
+                       nbr_value(o, j, m + 12u, off), nbr_value(o, j, m + 13u, off));
 }
 
 // The inverse of a symmetric positive definite block (of ½ (a + aᵀ)) by its Cholesky
@@ -1258,6 +1346,9 @@ fn apply_part(j: u32, region: u32, slot: u32) -> vec3<f32> {
     if (slot == 0u) {
         let xj = vecs[off + j].xyz;
         y = xj * (nodes[j].x / params.h2) + extra_block(j) * xj;
+    }
+    if (j < params.n) {
+        return y + lattice_side(j, off, slot);
     }
     let s = topo[j] + slot;
     if (s >= topo[j + 1u]) {

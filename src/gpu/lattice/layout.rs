@@ -260,6 +260,9 @@ pub(super) struct Layout {
     pub chunk_base: u32,
     pub starts_base: u32,
     pub elems_len: u32,
+    /// Where level 0's neighbour records start in `elems` (vec4; [`NBR_RECORD`] a
+    /// level-0 node slot, see [`neighbour_record`]).
+    pub nbr_base: u32,
 }
 
 /// One write of packed data: buffer, where (u32 words), what.
@@ -291,6 +294,58 @@ impl Writes {
         let words = data.into_iter().flat_map(|v| v.map(f32::to_bits)).collect();
         self.put(buf, 4 * at_vec4, words);
     }
+}
+
+/// Vec4s of a level-0 node's neighbour record in `elems` ([`neighbour_record`]).
+pub(super) const NBR_RECORD: u32 = 9;
+
+/// No element on that side of a node (a neighbour record's element word).
+pub(super) const NBR_NONE: u32 = u32::MAX;
+
+/// Level-0 node `j`'s neighbour record (36 words; the shader's `lattice_terms`): a row
+/// of `A x` read from it takes one load for where everything is instead of a chain
+/// through the node's element list and each element's corners.
+///
+/// - Words 0..26: the node slots of its 26 lattice neighbours, the one at offset
+///   `(m % 3, m / 3 % 3, m / 9) − 1` for `m` in 0..27 but 13 (the node itself) at word
+///   `m` below 13 and `m − 1` above; a neighbour that is a corner of none of its
+///   elements is the node itself (a safe load, never used).
+/// - Words 26..34: the element slot on each side `s` (x from bit 0, y bit 1, z bit 2:
+///   the element's lowest corner is at offset `s − 1` per axis), or [`NBR_NONE`]; the
+///   node is that element's corner `7 − s`.
+/// - Word 34: the body's unit cube operator (its blocks' base in `kmat`); word 35: the
+///   elements' stiffness scale `V / h²` (f32 bits; all of a body's are one).
+fn neighbour_record(
+    lv: &crate::core::multigrid::MgLevel,
+    j: u32,
+    nslot: impl Fn(u32) -> u32,
+    eslot: impl Fn(u32) -> u32,
+    kb: u32,
+) -> [u32; 4 * NBR_RECORD as usize] {
+    let me = nslot(j);
+    let mut w = [me; 4 * NBR_RECORD as usize];
+    w[26..34].fill(NBR_NONE);
+    w[34] = kb;
+    w[35] = 0;
+    let list = &lv.inv[lv.inv_start[j as usize] as usize..lv.inv_start[j as usize + 1] as usize];
+    for &ec in list {
+        let (e, a) = (ec >> 3, (ec & 7) as usize);
+        let s = 7 - a;
+        debug_assert_eq!(w[26 + s], NBR_NONE, "two elements on one side of node {j}");
+        w[26 + s] = eslot(e);
+        w[35] = lv.scale[e as usize].to_bits();
+        for (c, &q) in lv.elements[e as usize].iter().enumerate() {
+            let m = ((s & 1) + (c & 1))
+                + 3 * (((s >> 1) & 1) + ((c >> 1) & 1))
+                + 9 * ((s >> 2) + (c >> 2));
+            if m != 13 {
+                w[if m < 13 { m } else { m - 1 }] = nslot(q);
+            } else {
+                debug_assert_eq!(q, j, "corner {c} of element {e} is not node {j}");
+            }
+        }
+    }
+    w
 }
 
 /// Vec4s of a body's material record in `mats`: (μ, λ, contact radius, spacing), then
@@ -480,7 +535,8 @@ impl Layout {
         let (tables, chunks) = back_to_back(caps(&total.chunks, &most.chunks), 0);
         let starts_base = 4 * (chunk_base + chunks);
         let starts_words = tables.len() as u32 * (body_cap + 1);
-        let elems_len = starts_base / 4 + starts_words.div_ceil(4);
+        let nbr_base = starts_base / 4 + starts_words.div_ceil(4);
+        let elems_len = nbr_base + NBR_RECORD * (nodes[0].cap + 1);
         Self {
             nodes,
             elems,
@@ -505,6 +561,7 @@ impl Layout {
             chunk_base,
             starts_base,
             elems_len,
+            nbr_base,
         }
     }
 
@@ -653,6 +710,19 @@ impl Layout {
                 4 * 3 * self.elems[l].end(),
                 recs.into_iter().flatten().collect(),
             );
+            if l == 0 {
+                let words: Vec<u32> = s.nodes[0]
+                    .clone()
+                    .flat_map(|j| {
+                        neighbour_record(lv, j, |q| nslot(0, q), |e| eslot(0, e), unit_base)
+                    })
+                    .collect();
+                out.put(
+                    Buf::Elems,
+                    4 * (self.nbr_base + NBR_RECORD * self.nodes[0].end()),
+                    words,
+                );
+            }
             // Inverse element lists and their heads (the spare after them: their end).
             let nodes = s.nodes[l].clone();
             let mut heads = Vec::with_capacity(nodes.len() + 1);
@@ -908,6 +978,74 @@ mod tests {
             }
         }
         out
+    }
+
+    /// Every level-0 node's neighbour record lists exactly the elements it is a corner
+    /// of (found by brute force over the element records), each on the side that makes
+    /// the node its corner `7 − side`, and names each of their corners at its lattice
+    /// offset; its operator base is its elements', and its scale theirs.
+    #[test]
+    fn neighbour_records_name_each_nodes_elements_and_corners() {
+        let model = boxes();
+        let mg = LatticeMultigrid::new(&model, MIN_NODES, MAX_LEVELS);
+        let state = State::new(&model);
+        let mut layout = Layout::new(&mg, 2.0);
+        let mut w = Writes::default();
+        assert!(layout.pack_all(&model, &mg, &state, &mut w));
+        let elems = buffer(&w, Buf::Elems);
+        let n0 = layout.nodes[0];
+        let e0 = layout.elems[0];
+        let mut owned: HashMap<u32, Vec<(u32, usize)>> = HashMap::new();
+        for e in e0.start..e0.end() {
+            for c in 0..8 {
+                let q = elems[(12 * e) as usize + c];
+                owned.entry(q).or_default().push((e, c));
+            }
+        }
+        let mut checked = 0;
+        for j in n0.start..n0.end() {
+            let o = (4 * (layout.nbr_base + NBR_RECORD * j)) as usize;
+            let rec = &elems[o..o + 36];
+            let word = |m: usize| {
+                if m == 13 {
+                    j
+                } else {
+                    rec[if m < 13 { m } else { m - 1 }]
+                }
+            };
+            let mut found: Vec<(u32, usize)> = Vec::new();
+            for s in 0..8 {
+                let e = rec[26 + s];
+                if e == NBR_NONE {
+                    continue;
+                }
+                found.push((e, 7 - s));
+                let info = &elems[(12 * e + 8) as usize..(12 * e + 12) as usize];
+                assert_eq!(rec[34], info[0], "node {j}: operator base");
+                let (size, vol) = (f32::from_bits(info[2]), f32::from_bits(info[3]));
+                let scale = f32::from_bits(rec[35]);
+                assert!(
+                    (scale - vol / (size * size)).abs() <= 1e-6 * scale,
+                    "node {j}: scale"
+                );
+                for c in 0..8 {
+                    let m = ((s & 1) + (c & 1))
+                        + 3 * (((s >> 1) & 1) + ((c >> 1) & 1))
+                        + 9 * ((s >> 2) + (c >> 2));
+                    assert_eq!(
+                        word(m),
+                        elems[(12 * e) as usize + c],
+                        "node {j}, side {s}, corner {c}"
+                    );
+                }
+                checked += 1;
+            }
+            let mut want = owned.remove(&j).unwrap_or_default();
+            want.sort_unstable();
+            found.sort_unstable();
+            assert_eq!(found, want, "node {j}: its elements");
+        }
+        assert_eq!(checked, 8 * e0.used as usize);
     }
 
     /// Equal stiffness block sets are written once and shared: every element (and every

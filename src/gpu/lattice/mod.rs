@@ -94,6 +94,7 @@ struct Params {
     pair: [u32; 4],
     chunks: [u32; 4],
     count: [u32; 4],
+    nbrs: [u32; 4],
 }
 
 /// Byte offset of `misc` (the collider count first) in the parameter block.
@@ -520,6 +521,7 @@ fn params_of(
             body_base,
         ],
         count: [layout.bodies.used, 0, 0, 0],
+        nbrs: [layout.nbr_base, 0, 0, 0],
     }
 }
 
