@@ -576,11 +576,16 @@ impl StepsOf {
 
 fn sweeps_name(s: Sweeps) -> String {
     let exact = if s.exact_coarsest { "x" } else { "" };
-    format!("{}/{}/{}{exact}", s.fine, s.coarse, s.coarsest)
+    let fine = if s.fine_before == s.fine {
+        s.fine.to_string()
+    } else {
+        format!("{}:{}", s.fine_before, s.fine)
+    };
+    format!("{fine}/{}/{}{exact}", s.coarse, s.coarsest)
 }
 
-/// `--sweeps 2/2/30,1/2/30x`: each entry fine/coarse/coarsest, the coarsest count
-/// followed by `x` where the coarsest level is solved exactly where its bodies are small
+/// `--sweeps 2/2/30,1/2/30x,0:1/2/30`: each entry fine/coarse/coarsest (fine as
+/// before:after where they differ), the coarsest count followed by `x` where the coarsest level is solved exactly where its bodies are small
 /// enough (`Sweeps::exact_coarsest`; the count then only for larger bodies).
 fn parse_sweeps(text: &str) -> Vec<Sweeps> {
     text.split(',')
@@ -590,6 +595,14 @@ fn parse_sweeps(text: &str) -> Vec<Sweeps> {
                 Some(rest) => (rest, true),
                 None => (one, false),
             };
+            // Level 0's count may be `before:after`.
+            let (before, counts) = match counts.split_once(':') {
+                Some((b, rest)) => (
+                    Some(b.trim().parse().unwrap_or_else(|e| fail("--sweeps", e))),
+                    rest,
+                ),
+                None => (None, counts),
+            };
             let n: Vec<u32> = counts
                 .split('/')
                 .map(|v| v.trim().parse().unwrap_or_else(|e| fail("--sweeps", e)))
@@ -597,6 +610,7 @@ fn parse_sweeps(text: &str) -> Vec<Sweeps> {
             match n[..] {
                 [fine, coarse, coarsest] => Sweeps {
                     fine,
+                    fine_before: before.unwrap_or(fine),
                     coarse,
                     coarsest,
                     exact_coarsest,

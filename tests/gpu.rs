@@ -1126,12 +1126,14 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     let d = Sweeps::DEFAULT;
     let few = Sweeps {
         fine: 1,
+        fine_before: 1,
         coarse: 2,
         coarsest: 10,
         exact_coarsest: false,
     };
     let chebyshev = Sweeps {
         fine: 4,
+        fine_before: 4,
         coarse: 2,
         coarsest: 6,
         exact_coarsest: false,

@@ -1268,7 +1268,7 @@ impl LatticeMultigrid {
             return;
         }
         let count = sweeps.on_level(l, false, self.smoother);
-        self.smooth(l, count, h2, work);
+        self.smooth(l, sweeps.before_on_level(l, self.smoother), h2, work);
         // Restrict the residual: r_c = Pᵀ (rhs − A δ).
         let lv = &self.levels[l];
         let nc = self.levels[l + 1].nodes;
@@ -1335,8 +1335,12 @@ impl LatticeMultigrid {
 /// buffers): an odd count there is one more ([`Sweeps::on_level`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Sweeps {
-    /// On level 0 (the particles), before and after the coarse correction (each).
+    /// On level 0 (the particles), after the coarse correction.
     pub fine: u32,
+    /// On level 0 before the coarse correction (0: none; each V-cycle starts from a zero
+    /// correction, so level 0's residual is then its right-hand side, and the cycle takes
+    /// one pass over the particles fewer).
+    pub fine_before: u32,
     /// On each level between level 0 and the coarsest, before and after (each).
     pub coarse: u32,
     /// On the coarsest level, where it is not solved exactly.
@@ -1355,20 +1359,38 @@ pub struct Sweeps {
 }
 
 impl Sweeps {
-    /// One sweep before and after on level 0, two on the levels between, 30 on the
-    /// coarsest: as accurate as two on level 0 at a real-time step (the coarsest
-    /// level's solve carries a stiff body's bending, each V-cycle's translation step
-    /// its rigid motion), for half of level 0's work.
+    /// One sweep on level 0 after the coarse correction and none before it, two before
+    /// and after on the levels between, 30 on the coarsest: as accurate at a real-time
+    /// step as two on level 0 before and after (the coarsest level's solve carries a
+    /// stiff body's bending, each V-cycle's translation step its rigid motion, and the
+    /// sweep after the correction the particles' own error, contacts included), for a
+    /// quarter of level 0's smoothing and one residual pass less a cycle.
     pub const DEFAULT: Sweeps = Sweeps {
         fine: 1,
+        fine_before: 0,
         coarse: 2,
         coarsest: 30,
         exact_coarsest: false,
     };
 
-    /// The sweeps `smoother` takes on level `l`: before and after the coarse correction
-    /// (each), or all of them where `l` is the coarsest level; rounded up to even where
-    /// the level is smoothed by Chebyshev.
+    /// The sweeps `smoother` takes on level `l` before the coarse correction (level 0:
+    /// [`Sweeps::fine_before`]; the others as after it, [`Sweeps::on_level`]); rounded up
+    /// to even where the level is smoothed by Chebyshev.
+    pub fn before_on_level(&self, l: usize, smoother: Smoother) -> u32 {
+        if l > 0 {
+            return self.on_level(l, false, smoother);
+        }
+        let n = self.fine_before;
+        if smoother.on_level(l) == Smoother::Chebyshev {
+            n + n % 2
+        } else {
+            n
+        }
+    }
+
+    /// The sweeps `smoother` takes on level `l`: after the coarse correction (and before
+    /// it but on level 0), or all of them where `l` is the coarsest level; rounded up to
+    /// even where the level is smoothed by Chebyshev.
     pub fn on_level(&self, l: usize, coarsest: bool, smoother: Smoother) -> u32 {
         let n = if coarsest {
             self.coarsest
@@ -1397,6 +1419,13 @@ impl Sweeps {
 
     /// An error naming a count out of range: every count from 1 to 1,000.
     pub fn check(&self) -> Result<(), TissueError> {
+        if self.fine_before > 1000 {
+            return Err(TissueError::InvalidParameter {
+                name: "sweeps.fine_before",
+                value: self.fine_before.to_string(),
+                expected: "a count from 0 to 1000",
+            });
+        }
         for (name, v) in [
             ("sweeps.fine", self.fine),
             ("sweeps.coarse", self.coarse),
@@ -1588,6 +1617,7 @@ mod tests {
     /// V(2, 2) with 30 on the coarsest (what these tests were written with).
     const V22: Sweeps = Sweeps {
         fine: 2,
+        fine_before: 2,
         coarse: 2,
         coarsest: 30,
         exact_coarsest: false,
@@ -1597,6 +1627,7 @@ mod tests {
     fn sweeps_are_counted_per_level_and_checked() {
         let odd = Sweeps {
             fine: 1,
+            fine_before: 1,
             coarse: 3,
             coarsest: 9,
             exact_coarsest: false,
@@ -1615,6 +1646,26 @@ mod tests {
         let err = none.check().unwrap_err().to_string();
         assert!(err.contains("sweeps.coarsest"), "{err}");
         assert!(Sweeps { fine: 5000, ..odd }.check().is_err());
+        // Level 0's sweeps before the correction: any count from 0, in pairs under
+        // Chebyshev; the other levels' are their count after.
+        let after = Sweeps {
+            fine_before: 0,
+            ..odd
+        };
+        assert!(after.check().is_ok());
+        assert_eq!(after.before_on_level(0, Smoother::Hybrid), 0);
+        assert_eq!(after.before_on_level(0, Smoother::Chebyshev), 0);
+        assert_eq!(odd.before_on_level(0, Smoother::Chebyshev), 2);
+        assert_eq!(after.before_on_level(1, Smoother::Hybrid), 4);
+        assert_eq!(after.on_level(0, false, Smoother::Hybrid), 1);
+        let err = Sweeps {
+            fine_before: 1001,
+            ..odd
+        }
+        .check()
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("sweeps.fine_before"), "{err}");
     }
 
     #[test]

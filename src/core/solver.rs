@@ -179,8 +179,9 @@ pub struct SolverSettings {
     pub newton_cycles: u32,
     /// [`ElementSolver::Multigrid`]: the V-cycle's smoothing sweeps on level 0, on the
     /// levels between and on the coarsest ([`super::multigrid::Sweeps`]; in pairs where
-    /// [`Self::smoother`] smooths a level by Chebyshev). Default one sweep before and after
-    /// on level 0, two on the levels between, 30 on the coarsest (not solved exactly).
+    /// [`Self::smoother`] smooths a level by Chebyshev). Default one sweep on level 0 after
+    /// the coarse correction and none before, two before and after on the levels between,
+    /// 30 on the coarsest (not solved exactly).
     pub sweeps: super::multigrid::Sweeps,
 }
 

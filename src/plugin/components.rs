@@ -548,8 +548,10 @@ pub struct TissueSettings {
     /// iterations of one and faster, and a stiff body falls at the rate gravity sets
     /// where one V-cycle lags.
     pub newton_cycles: u32,
-    /// The V-cycle's smoothing sweeps on the particles, on the levels between and on the
-    /// coarsest level, for lattice bodies (default 1/2/30; each from 1 to 1,000), and
+    /// The V-cycle's smoothing sweeps on the particles (after the coarse correction, and
+    /// before it), on the levels between and on the coarsest level, for lattice bodies
+    /// (default 1 after and none before on the particles, 2, 30; each from 1 to 1,000,
+    /// the particles' before from 0), and
     /// whether the coarsest level is solved exactly where its bodies are small enough
     /// (default off; see [`Sweeps::exact_coarsest`]). The coarsest level's solve carries
     /// a stiff body's bending: fewer sweeps leave a 1 MPa body too soft at real-time
@@ -734,6 +736,7 @@ mod tests {
         // The V-cycle's sweeps reach the core, on either path; a count of 0 is refused.
         let sweeps = Sweeps {
             fine: 2,
+            fine_before: 2,
             coarse: 3,
             coarsest: 12,
             exact_coarsest: false,

@@ -83,8 +83,8 @@ struct LatticeParams {
     lv: array<vec4<u32>, 8>, // per level: first node, end of its nodes in use, first
                              // element, end of its elements in use (slots past an end are
                              // room for bodies appended later)
-    sweeps: vec4<u32>,       // smoothing sweeps: before and after the coarse
-                             // correction, on the coarsest level; w: the line search's
+    sweeps: vec4<u32>,       // smoothing sweeps: level 0's after the coarse correction,
+                             // the levels between, the coarsest; w: the line search's
                              // candidates in its first pass
     colours: array<vec4<u32>, 32>, // per level and colour, where its nodes start and end
                              // in `topo` (16 entries a level)
@@ -1226,10 +1226,13 @@ fn smooth_node(j: u32) {
     vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * r, 0.0);
 }
 
-// The residual rhs − A δ of node j (0 on held nodes).
-fn fine_residual_node(j: u32) {
+// The residual rhs − A δ of node j (0 on held nodes); with `zero`, δ is zero and the
+// residual the right-hand side.
+fn fine_residual_node(j: u32, zero: bool) {
     var r = vec3<f32>(0.0);
-    if (!held(j)) {
+    if (zero) {
+        r = select(vecs[V_RHS * params.n_total + j].xyz, r, held(j));
+    } else if (!held(j)) {
         r = vecs[V_RHS * params.n_total + j].xyz - apply_row(j, V_DELTA);
     }
     vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
@@ -1304,11 +1307,12 @@ fn smooth_colour(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation
     smooth_split(pc.first + wg.x * 8u + lid / 8u, pc.first + pc.count, lid);
 }
 
-// The residual rhs − A δ of level pc.level's nodes (0 on fixed ones).
+// The residual rhs − A δ of level pc.level's nodes (0 on fixed ones); mode 1: δ is
+// zero (no smoothing before), the residual is the right-hand side.
 @compute @workgroup_size(64)
 fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x < pc.count) {
-        fine_residual_node(pc.first + gid.x);
+        fine_residual_node(pc.first + gid.x, pc.mode == 1u);
     }
 }
 

@@ -409,13 +409,16 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
         }
         return;
     }
-    // The same count before and after the coarse correction.
     let count = shape.sweeps.on_level(l, false, shape.smoother);
+    let before = shape.sweeps.before_on_level(l, shape.smoother);
     let lv = shape.levels[l];
     let cv = shape.levels[l + 1];
     let ll = l as u32;
-    sweeps(shape, l, count, push);
-    push(Kernel::FineResidual, lv[0], lv[1], ll, 0, groups(lv[1]));
+    sweeps(shape, l, before, push);
+    // Unsmoothed, the correction is still zero and the residual the right-hand side
+    // (mode 1: copied, no row of A δ made).
+    let copy = (before == 0) as u32;
+    push(Kernel::FineResidual, lv[0], lv[1], ll, copy, groups(lv[1]));
     if l == 0 {
         // Each body's translation step (`translate_bodies`; none with fixed nodes).
         let [n0, nc] = shape.tables[1];
@@ -1559,6 +1562,7 @@ mod tests {
             // V(2, 2), 30 on the coarsest (what these tests count).
             sweeps: Sweeps {
                 fine: 2,
+                fine_before: 2,
                 coarse: 2,
                 coarsest: 30,
                 exact_coarsest: false,
@@ -1780,14 +1784,15 @@ mod tests {
         }
     }
 
-    /// Each level is smoothed as many times as the settings' sweeps say: level 0 `fine`
-    /// times before and after, the levels between `coarse`, the coarsest `coarsest`,
-    /// each Gauss–Seidel sweep a dispatch per non-empty colour.
+    /// Each level is smoothed as many times as the settings' sweeps say: level 0
+    /// `fine_before` times before and `fine` after, the levels between `coarse`, the
+    /// coarsest `coarsest`, each Gauss–Seidel sweep a dispatch per non-empty colour.
     #[test]
     fn each_level_takes_its_own_sweeps() {
         let s = Shape {
             sweeps: Sweeps {
                 fine: 1,
+                fine_before: 1,
                 coarse: 3,
                 coarsest: 5,
                 exact_coarsest: false,
@@ -1802,6 +1807,35 @@ mod tests {
         };
         // Level 1 has an empty colour.
         assert_eq!((count(0), count(1), count(2)), (2 * 8, 2 * 3 * 7, 5 * 8));
+        // None before on level 0: its sweeps only after the correction, and its residual
+        // the right-hand side copied (mode 1); the levels between make theirs.
+        let after = Shape {
+            sweeps: Sweeps {
+                fine_before: 0,
+                ..s.sweeps
+            },
+            ..s.clone()
+        };
+        let p = plan(&after, 1);
+        let smooth0 = p
+            .iter()
+            .filter(|d| d.kernel == Kernel::Smooth && d.pass.level == 0)
+            .count();
+        assert_eq!(smooth0, 8);
+        let residuals: Vec<(u32, u32)> = p
+            .iter()
+            .filter(|d| d.kernel == Kernel::FineResidual)
+            .map(|d| (d.pass.level, d.pass.mode))
+            .collect();
+        assert_eq!(residuals, vec![(0, 1), (1, 0)]);
+        // The first level-0 sweep comes after the prolongation to level 0.
+        let first = p
+            .iter()
+            .position(|d| d.kernel == Kernel::Smooth && d.pass.level == 0);
+        let prolong = p
+            .iter()
+            .position(|d| d.kernel == Kernel::Prolong && d.pass.level == 0);
+        assert!(first > prolong, "{first:?} {prolong:?}");
     }
 
     /// Particle contacts are projected after every `contact_every`-th Newton iteration
