@@ -896,6 +896,11 @@ pub struct MgWork {
     /// [`LatticeMultigrid::prepare`], which lumps it onto the coarser levels
     /// (`Σ_j w_jc S_j`: exact for a uniform correction).
     pub extra: Vec<Vec<Mat3>>,
+    /// Level 0's nodes held at zero correction in this solve besides the level's fixed
+    /// ones (grasped particles; empty: none): the V-cycle neither smooths nor corrects
+    /// them and leaves their residual out of the coarse levels', as
+    /// [`LatticeMultigrid::krylov`] leaves them out of its directions.
+    pub held: Vec<bool>,
 }
 
 impl LatticeMultigrid {
@@ -995,6 +1000,12 @@ impl LatticeMultigrid {
             y += *s * x[j];
         }
         y + self.stiffness_row(l, j, x, &work.rot[l])
+    }
+
+    /// Whether node `j` of level `l` keeps a zero correction: fixed on its level, or on
+    /// level 0 held in this solve ([`MgWork::held`]).
+    fn fixed_at(&self, l: usize, j: usize, work: &MgWork) -> bool {
+        self.levels[l].fixed[j] || (l == 0 && work.held.get(j).copied().unwrap_or(false))
     }
 
     /// Whether the V-cycle solves the coarsest level exactly under `sweeps`
@@ -1113,7 +1124,7 @@ impl LatticeMultigrid {
             let w = chebyshev_weight(k, rho2);
             let cur = &work.delta[l];
             for (j, n) in next.iter_mut().enumerate() {
-                *n = if lv.fixed[j] {
+                *n = if self.fixed_at(l, j, work) {
                     cur[j]
                 } else {
                     let ax = self.apply_row(l, j, cur, h2, work);
@@ -1132,7 +1143,7 @@ impl LatticeMultigrid {
         for _ in 0..sweeps {
             for &j in &lv.order {
                 let j = j as usize;
-                if lv.fixed[j] {
+                if self.fixed_at(l, j, work) {
                     continue;
                 }
                 let ax = self.apply_row(l, j, &work.delta[l], h2, work);
@@ -1152,6 +1163,9 @@ impl LatticeMultigrid {
     pub fn krylov(&self, h2: f32, cycles: u32, sweeps: Sweeps, held: &[bool], work: &mut MgWork) {
         let n = self.levels[0].nodes;
         let free = |j: usize| !held.get(j).copied().unwrap_or(false) && !self.levels[0].fixed[j];
+        // The V-cycles hold them too.
+        work.held.clear();
+        work.held.extend_from_slice(held);
         let mut x = vec![Vec3::ZERO; n];
         let mut p = vec![Vec3::ZERO; n];
         let mut q = vec![Vec3::ZERO; n];
@@ -1235,7 +1249,7 @@ impl LatticeMultigrid {
         };
         for w in lv.body_start.windows(2) {
             let nodes = w[0] as usize..w[1] as usize;
-            if nodes.clone().any(|j| lv.fixed[j]) {
+            if nodes.clone().any(|j| self.fixed_at(0, j, work)) {
                 continue;
             }
             let (mut sum, mut a) = (DVec3::ZERO, DMat3::ZERO);
@@ -1275,7 +1289,7 @@ impl LatticeMultigrid {
         let mut rc = vec![Vec3::ZERO; nc];
         let mut rf = vec![Vec3::ZERO; lv.nodes];
         for (j, rfj) in rf.iter_mut().enumerate() {
-            if !lv.fixed[j] {
+            if !self.fixed_at(l, j, work) {
                 *rfj = work.rhs[l][j] - self.apply_row(l, j, &work.delta[l], h2, work);
             }
         }
@@ -1296,19 +1310,30 @@ impl LatticeMultigrid {
         work.rhs[l + 1] = rc;
         work.delta[l + 1].iter_mut().for_each(|d| *d = Vec3::ZERO);
         self.vcycle(l + 1, h2, sweeps, work);
-        // Prolongate the coarse correction `e = P δ_c` and take it with the step
-        // `α = eᵀ r / eᵀ A e` that minimises the fine level's energy along it: the coarse
+        // Prolongate the coarse correction `e = P δ_c`. Below level 1 take it with the step
+        // `α = eᵀ r / eᵀ A e` that minimises the finer level's energy along it: the coarse
         // operator (each coarse cell's stiffness turned by one mean rotation) is exact
         // only where the cell's elements turn alike, and a correction it overestimates is
-        // scaled back instead of spoiling the fine solution (never made worse: α ≥ 0).
+        // scaled back instead of spoiling the finer solution (never made worse: α ≥ 0).
+        // On level 0 take it whole: the sweeps after it smooth what it overshoots, and the
+        // step along the cycle's result is chosen around the cycle (`krylov`: conjugate
+        // gradients, or one cycle's own energy-minimising step), so a product `A e` over
+        // the particles a cycle is saved.
         let mut e = vec![Vec3::ZERO; lv.nodes];
         for (j, ej) in e.iter_mut().enumerate() {
-            if lv.fixed[j] {
+            if self.fixed_at(l, j, work) {
                 continue;
             }
             for s in lv.prolong_start[j] as usize..lv.prolong_start[j + 1] as usize {
                 *ej += work.delta[l + 1][lv.prolong_node[s] as usize] * lv.prolong_weight[s];
             }
+        }
+        if l == 0 {
+            for (d, ej) in work.delta[0].iter_mut().zip(&e) {
+                *d += *ej;
+            }
+            self.smooth(l, count, h2, work);
+            return;
         }
         // Each body's own step (its nodes' sums), so that a body steps as it would alone.
         for b in 0..lv.body_start.len().saturating_sub(1) {
@@ -1783,6 +1808,43 @@ mod tests {
         );
         assert!(left[0] < 1e-3, "exact: {}", left[0]);
         assert!(left[1] > 10.0 * left[0], "swept: {}", left[1]);
+    }
+
+    /// A V-cycle leaves the nodes held in its solve ([`MgWork::held`]) at zero
+    /// correction and moves the others; without them held it moves those too.
+    #[test]
+    fn a_vcycle_keeps_held_nodes_still() {
+        let model = bar(0.006);
+        let mg = LatticeMultigrid::new(&model, 64, 8);
+        let h2 = 1.0f32 / 3600.0;
+        let rot = vec![Quat::IDENTITY; model.elements.len()];
+        let n = model.particle_count();
+        let held: Vec<bool> = (0..n)
+            .map(|j| j % 13 == 4 && !mg.levels[0].fixed[j])
+            .collect();
+        let run = |hold: bool| {
+            let mut work = MgWork::default();
+            mg.prepare(&rot, h2, &mut work);
+            for j in 0..n {
+                work.rhs[0][j] = Vec3::new(0.0, -0.2 * model.mass[j], 0.0);
+            }
+            if hold {
+                work.held = held.clone();
+            }
+            mg.vcycle(0, h2, Sweeps::DEFAULT, &mut work);
+            work.delta[0].clone()
+        };
+        let (kept, free) = (run(true), run(false));
+        let count = held.iter().filter(|&&h| h).count();
+        assert!(count > 10, "{count} held");
+        for j in (0..n).filter(|&j| held[j]) {
+            assert_eq!(kept[j], Vec3::ZERO, "held node {j}");
+            assert!(free[j].length() > 0.0, "node {j} unheld");
+        }
+        let moved = (0..n)
+            .filter(|&j| !held[j] && kept[j].length() > 0.0)
+            .count();
+        assert!(moved > n / 2, "{moved} of {n} moved");
     }
 
     /// Conjugate gradients preconditioned by the V-cycle ([`LatticeMultigrid::krylov`])

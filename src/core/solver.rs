@@ -1337,6 +1337,7 @@ impl Solver {
                 &mut self.mg_work,
             );
         } else {
+            self.mg_work.held.clone_from(&held);
             mg.vcycle(0, h2, self.settings.sweeps, &mut self.mg_work);
         }
         // Backtracking line search on the substep's energy

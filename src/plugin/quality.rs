@@ -26,14 +26,13 @@
 //! the V-cycles of each (more than one: conjugate gradients). The error is that of the
 //! settled cantilever's tip (24 × 3 × 3 cm, 6 and 12 particles across, E from 1 kPa to
 //! 1 MPa) against the static answer of the same model, on the GPU, with the default
-//! V-cycle sweeps (BENCHMARKS.md, "One sweep on the particles and a translation step
-//! per body"):
+//! V-cycle (BENCHMARKS.md, "Fewer passes over the particles a V-cycle"):
 //!
 //! | preset | Newton iterations × V-cycles | error of the settled tip |
 //! |---|---|---|
-//! | `Fast` | 1 × 1 | 0.7% at 1 kPa, 5.7% at 100 kPa (6 across), 15% at 100 kPa (12 across), 45% at 1 MPa (not settled after 1 s) |
-//! | `Balanced` | 1 × 2 (the default) | ≤ 2.7% everywhere measured (2.6% at 1 MPa, ≤ 1% below) |
-//! | `Accurate` | 1 × 3 | ≤ 0.9% everywhere measured |
+//! | `Fast` | 1 × 1 | 0.6% at 1 kPa, 6.5% at 100 kPa (6 across), 18% at 100 kPa (12 across), 49% at 1 MPa (not settled after 1 s) |
+//! | `Balanced` | 1 × 2 (the default) | ≤ 2.4% everywhere measured (2.4% at 1 MPa, ≤ 1% below) |
+//! | `Accurate` | 1 × 3 | ≤ 1% everywhere measured |
 //!
 //! **Cluster bodies** (the paper's model) come from `examples/speed_accuracy.rs` on the
 //! H100 (BENCHMARKS.md, "Speed against accuracy"; 1,000-particle bar, GPU Jacobi,

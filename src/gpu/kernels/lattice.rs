@@ -265,14 +265,14 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Smooth,
         name: "smooth_colour",
         uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+            "params", "pc", "rot", "vecs", "nblk", "ccol", "elems", "kmat", "topo", "nodes",
         ],
     },
     Entry {
         kernel: Kernel::Chebyshev,
         name: "smooth_chebyshev",
         uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+            "params", "pc", "rot", "vecs", "nblk", "ccol", "elems", "kmat", "topo", "nodes",
         ],
     },
     Entry {
@@ -300,7 +300,7 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::FineResidual,
         name: "fine_residual",
         uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "elems", "kmat", "topo", "nodes",
+            "params", "pc", "rot", "vecs", "nblk", "ccol", "elems", "kmat", "topo", "nodes",
         ],
     },
     Entry {
@@ -311,7 +311,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Prolong,
         name: "prolong",
-        uses: &["params", "pc", "vecs", "topo", "nodes"],
+        uses: &["params", "pc", "vecs", "ccol", "topo", "nodes"],
     },
     Entry {
         kernel: Kernel::AlphaTerms,
@@ -401,12 +401,14 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::TranslateTerms,
         name: "translate_terms",
-        uses: &["params", "pc", "vecs", "nblk", "red", "elems", "nodes"],
+        uses: &[
+            "params", "pc", "vecs", "nblk", "red", "ccol", "elems", "nodes",
+        ],
     },
     Entry {
         kernel: Kernel::Translate,
         name: "translate",
-        uses: &["params", "pc", "vecs", "nblk", "red", "nodes"],
+        uses: &["params", "pc", "vecs", "nblk", "red", "ccol", "nodes"],
     },
 ];
 

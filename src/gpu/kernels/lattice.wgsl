@@ -145,6 +145,12 @@ fn held_now(j: u32) -> bool {
     return held(j) || ccol[C_GRAB * params.n + j].w > 0.5;
 }
 
+// Held in the V-cycle: on level 0 `held_now` (grasped particles keep a zero correction,
+// as the conjugate gradients keep them; core::multigrid's MgWork::held), above `held`.
+fn held_in_cycle(j: u32) -> bool {
+    return held(j) || (j < params.n && ccol[C_GRAB * params.n + j].w > 0.5);
+}
+
 // Where a grasped node must be (xyz) and whether its grasper exists (w = 1; else 0).
 fn grasp_target(j: u32) -> vec4<f32> {
     let g = ccol[C_GRAB * params.n + j];
@@ -1216,7 +1222,7 @@ fn diag(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 // Gauss–Seidel update of node j: δ_j += D_j⁻¹ (rhs_j − (A δ)_j) (held nodes stay).
 fn smooth_node(j: u32) {
-    if (held(j)) {
+    if (held_in_cycle(j)) {
         return;
     }
     let o = 3u * j;
@@ -1231,8 +1237,8 @@ fn smooth_node(j: u32) {
 fn fine_residual_node(j: u32, zero: bool) {
     var r = vec3<f32>(0.0);
     if (zero) {
-        r = select(vecs[V_RHS * params.n_total + j].xyz, r, held(j));
-    } else if (!held(j)) {
+        r = select(vecs[V_RHS * params.n_total + j].xyz, r, held_in_cycle(j));
+    } else if (!held_in_cycle(j)) {
         r = vecs[V_RHS * params.n_total + j].xyz - apply_row(j, V_DELTA);
     }
     vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
@@ -1252,16 +1258,22 @@ fn restrict_node(j: u32) {
     vecs[V_DELTA * params.n_total + j] = vec4<f32>(0.0);
 }
 
-// The coarse correction prolongated to node j, e_j = (P δ_c)_j.
-fn prolong_node(j: u32) {
+// The coarse correction prolongated to node j, e_j = (P δ_c)_j; with `add`, added to
+// its correction (δ_j += e_j) rather than kept for the step along it.
+fn prolong_node(j: u32, add: bool) {
     var e = vec3<f32>(0.0);
-    if (!held(j)) {
+    if (!held_in_cycle(j)) {
         let c = params.prol_base + j;
         for (var s = topo[c]; s < topo[c + 1u]; s = s + 2u) {
             e = e + vecs[V_DELTA * params.n_total + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
         }
     }
-    vecs[V_PE * params.n_total + j] = vec4<f32>(e, 0.0);
+    if (add) {
+        let dj = V_DELTA * params.n_total + j;
+        vecs[dj] = vec4<f32>(vecs[dj].xyz + e, 0.0);
+    } else {
+        vecs[V_PE * params.n_total + j] = vec4<f32>(e, 0.0);
+    }
 }
 
 // Node j's terms of eᵀ r and eᵀ A e.
@@ -1325,11 +1337,12 @@ fn restrict_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 }
 
-// The coarse correction prolongated to level pc.level's nodes, e = P δ_c.
+// The coarse correction prolongated to level pc.level's nodes, e = P δ_c; mode 1: added
+// to their correction (level 0 takes it whole).
 @compute @workgroup_size(64)
 fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x < pc.count) {
-        prolong_node(pc.first + gid.x);
+        prolong_node(pc.first + gid.x, pc.mode == 1u);
     }
 }
 
@@ -1389,7 +1402,7 @@ fn smooth_split(i: u32, end: u32, lid: u32) {
     }
     let ax = split_row(j, i < end, V_DELTA, lid);
     if (lid % 8u == 0u && i < end) {
-        if (!held(j)) {
+        if (!held_in_cycle(j)) {
             let o = 3u * j;
             let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
             let dj = V_DELTA * params.n_total + j;
@@ -1422,7 +1435,7 @@ fn chebyshev_node(j: u32, ax: vec3<f32>, l: u32, k: u32) {
     let dst = select(V_PE, V_DELTA, odd);
     let cur = vecs[src * n + j].xyz;
     var next = cur;
-    if (!held(j)) {
+    if (!held_in_cycle(j)) {
         let o = 3u * j;
         let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
         let c = params.cheb[l];
@@ -1845,7 +1858,7 @@ fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup
     var fixed = 0.0;
     let ch = chunk(pc.first + wg.x);
     for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
-        if (held(j)) {
+        if (held_in_cycle(j)) {
             fixed = fixed + 1.0;
         } else {
             r = r + vecs[V_RES * params.n_total + j].xyz;
@@ -1873,7 +1886,7 @@ fn translate(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let j = pc.first + gid.x;
-    if (held(j)) {
+    if (held_in_cycle(j)) {
         return;
     }
     let b = node_body(j);

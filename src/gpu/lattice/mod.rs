@@ -428,11 +428,17 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     }
     push(Kernel::Restrict, cv[0], cv[1], ll + 1, 0, groups(cv[1]));
     vcycle(shape, l + 1, push);
-    push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
-    let [c0, cn] = shape.tables[1 + l];
-    push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
-    push(Kernel::Pick, 0, cn, ll, 3, pick_groups(shape));
-    push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
+    if l == 0 {
+        // Level 0 takes the coarse correction whole: added as it is prolongated (mode 1).
+        push(Kernel::Prolong, lv[0], lv[1], ll, 1, groups(lv[1]));
+    } else {
+        // The levels between take it with its energy-minimising step.
+        push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
+        let [c0, cn] = shape.tables[1 + l];
+        push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
+        push(Kernel::Pick, 0, cn, ll, 3, pick_groups(shape));
+        push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
+    }
     sweeps(shape, l, count, push);
 }
 
@@ -2021,6 +2027,25 @@ mod tests {
         );
         assert_eq!(count(Kernel::Restrict), 2 * 2);
         assert_eq!(count(Kernel::Prolong), 2 * 2);
+        // Level 0 takes the coarse correction whole as it is prolongated (mode 1, no
+        // step along it); level 1 with its step (alpha terms, pick, correct).
+        for (i, d) in p.iter().enumerate() {
+            if d.kernel == Kernel::Prolong {
+                let whole = d.pass.level == 0;
+                assert_eq!(d.pass.mode, whole as u32);
+                let next = p[i + 1].kernel;
+                assert_eq!(
+                    next == Kernel::AlphaTerms,
+                    !whole,
+                    "after prolong: {next:?}"
+                );
+            }
+        }
+        assert!(
+            p.iter()
+                .filter(|d| matches!(d.kernel, Kernel::AlphaTerms | Kernel::Correct))
+                .all(|d| d.pass.level == 1)
+        );
         // Each V-cycle's translation step, between level 0's residual and its
         // restriction.
         assert_eq!(count(Kernel::TranslateTerms), 2);
