@@ -40,7 +40,7 @@ const V_RES: u32 = 2u;
 const V_PE: u32 = 3u;
 // Material record per body in `mats` (vec4s, MAT_STRIDE of them, from Rust): (μ, λ,
 // contact radius, spacing), then the unit cube operator (five vec4, as in `kmat`: see
-// `cube_row`).
+// `cube_op_row`).
 const MAT_OP: u32 = 1u;
 // Regions of `ccol` (× n): this substep's collider corrections (xyz, m; w: the last
 // collider's index, −1: none); the collider touched in the last substep (x, −1: none)
@@ -856,45 +856,21 @@ fn extra_block(j: u32) -> mat3x3<f32> {
     return mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
 }
 
-// One element's part of (A x)_j: R Σ_b K_ab Rᵀ x_b (times its scale) over its eight
-// corners b (the element and corner a packed as `ec`, x at `vecs[off ..]`): on level 0
-// by its body's unit cube operator, above from its own blocks. Written out corner by
-// corner, so that the eight loads of x are issued together.
+// A coarse element's part of (A x)_j: R Σ_b K_ab Rᵀ x_b over its eight corners b from
+// its own blocks (the element and corner a packed as `ec`, x at `vecs[off ..]`; level
+// 0's rows come from `lattice_terms`). Written out corner by corner, so that the eight
+// loads of x are issued together.
 fn element_term(ec: u32, off: u32) -> vec3<f32> {
     let e = ec >> 3u;
     let c0 = elems[3u * e];
     let c1 = elems[3u * e + 1u];
-    return element_apply(e, ec & 7u, vecs[off + c0.x].xyz, vecs[off + c0.y].xyz,
-                         vecs[off + c0.z].xyz, vecs[off + c0.w].xyz, vecs[off + c1.x].xyz,
-                         vecs[off + c1.y].xyz, vecs[off + c1.z].xyz, vecs[off + c1.w].xyz);
+    return rotated_row(elems[3u * e + 2u].x, ec & 7u, 1.0, quat_mat(rot[e]),
+                       vecs[off + c0.x].xyz, vecs[off + c0.y].xyz, vecs[off + c0.z].xyz,
+                       vecs[off + c0.w].xyz, vecs[off + c1.x].xyz, vecs[off + c1.y].xyz,
+                       vecs[off + c1.z].xyz, vecs[off + c1.w].xyz);
 }
 
-// Element e's part of (A x) at its corner a, R Σ_b K_ab Rᵀ x_b (times its scale), given
-// its corners' values x0 .. x7.
-fn element_apply(e: u32, a: u32, x0: vec3<f32>, x1: vec3<f32>, x2: vec3<f32>, x3: vec3<f32>,
-                 x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>, x7: vec3<f32>) -> vec3<f32> {
-    let info = elems[3u * e + 2u];
-    let size = bitcast<f32>(info.z);
-    let r = quat_mat(rot[e]);
-    if (size > 0.0) {
-        let scale = bitcast<f32>(info.w) / (size * size);
-        return cube_row(info.x, a, scale, r, x0, x1, x2, x3, x4, x5, x6, x7);
-    }
-    return rotated_row(info.x, a, 1.0, r, x0, x1, x2, x3, x4, x5, x6, x7);
-}
-
-// A level-0 element's R K Rᵀ x at corner a (times `scale`, V/h²) from its body's unit
-// cube operator (core::element::CubeOperator: the one-point stress and the hourglass
-// block's pairs, triple and singles), stored in the five vec4 after the body's 64 unit
-// blocks in `kmat`: μ, λ, the pairs' (0,0) (0,1) (1,1), the triple's diagonal and
-// (0,1) (1,2) (2,0), the singles.
-fn cube_row(kb: u32, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
-            x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
-            x7: vec3<f32>) -> vec3<f32> {
-    return cube_op_row(cube_op(kb), a, scale, r, x0, x1, x2, x3, x4, x5, x6, x7);
-}
-
-// A body's unit cube operator (see `cube_row`).
+// A body's unit cube operator (see `cube_op_row`).
 struct CubeOp {
     k0: vec4<f32>,
     k1: vec4<f32>,
@@ -909,6 +885,11 @@ fn cube_op(kb: u32) -> CubeOp {
     return CubeOp(kmat[o], kmat[o + 1u], kmat[o + 2u], kmat[o + 3u], kmat[o + 4u]);
 }
 
+// A level-0 element's R K Rᵀ x at corner a (times `scale`, V/h²) from its body's unit
+// cube operator `op` (core::element::CubeOperator: the one-point stress and the
+// hourglass block's pairs, triple and singles), stored in the five vec4 after the body's
+// 64 unit blocks in `kmat`: μ, λ, the pairs' (0,0) (0,1) (1,1), the triple's diagonal
+// and (0,1) (1,2) (2,0), the singles.
 fn cube_op_row(op: CubeOp, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
                x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
                x7: vec3<f32>) -> vec3<f32> {

@@ -391,7 +391,7 @@ fn set_room(unit: bool) -> u32 {
 }
 
 /// A body's unit-cube operator as the six vec4 the lattice kernels read after its unit
-/// blocks: μ, λ, the pairs' entries, the triple's, the singles' (`cube_row` in
+/// blocks: μ, λ, the pairs' entries, the triple's, the singles' (`cube_op_row` in
 /// lattice.wgsl), zero-padded.
 fn operator_words(op: &CubeOperator) -> [[f32; 4]; 6] {
     let [p0, p1, p2] = op.pairs;
