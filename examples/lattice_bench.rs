@@ -33,8 +33,9 @@
 //! conjugate gradients; default 1), `--sweeps F/C/K,...` (the V-cycle's smoothing
 //! sweeps to compare: on level 0, the levels between and the coarsest,
 //! `SolverSettings::sweeps`; `F/C/Kx`: the coarsest level solved exactly where its
-//! bodies are small enough, `Sweeps::exact_coarsest`; default the library's,
-//! `1/2/30x`), `--no-touching` (speed: leave out
+//! bodies are small enough, `Sweeps::exact_coarsest`; `B:A` for a level's sweeps before
+//! and after the coarse correction where they differ; default the library's,
+//! `0:1/0:2/30x`), `--no-touching` (speed: leave out
 //! the touching cubes),
 //! `--smoother hybrid|chebyshev|gs`, `--first N,...` (speed only: line-search candidates
 //! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
@@ -581,11 +582,25 @@ fn sweeps_name(s: Sweeps) -> String {
     } else {
         format!("{}:{}", s.fine_before, s.fine)
     };
-    format!("{fine}/{}/{}{exact}", s.coarse, s.coarsest)
+    let coarse = if s.coarse_before == s.coarse {
+        s.coarse.to_string()
+    } else {
+        format!("{}:{}", s.coarse_before, s.coarse)
+    };
+    format!("{fine}/{coarse}/{}{exact}", s.coarsest)
 }
 
-/// `--sweeps 2/2/30,1/2/30x,0:1/2/30`: each entry fine/coarse/coarsest (fine as
-/// before:after where they differ), the coarsest count followed by `x` where the coarsest level is solved exactly where its bodies are small
+/// A sweep count, or `before:after` (each from 0).
+fn before_after(text: &str) -> (Option<u32>, u32) {
+    let num = |t: &str| t.trim().parse().unwrap_or_else(|e| fail("--sweeps", e));
+    match text.split_once(':') {
+        Some((b, a)) => (Some(num(b)), num(a)),
+        None => (None, num(text)),
+    }
+}
+
+/// `--sweeps 2/2/30,1/2/30x,0:1/0:2/30`: each entry fine/coarse/coarsest (fine and
+/// coarse as before:after where they differ), the coarsest count followed by `x` where the coarsest level is solved exactly where its bodies are small
 /// enough (`Sweeps::exact_coarsest`; the count then only for larger bodies).
 fn parse_sweeps(text: &str) -> Vec<Sweeps> {
     text.split(',')
@@ -595,23 +610,18 @@ fn parse_sweeps(text: &str) -> Vec<Sweeps> {
                 Some(rest) => (rest, true),
                 None => (one, false),
             };
-            // Level 0's count may be `before:after`.
-            let (before, counts) = match counts.split_once(':') {
-                Some((b, rest)) => (
-                    Some(b.trim().parse().unwrap_or_else(|e| fail("--sweeps", e))),
-                    rest,
-                ),
-                None => (None, counts),
-            };
-            let n: Vec<u32> = counts
-                .split('/')
-                .map(|v| v.trim().parse().unwrap_or_else(|e| fail("--sweeps", e)))
-                .collect();
+            // Level 0's and the levels between's counts may be `before:after`.
+            let n: Vec<(Option<u32>, u32)> = counts.split('/').map(before_after).collect();
             match n[..] {
-                [fine, coarse, coarsest] => Sweeps {
+                [
+                    (fine_before, fine),
+                    (coarse_before, coarse),
+                    (None, coarsest),
+                ] => Sweeps {
                     fine,
-                    fine_before: before.unwrap_or(fine),
+                    fine_before: fine_before.unwrap_or(fine),
                     coarse,
+                    coarse_before: coarse_before.unwrap_or(coarse),
                     coarsest,
                     exact_coarsest,
                 },

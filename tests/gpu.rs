@@ -1123,11 +1123,18 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     // (spacing, line-search candidates in the first pass, smoother, V-cycles per Newton
     // iteration (more than 1: conjugate gradients), a second body beside the bar, the
     // V-cycle's sweeps).
-    let d = Sweeps::DEFAULT;
+    // The coarsest level swept (30 sweeps) and two sweeps before and after on the levels
+    // between; the default (solved exactly, none before) is `ex` below.
+    let d = Sweeps {
+        coarse_before: 2,
+        exact_coarsest: false,
+        ..Sweeps::DEFAULT
+    };
     let few = Sweeps {
         fine: 1,
         fine_before: 1,
         coarse: 2,
+        coarse_before: 2,
         coarsest: 10,
         exact_coarsest: false,
     };
@@ -1135,6 +1142,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         fine: 4,
         fine_before: 4,
         coarse: 2,
+        coarse_before: 2,
         coarsest: 6,
         exact_coarsest: false,
     };
@@ -1147,11 +1155,10 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     let mut widths = [false; 3];
     let mut exact_rows = 0;
     // The coarsest level solved exactly (the hierarchy then coarsened to at most
-    // EXACT_COARSEST nodes a body).
-    let ex = Sweeps {
-        exact_coarsest: true,
-        ..d
-    };
+    // EXACT_COARSEST nodes a body), no sweeps before the coarse correction but on the
+    // coarsest level: the default.
+    let ex = Sweeps::DEFAULT;
+    assert!(ex.exact_coarsest && ex.coarse_before == 0);
     // (.., boxes beside the bar, ..)
     for (spacing, first, smoother, cycles, boxes, sweeps, fused, one_thread) in [
         (0.0075f32, 4, Chebyshev, 1, 0, d, f, never),
@@ -1345,7 +1352,7 @@ fn a_lattice_body_of_many_chunks_matches_the_cpu() {
 /// is refused, naming the mismatch.
 #[test]
 fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
-    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS};
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
     use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
     let Some(g) = gpu() else {
@@ -1361,10 +1368,11 @@ fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
         model.append(b);
     }
     let parts: Vec<BodyLevels> = bodies.iter().map(|b| BodyLevels::new(b, 0)).collect();
-    let joined =
-        || LatticeMultigrid::from_bodies(&parts.iter().collect::<Vec<_>>(), MIN_NODES, MAX_LEVELS);
-    assert!(joined().levels.len() >= 2);
     let s = lattice_settings();
+    let min_nodes = s.sweeps.min_nodes();
+    let joined =
+        || LatticeMultigrid::from_bodies(&parts.iter().collect::<Vec<_>>(), min_nodes, MAX_LEVELS);
+    assert!(joined().levels.len() >= 2);
     let start = State::new(&model);
     let run = |world: &GpuLattice| {
         let mut enc = g.device.create_command_encoder(&Default::default());
@@ -1392,7 +1400,7 @@ fn a_lattice_made_from_its_bodies_levels_steps_as_one_built_whole() {
         "joined levels step differently: {} m",
         max_dist(&a, &b)
     );
-    let other = LatticeMultigrid::from_bodies(&[&parts[0]], MIN_NODES, MAX_LEVELS);
+    let other = LatticeMultigrid::from_bodies(&[&parts[0]], min_nodes, MAX_LEVELS);
     let err = GpuLattice::with_levels(
         &g.device,
         &kernels,
@@ -1439,7 +1447,7 @@ fn joined(bodies: &[Model]) -> Model {
 /// changes nothing.
 #[test]
 fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
-    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS};
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
     use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions};
     let Some(g) = gpu() else {
@@ -1449,7 +1457,11 @@ fn a_lattice_body_appended_into_room_steps_as_a_world_made_with_it() {
     let (bodies, parts) = three_lattice_bodies();
     let (two, three) = (joined(&bodies[..2]), joined(&bodies[..3]));
     let refs: Vec<&BodyLevels> = parts.iter().collect();
-    let depth = LatticeMultigrid::depth_of(&refs[..2], MIN_NODES, MAX_LEVELS);
+    let depth = LatticeMultigrid::depth_of(
+        &refs[..2],
+        lattice_settings().sweeps.min_nodes(),
+        MAX_LEVELS,
+    );
     assert!(depth >= 2);
     let s = lattice_settings();
     let room = LatticeOptions {
@@ -1648,7 +1660,7 @@ fn bodies_packed_on_another_thread_commit_as_appended_here() {
 /// refused with nothing copied.
 #[test]
 fn a_lattice_made_again_takes_the_kept_bodies_state_by_gpu_copies() {
-    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS, MIN_NODES};
+    use bevy_tissue::core::multigrid::{BodyLevels, LatticeMultigrid, MAX_LEVELS};
     use bevy_tissue::gpu::kernels::lattice::LatticeKernels;
     use bevy_tissue::gpu::lattice::{GpuLattice, LatticeOptions, StateRun};
     let Some(g) = gpu() else {
@@ -1660,7 +1672,7 @@ fn a_lattice_made_again_takes_the_kept_bodies_state_by_gpu_copies() {
     let refs: Vec<&BodyLevels> = parts.iter().collect();
     let s = lattice_settings();
     let make = |model: &Model, n: usize| {
-        let depth = LatticeMultigrid::depth_of(&refs[..n], MIN_NODES, MAX_LEVELS);
+        let depth = LatticeMultigrid::depth_of(&refs[..n], s.sweeps.min_nodes(), MAX_LEVELS);
         GpuLattice::with_levels(
             &g.device,
             &kernels,

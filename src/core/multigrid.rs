@@ -1366,8 +1366,12 @@ pub struct Sweeps {
     /// correction, so level 0's residual is then its right-hand side, and the cycle takes
     /// one pass over the particles fewer).
     pub fine_before: u32,
-    /// On each level between level 0 and the coarsest, before and after (each).
+    /// On each level between level 0 and the coarsest, after the coarse correction.
     pub coarse: u32,
+    /// On each level between level 0 and the coarsest, before the coarse correction (0:
+    /// none; that level's correction starts from zero, so its residual is then its
+    /// right-hand side).
+    pub coarse_before: u32,
     /// On the coarsest level, where it is not solved exactly.
     pub coarsest: u32,
     /// Solve the coarsest level exactly (each body's system factorised, `L D Lᵀ`,
@@ -1376,36 +1380,37 @@ pub struct Sweeps {
     /// hierarchies are then coarsened that far, [`Sweeps::min_nodes`]). The coarsest
     /// level carries a stiff body's bending: solved exactly, a 1 MPa body comes closer to
     /// its material at the real-time setting than after `coarsest` sweeps, for about the
-    /// sweeps' GPU time. Off by default: the coarse levels do not hold grasped nodes, and
-    /// an exact coarse answer that moves them makes a grasped body's step far more
-    /// sensitive to rounding (the GPU and the CPU then part by a few µm where they agree
-    /// to 0.03 µm with the sweeps).
+    /// sweeps' GPU time. On by default. (Level 0 holds grasped particles inside each
+    /// V-cycle, so the exact coarse answer does not move them; see `MgWork::held`.)
     pub exact_coarsest: bool,
 }
 
 impl Sweeps {
-    /// One sweep on level 0 after the coarse correction and none before it, two before
-    /// and after on the levels between, 30 on the coarsest: as accurate at a real-time
-    /// step as two on level 0 before and after (the coarsest level's solve carries a
-    /// stiff body's bending, each V-cycle's translation step its rigid motion, and the
-    /// sweep after the correction the particles' own error, contacts included), for a
-    /// quarter of level 0's smoothing and one residual pass less a cycle.
+    /// One sweep on level 0 and two on the levels between, each after the coarse
+    /// correction and none before it, and the coarsest level solved exactly where its
+    /// bodies are small enough (30 sweeps where not): the coarsest level's exact solve
+    /// carries a stiff body's bending, each V-cycle's translation step its rigid motion,
+    /// and the sweeps after the correction each level's own error, contacts included.
+    /// No level then needs a pass that makes its residual: each V-cycle starts from a
+    /// zero correction on every level, so the residual is the right-hand side.
     pub const DEFAULT: Sweeps = Sweeps {
         fine: 1,
         fine_before: 0,
         coarse: 2,
+        coarse_before: 0,
         coarsest: 30,
-        exact_coarsest: false,
+        exact_coarsest: true,
     };
 
     /// The sweeps `smoother` takes on level `l` before the coarse correction (level 0:
-    /// [`Sweeps::fine_before`]; the others as after it, [`Sweeps::on_level`]); rounded up
-    /// to even where the level is smoothed by Chebyshev.
+    /// [`Sweeps::fine_before`]; the levels between: [`Sweeps::coarse_before`]); rounded
+    /// up to even where the level is smoothed by Chebyshev.
     pub fn before_on_level(&self, l: usize, smoother: Smoother) -> u32 {
-        if l > 0 {
-            return self.on_level(l, false, smoother);
-        }
-        let n = self.fine_before;
+        let n = if l > 0 {
+            self.coarse_before
+        } else {
+            self.fine_before
+        };
         if smoother.on_level(l) == Smoother::Chebyshev {
             n + n % 2
         } else {
@@ -1444,12 +1449,17 @@ impl Sweeps {
 
     /// An error naming a count out of range: every count from 1 to 1,000.
     pub fn check(&self) -> Result<(), TissueError> {
-        if self.fine_before > 1000 {
-            return Err(TissueError::InvalidParameter {
-                name: "sweeps.fine_before",
-                value: self.fine_before.to_string(),
-                expected: "a count from 0 to 1000",
-            });
+        for (name, v) in [
+            ("sweeps.fine_before", self.fine_before),
+            ("sweeps.coarse_before", self.coarse_before),
+        ] {
+            if v > 1000 {
+                return Err(TissueError::InvalidParameter {
+                    name,
+                    value: v.to_string(),
+                    expected: "a count from 0 to 1000",
+                });
+            }
         }
         for (name, v) in [
             ("sweeps.fine", self.fine),
@@ -1644,6 +1654,7 @@ mod tests {
         fine: 2,
         fine_before: 2,
         coarse: 2,
+        coarse_before: 2,
         coarsest: 30,
         exact_coarsest: false,
     };
@@ -1654,6 +1665,7 @@ mod tests {
             fine: 1,
             fine_before: 1,
             coarse: 3,
+            coarse_before: 3,
             coarsest: 9,
             exact_coarsest: false,
         };
@@ -1682,6 +1694,32 @@ mod tests {
         assert_eq!(after.before_on_level(0, Smoother::Chebyshev), 0);
         assert_eq!(odd.before_on_level(0, Smoother::Chebyshev), 2);
         assert_eq!(after.before_on_level(1, Smoother::Hybrid), 4);
+        // The levels between's before the correction: from 0 too, in pairs under
+        // Chebyshev, and only on those levels.
+        let plain = Sweeps {
+            coarse_before: 0,
+            ..odd
+        };
+        assert!(plain.check().is_ok());
+        assert_eq!(plain.before_on_level(1, Smoother::Hybrid), 0);
+        assert_eq!(plain.on_level(1, false, Smoother::Hybrid), 4);
+        assert_eq!(plain.before_on_level(0, Smoother::Hybrid), 1);
+        assert_eq!(
+            Sweeps {
+                coarse_before: 1,
+                ..odd
+            }
+            .before_on_level(1, Smoother::Hybrid),
+            2
+        );
+        let err = Sweeps {
+            coarse_before: 1001,
+            ..odd
+        }
+        .check()
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("sweeps.coarse_before"), "{err}");
         assert_eq!(after.on_level(0, false, Smoother::Hybrid), 1);
         let err = Sweeps {
             fine_before: 1001,

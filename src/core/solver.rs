@@ -179,9 +179,10 @@ pub struct SolverSettings {
     pub newton_cycles: u32,
     /// [`ElementSolver::Multigrid`]: the V-cycle's smoothing sweeps on level 0, on the
     /// levels between and on the coarsest ([`super::multigrid::Sweeps`]; in pairs where
-    /// [`Self::smoother`] smooths a level by Chebyshev). Default one sweep on level 0 after
-    /// the coarse correction and none before, two before and after on the levels between,
-    /// 30 on the coarsest (not solved exactly).
+    /// [`Self::smoother`] smooths a level by Chebyshev). Default one sweep on level 0 and
+    /// two on the levels between, each after the coarse correction and none before, and
+    /// the coarsest level solved exactly where its bodies are small enough (30 sweeps
+    /// where not).
     pub sweeps: super::multigrid::Sweeps,
 }
 

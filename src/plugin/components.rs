@@ -548,13 +548,13 @@ pub struct TissueSettings {
     /// iterations of one and faster, and a stiff body falls at the rate gravity sets
     /// where one V-cycle lags.
     pub newton_cycles: u32,
-    /// The V-cycle's smoothing sweeps on the particles (after the coarse correction, and
-    /// before it), on the levels between and on the coarsest level, for lattice bodies
-    /// (default 1 after and none before on the particles, 2, 30; each from 1 to 1,000,
-    /// the particles' before from 0), and
-    /// whether the coarsest level is solved exactly where its bodies are small enough
-    /// (default off; see [`Sweeps::exact_coarsest`]). The coarsest level's solve carries
-    /// a stiff body's bending: fewer sweeps leave a 1 MPa body too soft at real-time
+    /// The V-cycle's smoothing sweeps for lattice bodies, after and before the coarse
+    /// correction on the particles and on the levels between, and on the coarsest level
+    /// (default 1 and 0 on the particles, 2 and 0 between, 30; each after-count from 1
+    /// to 1,000, each before-count from 0), and whether the coarsest level is solved
+    /// exactly where its bodies are small enough (default on; see
+    /// [`Sweeps::exact_coarsest`]). The coarsest level's solve carries a stiff body's
+    /// bending: swept instead, fewer sweeps leave a 1 MPa body too soft at real-time
     /// settings ([`crate::core::solver::SolverSettings::sweeps`]).
     #[reflect(ignore)]
     pub sweeps: Sweeps,
@@ -738,6 +738,7 @@ mod tests {
             fine: 2,
             fine_before: 2,
             coarse: 3,
+            coarse_before: 3,
             coarsest: 12,
             exact_coarsest: false,
         };

@@ -26,12 +26,12 @@
 //! the V-cycles of each (more than one: conjugate gradients). The error is that of the
 //! settled cantilever's tip (24 × 3 × 3 cm, 6 and 12 particles across, E from 1 kPa to
 //! 1 MPa) against the static answer of the same model, on the GPU, with the default
-//! V-cycle (BENCHMARKS.md, "Fewer passes over the particles a V-cycle"):
+//! V-cycle (BENCHMARKS.md, "The coarsest level solved exactly by default"):
 //!
 //! | preset | Newton iterations × V-cycles | error of the settled tip |
 //! |---|---|---|
-//! | `Fast` | 1 × 1 | 0.6% at 1 kPa, 6.5% at 100 kPa (6 across), 18% at 100 kPa (12 across), 49% at 1 MPa (not settled after 1 s) |
-//! | `Balanced` | 1 × 2 (the default) | ≤ 2.4% everywhere measured (2.4% at 1 MPa, ≤ 1% below) |
+//! | `Fast` | 1 × 1 | 0.6% at 1 kPa, 8.8% at 100 kPa (6 across), 21% at 100 kPa (12 across), 31% at 1 MPa (not settled after 1 s) |
+//! | `Balanced` | 1 × 2 (the default) | ≤ 1% everywhere measured |
 //! | `Accurate` | 1 × 3 | ≤ 1% everywhere measured |
 //!
 //! **Cluster bodies** (the paper's model) come from `examples/speed_accuracy.rs` on the

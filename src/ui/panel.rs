@@ -341,8 +341,8 @@ pub(crate) fn settings_widgets(
     e.add(&r.on_hover_text(format!(
         "Solve the coarsest multigrid level of lattice bodies exactly (a dense L D Lᵀ \
          factorisation of each body's small system) where every body has at most {} \
-         nodes there, instead of sweeping it (default off: stiff bodies come closer to \
-         their material, but grasped bodies step less reproducibly)",
+         nodes there, instead of sweeping it (default on: stiff bodies come closer to \
+         their material at about the sweeps' cost)",
         crate::core::multigrid::EXACT_COARSEST
     )));
     ui.horizontal(|ui| {

@@ -1213,24 +1213,22 @@ fn smooth_node(j: u32) {
     vecs[dj] = vec4<f32>(vecs[dj].xyz + dinv * r, 0.0);
 }
 
-// The residual rhs − A δ of node j (0 on held nodes); with `zero`, δ is zero and the
-// residual the right-hand side.
-fn fine_residual_node(j: u32, zero: bool) {
+// The residual rhs − A δ of node j (0 on held nodes).
+fn fine_residual_node(j: u32) {
     var r = vec3<f32>(0.0);
-    if (zero) {
-        r = select(vecs[V_RHS * params.n_total + j].xyz, r, held_in_cycle(j));
-    } else if (!held_in_cycle(j)) {
+    if (!held_in_cycle(j)) {
         r = vecs[V_RHS * params.n_total + j].xyz - apply_row(j, V_DELTA);
     }
     vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
 }
 
-// Coarse node j's right-hand side (Pᵀ r)_j (0 on held nodes) and a zero correction.
-fn restrict_node(j: u32) {
+// Coarse node j's right-hand side (Pᵀ r)_j (0 on held nodes) and a zero correction,
+// the finer level's residual r from the `vecs` region `src`.
+fn restrict_node(j: u32, src: u32) {
     let c = params.restr_base + j - params.lv[1].x;
     var r = vec3<f32>(0.0);
     for (var s = topo[c]; s < topo[c + 1u]; s = s + 2u) {
-        r = r + vecs[V_RES * params.n_total + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
+        r = r + vecs[src * params.n_total + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
     }
     if (held(j)) {
         r = vec3<f32>(0.0);
@@ -1257,13 +1255,22 @@ fn prolong_node(j: u32, add: bool) {
     }
 }
 
-// Node j's terms of eᵀ r and eᵀ A e.
-fn alpha_node(j: u32) -> vec2<f32> {
+// Node j's terms of eᵀ r and eᵀ A e, r from the `vecs` region `src`.
+fn alpha_node(j: u32, src: u32) -> vec2<f32> {
     if (held(j)) {
         return vec2<f32>(0.0);
     }
     let e = vecs[V_PE * params.n_total + j].xyz;
-    return vec2<f32>(dot(vecs[V_RES * params.n_total + j].xyz, e), dot(apply_row(j, V_PE), e));
+    return vec2<f32>(dot(vecs[src * params.n_total + j].xyz, e), dot(apply_row(j, V_PE), e));
+}
+
+// Where a pass finds a level's residual: `V_RES`, or with mode 1 (the level not smoothed
+// before the coarse correction, so its correction is still zero) its right-hand side,
+// which the residual then equals but on held nodes: below level 0 their right-hand side
+// is 0 already (`restrict_node`), and level 0's passes (`translate_terms`, `translate`)
+// leave them out.
+fn residual_region(mode: u32) -> u32 {
+    return select(V_RES, V_RHS, mode == 1u);
 }
 
 // δ_j += α e_j.
@@ -1300,21 +1307,22 @@ fn smooth_colour(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation
     smooth_split(pc.first + wg.x * 8u + lid / 8u, pc.first + pc.count, lid);
 }
 
-// The residual rhs − A δ of level pc.level's nodes (0 on fixed ones); mode 1: δ is
-// zero (no smoothing before), the residual is the right-hand side.
+// The residual rhs − A δ of level pc.level's nodes (0 on fixed ones), after sweeps
+// before the coarse correction (without them no pass makes it: `residual_region`).
 @compute @workgroup_size(64)
 fn fine_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x < pc.count) {
-        fine_residual_node(pc.first + gid.x, pc.mode == 1u);
+        fine_residual_node(pc.first + gid.x);
     }
 }
 
 // The next coarser level's right-hand side Pᵀ r (0 on fixed nodes) and a zero
-// correction, for its nodes pc.first ..
+// correction, for its nodes pc.first ..; mode 1: r is the finer level's right-hand side
+// (`residual_region`).
 @compute @workgroup_size(64)
 fn restrict_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x < pc.count) {
-        restrict_node(pc.first + gid.x);
+        restrict_node(pc.first + gid.x, residual_region(pc.mode));
     }
 }
 
@@ -1812,8 +1820,9 @@ fn alpha_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
     var num = 0.0;
     var den = 0.0;
     let ch = chunk(pc.first + wg.x);
+    let src = residual_region(pc.mode);
     for (var i = ch.x + lid; i < ch.x + ch.y; i = i + LWG) {
-        let t = alpha_node(i);
+        let t = alpha_node(i, src);
         num = num + t.x;
         den = den + t.y;
     }
@@ -1830,7 +1839,7 @@ fn translation_block(j: u32) -> mat3x3<f32> {
 }
 
 // Partial sums over a chunk of level 0's nodes (workgroup pc.first + wg.x of its
-// table) for each body's translation step (core::multigrid's translate_bodies): Σ r,
+// table; their residual from `residual_region(pc.mode)`) for each body's translation step (core::multigrid's translate_bodies): Σ r,
 // the six entries of Σ (m/h² I + S), and the held nodes (whose bodies take none).
 @compute @workgroup_size(64)
 fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
@@ -1842,7 +1851,7 @@ fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup
         if (held_in_cycle(j)) {
             fixed = fixed + 1.0;
         } else {
-            r = r + vecs[V_RES * params.n_total + j].xyz;
+            r = r + vecs[residual_region(pc.mode) * params.n_total + j].xyz;
             a = a + translation_block(j);
         }
     }
@@ -1859,23 +1868,27 @@ fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup
     reduce_partials(lid, wg.x, 10u);
 }
 
-// Level 0's node j takes its body's translation step t: δ += t, r −= (m/h² I + S) t
-// (held nodes: none; their bodies take none).
+// Level 0's node j takes its body's translation step t: δ += t and r −= (m/h² I + S) t
+// (held nodes: none, and a zero residual; their bodies take none), r read from
+// `residual_region(pc.mode)` and written to `V_RES` (mode 1: level 0 was not smoothed
+// before, and this pass makes its residual).
 @compute @workgroup_size(64)
 fn translate(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= pc.count) {
         return;
     }
     let j = pc.first + gid.x;
+    let n = params.n_total;
     if (held_in_cycle(j)) {
+        vecs[V_RES * n + j] = vec4<f32>(0.0);
         return;
     }
     let b = node_body(j);
     let t = vec3<f32>(red[body_slot(b, B_SHIFT)], red[body_slot(b, B_SHIFT + 1u)],
                       red[body_slot(b, B_SHIFT + 2u)]);
-    let n = params.n_total;
     vecs[V_DELTA * n + j] = vec4<f32>(vecs[V_DELTA * n + j].xyz + t, 0.0);
-    vecs[V_RES * n + j] = vec4<f32>(vecs[V_RES * n + j].xyz - translation_block(j) * t, 0.0);
+    let r = vecs[residual_region(pc.mode) * n + j].xyz;
+    vecs[V_RES * n + j] = vec4<f32>(r - translation_block(j) * t, 0.0);
 }
 
 // δ += α e on level pc.level, α each node's body's.

@@ -415,18 +415,37 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     let cv = shape.levels[l + 1];
     let ll = l as u32;
     sweeps(shape, l, before, push);
-    // Unsmoothed, the correction is still zero and the residual the right-hand side
-    // (mode 1: copied, no row of A δ made).
-    let copy = (before == 0) as u32;
-    push(Kernel::FineResidual, lv[0], lv[1], ll, copy, groups(lv[1]));
+    // Unsmoothed, the correction is still zero and the residual the right-hand side:
+    // no pass makes it (mode 1: the passes that read it read the right-hand side).
+    let unsmoothed = (before == 0) as u32;
+    if unsmoothed == 0 {
+        push(Kernel::FineResidual, lv[0], lv[1], ll, 0, groups(lv[1]));
+    }
+    // Where the restriction finds the residual: level 0's translation step writes it.
+    let mut restrict_mode = unsmoothed;
     if l == 0 {
         // Each body's translation step (`translate_bodies`; none with fixed nodes).
         let [n0, nc] = shape.tables[1];
-        push(Kernel::TranslateTerms, n0, nc, 0, 0, nc);
+        push(Kernel::TranslateTerms, n0, nc, 0, unsmoothed, nc);
         push(Kernel::Pick, 0, nc, 0, 7, pick_groups(shape));
-        push(Kernel::Translate, lv[0], lv[1], 0, 0, groups(lv[1]));
+        push(
+            Kernel::Translate,
+            lv[0],
+            lv[1],
+            0,
+            unsmoothed,
+            groups(lv[1]),
+        );
+        restrict_mode = 0;
     }
-    push(Kernel::Restrict, cv[0], cv[1], ll + 1, 0, groups(cv[1]));
+    push(
+        Kernel::Restrict,
+        cv[0],
+        cv[1],
+        ll + 1,
+        restrict_mode,
+        groups(cv[1]),
+    );
     vcycle(shape, l + 1, push);
     if l == 0 {
         // Level 0 takes the coarse correction whole: added as it is prolongated (mode 1).
@@ -435,7 +454,7 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
         // The levels between take it with its energy-minimising step.
         push(Kernel::Prolong, lv[0], lv[1], ll, 0, groups(lv[1]));
         let [c0, cn] = shape.tables[1 + l];
-        push(Kernel::AlphaTerms, c0, cn, ll, 0, cn);
+        push(Kernel::AlphaTerms, c0, cn, ll, unsmoothed, cn);
         push(Kernel::Pick, 0, cn, ll, 3, pick_groups(shape));
         push(Kernel::Correct, lv[0], lv[1], ll, 0, groups(lv[1]));
     }
@@ -1570,6 +1589,7 @@ mod tests {
                 fine: 2,
                 fine_before: 2,
                 coarse: 2,
+                coarse_before: 2,
                 coarsest: 30,
                 exact_coarsest: false,
             },
@@ -1791,8 +1811,10 @@ mod tests {
     }
 
     /// Each level is smoothed as many times as the settings' sweeps say: level 0
-    /// `fine_before` times before and `fine` after, the levels between `coarse`, the
-    /// coarsest `coarsest`, each Gauss–Seidel sweep a dispatch per non-empty colour.
+    /// `fine_before` times before and `fine` after, the levels between `coarse_before`
+    /// and `coarse`, the coarsest `coarsest`, each Gauss–Seidel sweep a dispatch per
+    /// non-empty colour; a level not smoothed before the correction gets no residual
+    /// pass, its right-hand side read in its place.
     #[test]
     fn each_level_takes_its_own_sweeps() {
         let s = Shape {
@@ -1800,6 +1822,7 @@ mod tests {
                 fine: 1,
                 fine_before: 1,
                 coarse: 3,
+                coarse_before: 3,
                 coarsest: 5,
                 exact_coarsest: false,
             },
@@ -1813,8 +1836,9 @@ mod tests {
         };
         // Level 1 has an empty colour.
         assert_eq!((count(0), count(1), count(2)), (2 * 8, 2 * 3 * 7, 5 * 8));
-        // None before on level 0: its sweeps only after the correction, and its residual
-        // the right-hand side copied (mode 1); the levels between make theirs.
+        // None before on level 0: its sweeps only after the correction, and no pass
+        // makes its residual (the translation step writes it from the right-hand side,
+        // mode 1); the levels between make theirs.
         let after = Shape {
             sweeps: Sweeps {
                 fine_before: 0,
@@ -1833,7 +1857,41 @@ mod tests {
             .filter(|d| d.kernel == Kernel::FineResidual)
             .map(|d| (d.pass.level, d.pass.mode))
             .collect();
-        assert_eq!(residuals, vec![(0, 1), (1, 0)]);
+        assert_eq!(residuals, vec![(1, 0)]);
+        let modes = |p: &[Dispatch], k: Kernel| -> Vec<(u32, u32)> {
+            p.iter()
+                .filter(|d| d.kernel == k)
+                .map(|d| (d.pass.level, d.pass.mode))
+                .collect()
+        };
+        assert_eq!(modes(&p, Kernel::Translate), vec![(0, 1)]);
+        assert_eq!(modes(&p, Kernel::TranslateTerms), vec![(0, 1)]);
+        assert_eq!(modes(&p, Kernel::Restrict), vec![(1, 0), (2, 0)]);
+        assert_eq!(modes(&p, Kernel::AlphaTerms), vec![(1, 0)]);
+        // None before on the levels between either: no residual pass at all, and level
+        // 1's restriction and step read its right-hand side (mode 1).
+        let plain = Shape {
+            sweeps: Sweeps {
+                fine_before: 0,
+                coarse_before: 0,
+                ..s.sweeps
+            },
+            ..s.clone()
+        };
+        let q = plan(&plain, 1);
+        assert_eq!(modes(&q, Kernel::FineResidual), vec![]);
+        assert_eq!(modes(&q, Kernel::Restrict), vec![(1, 0), (2, 1)]);
+        assert_eq!(modes(&q, Kernel::AlphaTerms), vec![(1, 1)]);
+        let smooth1 = |p: &[Dispatch]| {
+            p.iter()
+                .filter(|d| d.kernel == Kernel::Smooth && d.pass.level == 1)
+                .count()
+        };
+        assert_eq!(smooth1(&q) * 2, smooth1(&p));
+        // With sweeps before on level 0, its residual pass and the translation from it.
+        let p0 = plan(&s, 1);
+        assert_eq!(modes(&p0, Kernel::FineResidual), vec![(0, 0), (1, 0)]);
+        assert_eq!(modes(&p0, Kernel::Translate), vec![(0, 0)]);
         // The first level-0 sweep comes after the prolongation to level 0.
         let first = p
             .iter()
@@ -2047,12 +2105,19 @@ mod tests {
                 .all(|d| d.pass.level == 1)
         );
         // Each V-cycle's translation step, between level 0's residual and its
-        // restriction.
+        // restriction (no residual pass where level 0 is not smoothed before: then it
+        // follows the coarse levels' diagonal or the conjugate gradients' last pass).
         assert_eq!(count(Kernel::TranslateTerms), 2);
+        let smoothed_before = s.sweeps.fine_before > 0;
         for (i, d) in p.iter().enumerate() {
             if d.kernel == Kernel::TranslateTerms {
-                assert_eq!(p[i - 1].kernel, Kernel::FineResidual);
-                assert_eq!(p[i - 1].pass.level, 0);
+                assert_eq!(
+                    p[i - 1].kernel == Kernel::FineResidual,
+                    smoothed_before,
+                    "{:?}",
+                    p[i - 1].kernel
+                );
+                assert_eq!(d.pass.mode, !smoothed_before as u32);
                 assert_eq!((p[i + 1].kernel, p[i + 1].pass.mode), (Kernel::Pick, 7));
                 assert_eq!(p[i + 2].kernel, Kernel::Translate);
                 assert_eq!(p[i + 3].kernel, Kernel::Restrict);
