@@ -33,7 +33,8 @@
 //! conjugate gradients; default 1), `--sweeps F/C/K,...` (the V-cycle's smoothing
 //! sweeps to compare: on level 0, the levels between and the coarsest,
 //! `SolverSettings::sweeps`; `F/C/Kx`: the coarsest level solved exactly where its
-//! bodies are small enough, `Sweeps::exact_coarsest`; `B:A` for a level's sweeps before
+//! bodies are small enough, `Sweeps::exact_coarsest`, and `F/C/Kt` or `F/C/Kxt` each
+//! V-cycle's translation step, `Sweeps::translation`; `B:A` for a level's sweeps before
 //! and after the coarse correction where they differ; default the library's,
 //! `0:1/0:2/30x`), `--no-touching` (speed: leave out
 //! the touching cubes),
@@ -576,7 +577,12 @@ impl StepsOf {
 }
 
 fn sweeps_name(s: Sweeps) -> String {
-    let exact = if s.exact_coarsest { "x" } else { "" };
+    let exact = match (s.exact_coarsest, s.translation) {
+        (true, true) => "xt",
+        (true, false) => "x",
+        (false, true) => "t",
+        (false, false) => "",
+    };
     let fine = if s.fine_before == s.fine {
         s.fine.to_string()
     } else {
@@ -601,14 +607,20 @@ fn before_after(text: &str) -> (Option<u32>, u32) {
 
 /// `--sweeps 2/2/30,1/2/30x,0:1/0:2/30`: each entry fine/coarse/coarsest (fine and
 /// coarse as before:after where they differ), the coarsest count followed by `x` where the coarsest level is solved exactly where its bodies are small
-/// enough (`Sweeps::exact_coarsest`; the count then only for larger bodies).
+/// enough (`Sweeps::exact_coarsest`; the count then only for larger bodies), then `t`
+/// where each V-cycle takes the bodies' translation step (`Sweeps::translation`).
 fn parse_sweeps(text: &str) -> Vec<Sweeps> {
     text.split(',')
         .map(|one| {
             let one = one.trim();
-            let (counts, exact_coarsest) = match one.strip_suffix('x') {
+            // Suffixes: `t` the translation step, then or before it `x` the exact solve.
+            let (counts, translation) = match one.strip_suffix('t') {
                 Some(rest) => (rest, true),
                 None => (one, false),
+            };
+            let (counts, exact_coarsest) = match counts.strip_suffix('x') {
+                Some(rest) => (rest, true),
+                None => (counts, false),
             };
             // Level 0's and the levels between's counts may be `before:after`.
             let n: Vec<(Option<u32>, u32)> = counts.split('/').map(before_after).collect();
@@ -624,10 +636,11 @@ fn parse_sweeps(text: &str) -> Vec<Sweeps> {
                     coarse_before: coarse_before.unwrap_or(coarse),
                     coarsest,
                     exact_coarsest,
+                    translation,
                 },
                 _ => fail(
                     "--sweeps",
-                    format!("{one}: expected fine/coarse/coarsest[x]"),
+                    format!("{one}: expected fine/coarse/coarsest[x][t]"),
                 ),
             }
         })

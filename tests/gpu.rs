@@ -1128,6 +1128,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
     let d = Sweeps {
         coarse_before: 2,
         exact_coarsest: false,
+        translation: true,
         ..Sweeps::DEFAULT
     };
     let few = Sweeps {
@@ -1137,6 +1138,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         coarse_before: 2,
         coarsest: 10,
         exact_coarsest: false,
+        translation: true,
     };
     let chebyshev = Sweeps {
         fine: 4,
@@ -1145,6 +1147,7 @@ fn lattice_newton_multigrid_matches_the_cpu() {
         coarse_before: 2,
         coarsest: 6,
         exact_coarsest: false,
+        translation: true,
     };
     // The next to last: the most coarsest-level nodes of a body for that level's sweeps
     // to run in one dispatch (0: a dispatch a sweep).

@@ -729,12 +729,13 @@ fn lattice_box_dropped_onto_another_rests_on_it() {
 /// 3, 10 and 30 steps of 1/60 s within 0.5% of implicit Euler's `g h² n (n + 1) / 2`,
 /// with 2 Newton iterations of one V-cycle for soft bodies on an 8 and a 4 mm lattice;
 /// with 1 Newton iteration of conjugate gradients over 2 V-cycles (the default) for soft
-/// bodies and stiff ones (1 MPa) on both lattices; and with one V-cycle (the `Fast`
-/// quality) or two Gauss–Seidel sweeps on level 0 for a stiff one. A stiff body's rigid
-/// motion is held by its mass alone, which the smoothing barely moves: each V-cycle's
-/// translation step takes it whole (without it, the 4 mm stiff body fell 0.981 of the
-/// drop after 30 steps with two level-0 sweeps and 0.72 with one; the 8 mm one 0.52
-/// with one). (One Newton iteration lagged on a lattice finer than twice gravity's
+/// bodies and stiff ones (1 and 10 MPa) on both lattices; and with one V-cycle (the
+/// `Fast` quality) or two Gauss–Seidel sweeps on level 0 for a stiff one; and with each
+/// V-cycle's translation step (`Sweeps::translation`). A stiff body's rigid motion is
+/// held by its mass alone, which the smoothing barely moves: the coarsest level's exact
+/// solve carries it (with that level swept instead, only the translation step did: the
+/// 4 mm stiff body fell 0.981 of the drop after 30 steps with two level-0 sweeps and
+/// 0.72 with one; the 8 mm one 0.52 with one). (One Newton iteration lagged on a lattice finer than twice gravity's
 /// 2.7 mm a step while the trust region held each particle to half a spacing per
 /// iteration; it now adds gravity's step from rest.)
 #[test]
@@ -742,6 +743,13 @@ fn free_lattice_bodies_fall_at_gravitys_rate() {
     use bevy_tissue::core::multigrid::Sweeps;
     let d = Sweeps::DEFAULT;
     let two = Sweeps { fine: 2, ..d };
+    // Each V-cycle's translation step (off by default: the exact coarsest solve carries
+    // a free body's fall).
+    let moved = Sweeps {
+        translation: true,
+        ..d
+    };
+    assert!(!d.translation);
     for (e, spacing, half, newton, cycles, sweeps) in [
         (20e3f32, 0.008f32, 0.016f32, 2u32, 1u32, d),
         (20e3, 0.004, 0.016, 2, 1, d),
@@ -751,6 +759,9 @@ fn free_lattice_bodies_fall_at_gravitys_rate() {
         (1e6, 0.004, 0.016, 1, 2, d),
         (1e6, 0.008, 0.016, 1, 1, d),
         (1e6, 0.008, 0.016, 1, 2, two),
+        (1e7, 0.004, 0.016, 1, 2, d),
+        (1e6, 0.004, 0.016, 1, 1, moved),
+        (1e7, 0.004, 0.016, 1, 2, moved),
     ] {
         let mut model = Model::new();
         model

@@ -1293,7 +1293,7 @@ impl LatticeMultigrid {
                 *rfj = work.rhs[l][j] - self.apply_row(l, j, &work.delta[l], h2, work);
             }
         }
-        if l == 0 {
+        if l == 0 && sweeps.translation {
             self.translate_bodies(h2, &mut rf, work);
         }
         for (j, r) in rf.iter().enumerate() {
@@ -1383,6 +1383,17 @@ pub struct Sweeps {
     /// sweeps' GPU time. On by default. (Level 0 holds grasped particles inside each
     /// V-cycle, so the exact coarse answer does not move them; see `MgWork::held`.)
     pub exact_coarsest: bool,
+    /// Each V-cycle takes each free body's translation step on level 0 before
+    /// restricting its residual (`t = (Σ m/h² I + S_j)⁻¹ Σ r` over the body's nodes, `S_j`
+    /// a node's contact block; bodies with a held node take none): the exact minimiser of
+    /// the step's energy along the body's translations, the rigid motion a stiff body's
+    /// mass alone resists and smoothing barely moves. With the coarsest level swept it is
+    /// what keeps a stiff free body falling at gravity's rate; solved exactly, the coarse
+    /// levels carry that motion themselves (a free stiff box falls at gravity's rate at
+    /// the default Newton iteration of two V-cycles without it), so it is off by
+    /// default; it helps a very stiff body stepped by a single V-cycle. Off, each V-cycle
+    /// takes three dispatches and two passes over the particles fewer on the GPU.
+    pub translation: bool,
 }
 
 impl Sweeps {
@@ -1400,6 +1411,7 @@ impl Sweeps {
         coarse_before: 0,
         coarsest: 30,
         exact_coarsest: true,
+        translation: false,
     };
 
     /// The sweeps `smoother` takes on level `l` before the coarse correction (level 0:
@@ -1657,6 +1669,7 @@ mod tests {
         coarse_before: 2,
         coarsest: 30,
         exact_coarsest: false,
+        translation: true,
     };
 
     #[test]
@@ -1668,6 +1681,7 @@ mod tests {
             coarse_before: 3,
             coarsest: 9,
             exact_coarsest: false,
+            translation: true,
         };
         assert!(odd.check().is_ok());
         // Gauss–Seidel takes the counts as they are; Chebyshev in pairs.
@@ -1782,6 +1796,7 @@ mod tests {
         model.append(&bar(0.0075));
         let exact = Sweeps {
             exact_coarsest: true,
+            translation: true,
             ..Sweeps::DEFAULT
         };
         let mut mg = LatticeMultigrid::new(&model, exact.min_nodes(), MAX_LEVELS);
@@ -1791,6 +1806,7 @@ mod tests {
         assert_eq!(mg.levels[l].body_start.len(), 3);
         let swept = Sweeps {
             exact_coarsest: false,
+            translation: true,
             ..exact
         };
         assert!(!mg.coarsest_exact(swept));

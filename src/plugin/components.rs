@@ -741,6 +741,7 @@ mod tests {
             coarse_before: 3,
             coarsest: 12,
             exact_coarsest: false,
+            translation: true,
         };
         let s = TissueSettings {
             sweeps,

@@ -1266,9 +1266,8 @@ fn alpha_node(j: u32, src: u32) -> vec2<f32> {
 
 // Where a pass finds a level's residual: `V_RES`, or with mode 1 (the level not smoothed
 // before the coarse correction, so its correction is still zero) its right-hand side,
-// which the residual then equals but on held nodes: below level 0 their right-hand side
-// is 0 already (`restrict_node`), and level 0's passes (`translate_terms`, `translate`)
-// leave them out.
+// which the residual then equals: on held nodes both are 0 (`residual` on level 0 and
+// the conjugate gradients' `cg_update` keep them there, `restrict_node` below).
 fn residual_region(mode: u32) -> u32 {
     return select(V_RES, V_RHS, mode == 1u);
 }

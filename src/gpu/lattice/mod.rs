@@ -423,7 +423,7 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
     }
     // Where the restriction finds the residual: level 0's translation step writes it.
     let mut restrict_mode = unsmoothed;
-    if l == 0 {
+    if l == 0 && shape.sweeps.translation {
         // Each body's translation step (`translate_bodies`; none with fixed nodes).
         let [n0, nc] = shape.tables[1];
         push(Kernel::TranslateTerms, n0, nc, 0, unsmoothed, nc);
@@ -1592,6 +1592,7 @@ mod tests {
                 coarse_before: 2,
                 coarsest: 30,
                 exact_coarsest: false,
+                translation: true,
             },
             // The coarsest level's sweeps a dispatch each (what these tests count).
             most_coarsest: 3,
@@ -1737,6 +1738,7 @@ mod tests {
         let exact = |base: Shape| Shape {
             sweeps: Sweeps {
                 exact_coarsest: true,
+                translation: true,
                 ..base.sweeps
             },
             ..base
@@ -1825,6 +1827,7 @@ mod tests {
                 coarse_before: 3,
                 coarsest: 5,
                 exact_coarsest: false,
+                translation: true,
             },
             ..shape()
         };
@@ -1888,6 +1891,24 @@ mod tests {
                 .count()
         };
         assert_eq!(smooth1(&q) * 2, smooth1(&p));
+        // Without the translation step (the default), level 0's restriction reads its
+        // right-hand side too, and nothing else changes.
+        let still = Shape {
+            sweeps: Sweeps {
+                translation: false,
+                ..plain.sweeps
+            },
+            ..s.clone()
+        };
+        let r = plan(&still, 1);
+        assert_eq!(modes(&r, Kernel::Restrict), vec![(1, 1), (2, 1)]);
+        assert_eq!(modes(&r, Kernel::TranslateTerms), vec![]);
+        assert_eq!(modes(&r, Kernel::Translate), vec![]);
+        assert_eq!(r.len() + 3, q.len());
+        assert!(
+            r.iter()
+                .all(|d| !(d.kernel == Kernel::Pick && d.pass.mode == 7))
+        );
         // With sweeps before on level 0, its residual pass and the translation from it.
         let p0 = plan(&s, 1);
         assert_eq!(modes(&p0, Kernel::FineResidual), vec![(0, 0), (1, 0)]);
