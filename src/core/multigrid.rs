@@ -1399,8 +1399,8 @@ pub struct Sweeps {
 impl Sweeps {
     /// One sweep on level 0 and two on the levels between, each after the coarse
     /// correction and none before it, and the coarsest level solved exactly where its
-    /// bodies are small enough (30 sweeps where not): the coarsest level's exact solve
-    /// carries a stiff body's bending, each V-cycle's translation step its rigid motion,
+    /// bodies are small enough (30 sweeps where not), and no translation step: the
+    /// coarsest level's exact solve carries a stiff body's bending and its rigid motion,
     /// and the sweeps after the correction each level's own error, contacts included.
     /// No level then needs a pass that makes its residual: each V-cycle starts from a
     /// zero correction on every level, so the residual is the right-hand side.
