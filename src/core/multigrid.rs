@@ -1310,15 +1310,18 @@ impl LatticeMultigrid {
         work.rhs[l + 1] = rc;
         work.delta[l + 1].iter_mut().for_each(|d| *d = Vec3::ZERO);
         self.vcycle(l + 1, h2, sweeps, work);
-        // Prolongate the coarse correction `e = P δ_c`. Below level 1 take it with the step
+        // Prolongate the coarse correction `e = P δ_c`. On level 0 take it whole: the
+        // sweeps after it smooth what it overshoots, and the step along the cycle's result
+        // is chosen around the cycle (`krylov`: conjugate gradients, or one cycle's own
+        // energy-minimising step), so a product `A e` over the particles a cycle is saved.
+        // On the levels between, where the coarsest level is swept, take it with the step
         // `α = eᵀ r / eᵀ A e` that minimises the finer level's energy along it: the coarse
         // operator (each coarse cell's stiffness turned by one mean rotation) is exact
         // only where the cell's elements turn alike, and a correction it overestimates is
-        // scaled back instead of spoiling the finer solution (never made worse: α ≥ 0).
-        // On level 0 take it whole: the sweeps after it smooth what it overshoots, and the
-        // step along the cycle's result is chosen around the cycle (`krylov`: conjugate
-        // gradients, or one cycle's own energy-minimising step), so a product `A e` over
-        // the particles a cycle is saved.
+        // scaled back instead of spoiling the finer solution (never made worse: α ≥ 0);
+        // without it a stiff body comes out too soft. Where the coarsest level is solved
+        // exactly they take it whole too: the step then buys nothing measurable at two
+        // V-cycles a Newton iteration and costs the stiffer bodies accuracy at one.
         let mut e = vec![Vec3::ZERO; lv.nodes];
         for (j, ej) in e.iter_mut().enumerate() {
             if self.fixed_at(l, j, work) {
@@ -1328,8 +1331,8 @@ impl LatticeMultigrid {
                 *ej += work.delta[l + 1][lv.prolong_node[s] as usize] * lv.prolong_weight[s];
             }
         }
-        if l == 0 {
-            for (d, ej) in work.delta[0].iter_mut().zip(&e) {
+        if l == 0 || self.coarsest_exact(sweeps) {
+            for (d, ej) in work.delta[l].iter_mut().zip(&e) {
                 *d += *ej;
             }
             self.smooth(l, count, h2, work);
@@ -1380,8 +1383,11 @@ pub struct Sweeps {
     /// hierarchies are then coarsened that far, [`Sweeps::min_nodes`]). The coarsest
     /// level carries a stiff body's bending: solved exactly, a 1 MPa body comes closer to
     /// its material at the real-time setting than after `coarsest` sweeps, for about the
-    /// sweeps' GPU time. On by default. (Level 0 holds grasped particles inside each
-    /// V-cycle, so the exact coarse answer does not move them; see `MgWork::held`.)
+    /// sweeps' GPU time, and the levels between then take their coarse correction whole
+    /// (no energy-minimising step along it, which a swept coarsest level needs), which
+    /// saves three passes a level and V-cycle. On by default. (Level 0 holds grasped
+    /// particles inside each V-cycle, so the exact coarse answer does not move them; see
+    /// `MgWork::held`.)
     pub exact_coarsest: bool,
     /// Each V-cycle takes each free body's translation step on level 0 before
     /// restricting its residual (`t = (Σ m/h² I + S_j)⁻¹ Σ r` over the body's nodes, `S_j`

@@ -30,7 +30,7 @@
 //!
 //! | preset | Newton iterations × V-cycles | error of the settled tip |
 //! |---|---|---|
-//! | `Fast` | 1 × 1 | 0.6% at 1 kPa, 8.8% at 100 kPa (6 across), 21% at 100 kPa (12 across), 31% at 1 MPa (not settled after 1 s) |
+//! | `Fast` | 1 × 1 | 0.6% at 1 kPa, 2.5% at 100 kPa (6 across), 7.7% at 100 kPa (12 across), 27% at 1 MPa (not settled after 1 s) |
 //! | `Balanced` | 1 × 2 (the default) | ≤ 1% everywhere measured |
 //! | `Accurate` | 1 × 3 | ≤ 1% everywhere measured |
 //!

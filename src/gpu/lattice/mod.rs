@@ -447,8 +447,10 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
         groups(cv[1]),
     );
     vcycle(shape, l + 1, push);
-    if l == 0 {
-        // Level 0 takes the coarse correction whole: added as it is prolongated (mode 1).
+    if l == 0 || shape.coarsest_exact() {
+        // Level 0 takes the coarse correction whole: added as it is prolongated (mode 1);
+        // so do the levels between where the coarsest level is solved exactly
+        // (`LatticeMultigrid::vcycle`).
         push(Kernel::Prolong, lv[0], lv[1], ll, 1, groups(lv[1]));
     } else {
         // The levels between take it with its energy-minimising step.
@@ -1731,8 +1733,8 @@ mod tests {
     /// Where the coarsest level is solved exactly (asked for, below level 0, no body
     /// past `EXACT_COARSEST` nodes there), each V-cycle takes one `solve_coarsest`
     /// dispatch there (a workgroup per body, its range the level's reduction table) in
-    /// place of every sweep of it, whatever the smoother and the fused limit; otherwise
-    /// none.
+    /// place of every sweep of it, whatever the smoother and the fused limit, and the
+    /// levels between take the coarse correction whole; otherwise none.
     #[test]
     fn small_coarsest_levels_are_solved_exactly_where_asked() {
         let exact = |base: Shape| Shape {
@@ -1765,7 +1767,23 @@ mod tests {
                 assert_eq!([d.pass.first, d.pass.count], solved.tables[3]);
                 assert_eq!(d.groups, 3);
             }
-            // No sweep of the coarsest level is left; everything else is as swept.
+            // Every level takes the coarse correction whole (no step along it).
+            assert!(
+                p.iter()
+                    .filter(|d| d.kernel == Kernel::Prolong)
+                    .all(|d| d.pass.mode == 1)
+            );
+            assert!(
+                p.iter()
+                    .all(|d| !matches!(d.kernel, Kernel::AlphaTerms | Kernel::Correct))
+            );
+            assert!(
+                swept
+                    .iter()
+                    .any(|d| d.kernel == Kernel::AlphaTerms && d.pass.level == 1)
+            );
+            // No sweep of the coarsest level is left; everything else is as swept but the
+            // levels between's steps.
             assert!(p.iter().all(|d| d.pass.level != 2
                 || !matches!(
                     d.kernel,
@@ -1783,6 +1801,10 @@ mod tests {
                                     | Kernel::CoarsestSmall
                                     | Kernel::CoarsestExact
                             )
+                    })
+                    .filter(|d| {
+                        !matches!(d.kernel, Kernel::AlphaTerms | Kernel::Correct)
+                            && !(d.kernel == Kernel::Pick && d.pass.mode == 3)
                     })
                     .map(|d| d.kernel)
                     .collect()
