@@ -1803,8 +1803,9 @@ mod tests {
                             )
                     })
                     .filter(|d| {
-                        !matches!(d.kernel, Kernel::AlphaTerms | Kernel::Correct)
-                            && !(d.kernel == Kernel::Pick && d.pass.mode == 3)
+                        let step = matches!(d.kernel, Kernel::AlphaTerms | Kernel::Correct)
+                            || (d.kernel == Kernel::Pick && d.pass.mode == 3);
+                        !step
                     })
                     .map(|d| d.kernel)
                     .collect()
