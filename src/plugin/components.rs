@@ -539,8 +539,8 @@ pub struct TissueSettings {
     pub backend: TissueBackend,
     /// Newton iterations per substep of lattice bodies (default 1). Their accuracy does
     /// not hang on it the way XPBD's hangs on `iterations`: one of 2 V-cycles lands
-    /// within 3% of the static answer of a cantilever from 1 kPa to 1 MPa
-    /// (BENCHMARKS.md, "Conjugate gradients in the Newton iteration").
+    /// close to the static answer of a cantilever from 1 kPa to 1 MPa (BENCHMARKS.md,
+    /// "The coarsest level solved exactly by default").
     pub newton_iterations: u32,
     /// Multigrid V-cycles per Newton iteration of lattice bodies (default 2): more than
     /// one solve the Newton step by conjugate gradients, each V-cycle a preconditioner
