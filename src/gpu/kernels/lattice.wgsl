@@ -1326,7 +1326,8 @@ fn restrict_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // The coarse correction prolongated to level pc.level's nodes, e = P δ_c; mode 1: added
-// to their correction (level 0 takes it whole).
+// to their correction (level 0 takes it whole, and so do the levels between where the
+// coarsest level is solved exactly).
 @compute @workgroup_size(64)
 fn prolong(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x < pc.count) {
