@@ -583,17 +583,18 @@ fn sweeps_name(s: Sweeps) -> String {
         (false, true) => "t",
         (false, false) => "",
     };
-    let fine = if s.fine_before == s.fine {
-        s.fine.to_string()
-    } else {
-        format!("{}:{}", s.fine_before, s.fine)
-    };
-    let coarse = if s.coarse_before == s.coarse {
-        s.coarse.to_string()
-    } else {
-        format!("{}:{}", s.coarse_before, s.coarse)
-    };
+    let fine = count_name(s.fine_before, s.fine);
+    let coarse = count_name(s.coarse_before, s.coarse);
     format!("{fine}/{coarse}/{}{exact}", s.coarsest)
+}
+
+/// A level's sweep counts as `--sweeps` takes them ([`before_after`]'s inverse).
+fn count_name(before: u32, after: u32) -> String {
+    if before == after {
+        after.to_string()
+    } else {
+        format!("{before}:{after}")
+    }
 }
 
 /// A sweep count, or `before:after` (each from 0).
@@ -606,9 +607,10 @@ fn before_after(text: &str) -> (Option<u32>, u32) {
 }
 
 /// `--sweeps 2/2/30,1/2/30x,0:1/0:2/30`: each entry fine/coarse/coarsest (fine and
-/// coarse as before:after where they differ), the coarsest count followed by `x` where the coarsest level is solved exactly where its bodies are small
-/// enough (`Sweeps::exact_coarsest`; the count then only for larger bodies), then `t`
-/// where each V-cycle takes the bodies' translation step (`Sweeps::translation`).
+/// coarse as before:after where they differ), the coarsest count followed by `x` where
+/// the coarsest level is solved exactly where its bodies are small enough
+/// (`Sweeps::exact_coarsest`; the count then only for larger bodies), then `t` where each
+/// V-cycle takes the bodies' translation step (`Sweeps::translation`).
 fn parse_sweeps(text: &str) -> Vec<Sweeps> {
     text.split(',')
         .map(|one| {

@@ -148,7 +148,10 @@ fn held_now(j: u32) -> bool {
 // Held in the V-cycle: on level 0 `held_now` (grasped particles keep a zero correction,
 // as the conjugate gradients keep them; core::multigrid's MgWork::held), above `held`.
 fn held_in_cycle(j: u32) -> bool {
-    return held(j) || (j < params.n && ccol[C_GRAB * params.n + j].w > 0.5);
+    if (j < params.n) {
+        return held_now(j);
+    }
+    return held(j);
 }
 
 // Where a grasped node must be (xyz) and whether its grasper exists (w = 1; else 0).
@@ -1839,8 +1842,9 @@ fn translation_block(j: u32) -> mat3x3<f32> {
 }
 
 // Partial sums over a chunk of level 0's nodes (workgroup pc.first + wg.x of its
-// table; their residual from `residual_region(pc.mode)`) for each body's translation step (core::multigrid's translate_bodies): Σ r,
-// the six entries of Σ (m/h² I + S), and the held nodes (whose bodies take none).
+// table; their residual from `residual_region(pc.mode)`) for each body's translation
+// step (core::multigrid's translate_bodies): Σ r, the six entries of Σ (m/h² I + S), and
+// the held nodes (whose bodies take none).
 @compute @workgroup_size(64)
 fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     var r = vec3<f32>(0.0);
