@@ -429,15 +429,13 @@ pub fn source() -> String {
     let mut s = String::from(include_str!("common.wgsl"));
     let rows = 3 * EXACT_COARSEST;
     s.push_str(&format!(
-        "\n// The exact coarsest solve's most nodes a body, its rows, the rows and the packed\n\
-         // length of its bordered matrix (core::multigrid::EXACT_COARSEST).\n\
+        "\n// The exact coarsest solve's most nodes a body, its rows and the packed length of\n\
+         // its bordered matrix (core::multigrid::EXACT_COARSEST).\n\
          const EXACT_NODES: u32 = {EXACT_COARSEST}u;\n\
          const EXACT_ROWS: u32 = {rows}u;\n\
-         const EXACT_COLUMN: u32 = {}u;\n\
          const EXACT_PACKED: u32 = {}u;\n\
          // Vec4s of a body's material record in `mats` (gpu::lattice's MAT_RECORD).\n\
          const MAT_STRIDE: u32 = {}u;\n",
-        rows + 1,
         packed_len(rows + 1),
         crate::gpu::lattice::MAT_RECORD,
     ));

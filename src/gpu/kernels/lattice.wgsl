@@ -1668,11 +1668,11 @@ fn smooth_coarsest_small(@builtin(workgroup_id) wg: vec3<u32>,
 // by its right-hand side, [[A, .], [bᵀ, .]], as a packed lower triangle (row r, column
 // c <= r at `packed(r, c)`; A's m rows first, b as row m), factorised in place into
 // A = L D Lᵀ (L unit lower; column k left unscaled, l_ik d_k, the border row becoming
-// z = L⁻¹ b); the pivot column of each elimination step, copied contiguously (two, the
-// next one written as it is made); D⁻¹ z, then the solution x.
+// z = L⁻¹ b); D⁻¹ z, updated into the solution backward; the solution, a node's three
+// unknowns at a time.
 var<workgroup> chol: array<f32, EXACT_PACKED>;
-var<workgroup> pivot_cols: array<array<f32, EXACT_COLUMN>, 2>;
 var<workgroup> exact_y: array<f32, EXACT_ROWS>;
+var<workgroup> exact_x: array<f32, EXACT_ROWS>;
 var<workgroup> exact_range: vec2<u32>;
 
 fn packed(r: u32, c: u32) -> u32 {
@@ -1697,7 +1697,7 @@ fn chol_add(i: u32, k: u32, blk: mat3x3<f32>) {
 // nodes assembled (held nodes' rows and columns the identity's, their right-hand side 0;
 // each node's own terms, then its elements' blocks one element slot a round, the lattice
 // giving a node at most eight) with the right-hand side as its last row, eliminated in
-// place (right-looking LDLᵀ: one trailing update a column, the border row's part of it
+// place (right-looking LDLᵀ, a node's three columns a step, the border row's part of it
 // the forward substitution), then solved backward. A body whose matrix has a pivot that
 // is not positive keeps a zero correction. The plan takes this kernel only where no body
 // has more than EXACT_NODES nodes on the level.
@@ -1753,59 +1753,112 @@ fn solve_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
                 }
             }
         }
-        workgroupBarrier();
-        for (var i = lid; i <= m; i = i + 256u) {
-            pivot_cols[0][i] = chol[packed(i, 0u)];
-        }
-        // Elimination, a column at a time: a_ij -= a_ik (a_jk / d_k) over the rows and
-        // columns past k (the border row's entries included). Every thread reads the
-        // same pivot, so `ok` is the workgroup's.
+        // Elimination, a node (three columns) at a time: every step k applies
+        // a_ij -= a_ik (a_jk / d_k) to the rows and columns past k (the border row's
+        // entries included), each entry's three updates in column order, so the result
+        // is the column-at-a-time elimination's (core::dense::solve_bordered) to the
+        // bit. Every thread eliminates the pivot node's own 3 × 3 block alike (so `ok`
+        // is the workgroup's); then the three columns below it, a row a thread; then the
+        // trailing triangle, a pair of nodes (3 × 3 entries) a thread.
         var ok = true;
-        for (var k = 0u; k < m; k = k + 1u) {
+        for (var kb = 0u; kb < nn; kb = kb + 1u) {
             workgroupBarrier();
-            let cur = k % 2u;
-            let d = pivot_cols[cur][k];
-            ok = ok && d > 0.0;
-            let inv = select(0.0, 1.0 / d, d > 0.0);
-            // The trailing triangle (rows m + 1 and columns m past k), entry q at its row
-            // ii and column jj (q = ii (ii + 1) / 2 + jj).
-            let t = m - k;
-            for (var q = lid; q < t * (t + 1u) / 2u; q = q + 256u) {
-                var ii = u32((sqrt(8.0 * f32(q) + 1.0) - 1.0) * 0.5);
-                if ((ii + 1u) * (ii + 2u) / 2u <= q) {
-                    ii = ii + 1u;
+            let k0 = 3u * kb;
+            let p1 = packed(k0 + 1u, k0);
+            let p2 = packed(k0 + 2u, k0);
+            let d0 = chol[packed(k0, k0)];
+            let i0 = select(0.0, 1.0 / d0, d0 > 0.0);
+            let a10 = chol[p1];
+            let a20 = chol[p2];
+            let d1 = chol[p1 + 1u] - a10 * (a10 * i0);
+            let i1 = select(0.0, 1.0 / d1, d1 > 0.0);
+            let a21 = chol[p2 + 1u] - a20 * (a10 * i0);
+            let d2 = chol[p2 + 2u] - a20 * (a20 * i0) - a21 * (a21 * i1);
+            let i2 = select(0.0, 1.0 / d2, d2 > 0.0);
+            ok = ok && d0 > 0.0 && d1 > 0.0 && d2 > 0.0;
+            // The pivot node's columns on the rows past it (row k0 + 3 + q).
+            for (var q = lid; q + k0 + 3u <= m; q = q + 256u) {
+                let p = packed(k0 + 3u + q, k0);
+                let x0 = chol[p];
+                let x1 = chol[p + 1u] - x0 * (a10 * i0);
+                chol[p + 1u] = x1;
+                chol[p + 2u] = chol[p + 2u] - x0 * (a20 * i0) - x1 * (a21 * i1);
+            }
+            workgroupBarrier();
+            if (lid == 0u) {
+                chol[p1 + 1u] = d1;
+                chol[p2 + 1u] = a21;
+                chol[p2 + 2u] = d2;
+            }
+            // Node pairs (a, b), b <= a, of the t nodes past the pivot and the border
+            // (local node t, its one row m); pair q at a (a + 1) / 2 + b.
+            let t = nn - kb - 1u;
+            for (var q = lid; q + 1u < (t + 1u) * (t + 2u) / 2u; q = q + 256u) {
+                var a = u32((sqrt(8.0 * f32(q) + 1.0) - 1.0) * 0.5);
+                if ((a + 1u) * (a + 2u) / 2u <= q) {
+                    a = a + 1u;
                 }
-                if (ii * (ii + 1u) / 2u > q) {
-                    ii = ii - 1u;
+                if (a * (a + 1u) / 2u > q) {
+                    a = a - 1u;
                 }
-                let jj = q - ii * (ii + 1u) / 2u;
-                let i = k + 1u + ii;
-                let p = packed(i, k + 1u + jj);
-                let v = chol[p] - pivot_cols[cur][i] * (pivot_cols[cur][k + 1u + jj] * inv);
-                chol[p] = v;
-                if (jj == 0u) {
-                    pivot_cols[1u - cur][i] = v;
+                let b = q - a * (a + 1u) / 2u;
+                let jb = k0 + 3u + 3u * b;
+                let pj0 = packed(jb, k0);
+                let pj1 = packed(jb + 1u, k0);
+                let pj2 = packed(jb + 2u, k0);
+                let cj = array<vec3<f32>, 3>(
+                    vec3<f32>(chol[pj0], chol[pj0 + 1u], chol[pj0 + 2u]) * vec3<f32>(i0, i1, i2),
+                    vec3<f32>(chol[pj1], chol[pj1 + 1u], chol[pj1 + 2u]) * vec3<f32>(i0, i1, i2),
+                    vec3<f32>(chol[pj2], chol[pj2 + 1u], chol[pj2 + 2u]) * vec3<f32>(i0, i1, i2));
+                var rows = 3u;
+                if (a == t) {
+                    rows = 1u;
+                }
+                for (var r = 0u; r < rows; r = r + 1u) {
+                    let i = k0 + 3u + 3u * a + r;
+                    let pi = packed(i, k0);
+                    let ci = vec3<f32>(chol[pi], chol[pi + 1u], chol[pi + 2u]);
+                    for (var c = 0u; c < 3u; c = c + 1u) {
+                        let j = jb + c;
+                        if (j <= i) {
+                            let p = packed(i, j);
+                            chol[p] = chol[p] - ci.x * cj[c].x - ci.y * cj[c].y - ci.z * cj[c].z;
+                        }
+                    }
                 }
             }
         }
         workgroupBarrier();
-        // y = D⁻¹ z, then Lᵀ x = y backward (y becoming x).
+        // y = D⁻¹ z, then Lᵀ x = y backward, a node at a time (each entry's updates in
+        // the column-at-a-time order): every thread takes the node's three unknowns
+        // alike, then updates the rows before it, a row a thread; x into exact_x.
         var own = 0.0;
         if (lid < m) {
             own = 1.0 / chol[packed(lid, lid)];
             exact_y[lid] = chol[packed(m, lid)] * own;
         }
-        for (var kk = m; kk > 0u; kk = kk - 1u) {
-            let k = kk - 1u;
+        for (var kb = nn; kb > 0u; kb = kb - 1u) {
+            let k0 = 3u * (kb - 1u);
             workgroupBarrier();
-            let xk = exact_y[k];
-            if (lid < k) {
-                exact_y[lid] = exact_y[lid] - chol[packed(k, lid)] * own * xk;
+            let p1 = packed(k0 + 1u, k0);
+            let p2 = packed(k0 + 2u, k0);
+            let x2 = exact_y[k0 + 2u];
+            let x1 = exact_y[k0 + 1u] - chol[p2 + 1u] * (1.0 / chol[p1 + 1u]) * x2;
+            let own0 = 1.0 / chol[packed(k0, k0)];
+            let x0 = exact_y[k0] - chol[p2] * own0 * x2 - chol[p1] * own0 * x1;
+            if (lid < k0) {
+                exact_y[lid] = exact_y[lid] - chol[p2 + lid - k0] * own * x2
+                    - chol[p1 + lid - k0] * own * x1 - chol[packed(k0, lid)] * own * x0;
+            }
+            if (lid == 0u) {
+                exact_x[k0] = x0;
+                exact_x[k0 + 1u] = x1;
+                exact_x[k0 + 2u] = x2;
             }
         }
         workgroupBarrier();
         for (var i = lid; i < nn; i = i + 256u) {
-            var x = vec3<f32>(exact_y[3u * i], exact_y[3u * i + 1u], exact_y[3u * i + 2u]);
+            var x = vec3<f32>(exact_x[3u * i], exact_x[3u * i + 1u], exact_x[3u * i + 2u]);
             if (!ok || held(range.x + i)) {
                 x = vec3<f32>(0.0);
             }
