@@ -47,7 +47,10 @@
 //! library's), `--rows N,...` (speed only: the fewest nodes a smoothing pass has for it
 //! to sum each node's row in one thread rather than eight,
 //! `LatticeOptions::one_thread_rows_from`, values to compare, 0 always, 4294967295
-//! never; default the library's), `--profile` (GPU time
+//! never; default the library's), `--keep-factor N,...` (speed only: 1 keeps the
+//! exactly solved coarsest level's factor from the Newton iteration's start for its
+//! V-cycles, 0 makes it again in each, `LatticeOptions::keep_coarsest_factor`; default
+//! the library's), `--profile` (GPU time
 //! per kernel of each speed row: timestamps between the dispatches of one pass where the
 //! device writes them there, else every dispatch in its own timed pass).
 //!
@@ -320,13 +323,14 @@ fn speed(
     firsts: &[u32],
     fuseds: &[u32],
     rows: &[u32],
+    keeps: &[u32],
     room: f32,
     steps_of: &StepsOf,
     touching: bool,
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
-        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | one thread a row from (nodes) | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| scene | particles | elements | smoother | first-pass candidates | coarsest fused up to (nodes) | one thread a row from (nodes) | coarsest factor kept | Newton iterations × V-cycles | sweeps (fine/coarse/coarsest) | GPU ms per step | wall ms per step | dispatches per step |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     // Touching cubes: centres 5.7 cm apart, so that the facing layers of particles
     // (radius 3.6 mm) overlap their neighbours' and every face is in contact.
@@ -358,7 +362,11 @@ fn speed(
                     .iter()
                     .flat_map(move |u| rows.iter().map(move |r| (f, u, r)))
             }) {
-                for (it, c, sw) in steps_of.each() {
+                for (it, c, sw, keep) in steps_of
+                    .each()
+                    .into_iter()
+                    .flat_map(|(it, c, sw)| keeps.iter().map(move |&k| (it, c, sw, k != 0)))
+                {
                     let s = SolverSettings {
                         // Particle contacts in every Newton iteration where bodies touch.
                         particle_contacts: name.contains("touching"),
@@ -380,12 +388,14 @@ fn speed(
                         room,
                         fused_coarsest: fused,
                         one_thread_rows_from: row,
+                        keep_coarsest_factor: keep,
                     };
                     let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, options);
                     println!(
-                        "| {name} | {} | {} | {sm:?} | {first} | {fused} | {row} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
+                        "| {name} | {} | {} | {sm:?} | {first} | {fused} | {row} | {} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
                         model.elements.len(),
+                        if keep { "yes" } else { "no" },
                         sweeps_name(sw),
                         gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
                     );
@@ -688,6 +698,10 @@ fn main() {
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
             &a.list("--fused", &[LatticeOptions::default().fused_coarsest]),
             &a.list("--rows", &[LatticeOptions::default().one_thread_rows_from]),
+            &a.list(
+                "--keep-factor",
+                &[LatticeOptions::default().keep_coarsest_factor as u32],
+            ),
             a.num("--room", LatticeOptions::default().room),
             &steps_of,
             !a.flag("--no-touching"),

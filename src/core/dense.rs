@@ -8,8 +8,10 @@
 //! lower triangle of `[[A, ·], [bᵀ, ·]]` (`m + 1` rows, `b` in the last): eliminating
 //! the bordered matrix factorises `A` and carries out the forward substitution in the
 //! same steps, so that only the backward substitution is left. [`solve_bordered`] works
-//! in `f32` and in the order the GPU's `solve_coarsest` kernel does, so that the two agree
-//! to rounding.
+//! in `f32`, each entry's updates in the order the GPU's kernels take them (they
+//! eliminate a node's three columns a step, or keep the factor of `A` and carry the
+//! border row through it in each solve, with the same updates in the same order), so
+//! that the two agree to rounding.
 //!
 //! ```
 //! use bevy_tissue::core::dense::{packed, packed_len, solve_bordered};
@@ -31,7 +33,7 @@ pub fn packed(r: usize, c: usize) -> usize {
 }
 
 /// Length of the packed lower triangle of a matrix of `rows` rows.
-pub fn packed_len(rows: usize) -> usize {
+pub const fn packed_len(rows: usize) -> usize {
     rows * (rows + 1) / 2
 }
 

@@ -1027,9 +1027,12 @@ impl LatticeMultigrid {
     /// right-hand side 0), bordered by the right-hand side and solved by `L D Lᵀ`
     /// elimination ([`super::dense::solve_bordered`]). Each
     /// entry sums the node's own terms, then its elements' blocks in the node's element
-    /// order, as the GPU's `solve_coarsest` does. A body whose matrix is not numerically
-    /// positive definite keeps a zero correction (its coarse level then does not help
-    /// this V-cycle).
+    /// order, as the GPU's `solve_coarsest` and `factor_coarsest` do. (The GPU may
+    /// factorise the matrix once a Newton iteration and solve each V-cycle's right-hand
+    /// side through the kept factor: the same numbers, the matrix being the same in every
+    /// V-cycle of a Newton iteration; this twin makes it again each time.) A body whose
+    /// matrix is not numerically positive definite keeps a zero correction (its coarse
+    /// level then does not help this V-cycle).
     fn solve_coarsest(&self, h2: f32, work: &mut MgWork) {
         use super::dense::{packed, packed_len, solve_bordered};
         let l = self.levels.len() - 1;

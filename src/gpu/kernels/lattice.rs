@@ -121,6 +121,11 @@ pub const SLOTS: &[Slot] = &[
         ty: "array<atomic<u32>>",
         access: Access::ReadWrite,
     },
+    Slot {
+        name: "cfac",
+        ty: "array<f32>",
+        access: Access::ReadWrite,
+    },
 ];
 
 /// The entry points of `lattice.wgsl`.
@@ -158,6 +163,12 @@ pub enum Kernel {
     /// system factorised, `L D Lᵀ`, in workgroup memory), where no body has more than
     /// [`EXACT_COARSEST`](crate::core::multigrid::EXACT_COARSEST) nodes there.
     CoarsestExact,
+    /// `factor_coarsest`: each body's coarsest-level matrix factorised, `L D Lᵀ`, into
+    /// the world's factor buffer, once a Newton iteration (where the world keeps it).
+    FactorCoarsest,
+    /// `solve_factored`: the coarsest level solved exactly from the factor
+    /// [`Kernel::FactorCoarsest`] kept (the same answer as [`Kernel::CoarsestExact`]).
+    CoarsestFactored,
     /// `fine_residual`: a level's residual before restriction.
     FineResidual,
     /// `restrict_residual`: the next coarser level's right-hand side.
@@ -297,6 +308,18 @@ pub const ENTRIES: &[Entry] = &[
         ],
     },
     Entry {
+        kernel: Kernel::FactorCoarsest,
+        name: "factor_coarsest",
+        uses: &[
+            "params", "pc", "rot", "nblk", "elems", "kmat", "topo", "nodes", "cfac",
+        ],
+    },
+    Entry {
+        kernel: Kernel::CoarsestFactored,
+        name: "solve_factored",
+        uses: &["params", "pc", "vecs", "elems", "nodes", "cfac"],
+    },
+    Entry {
         kernel: Kernel::FineResidual,
         name: "fine_residual",
         uses: &[
@@ -412,6 +435,11 @@ pub const ENTRIES: &[Entry] = &[
     },
 ];
 
+/// Floats each body's coarsest-level factor takes in the factor buffer
+/// ([`Kernel::FactorCoarsest`]): the packed lower triangle of [`EXACT_COARSEST`] nodes'
+/// rows, then whether every pivot was positive (1 or 0).
+pub const FACTOR_STRIDE: usize = packed_len(3 * EXACT_COARSEST) + 1;
+
 /// Colliders the lattice kernels take at once.
 pub const MAX_COLLIDERS: usize = 32;
 
@@ -429,11 +457,13 @@ pub fn source() -> String {
     let mut s = String::from(include_str!("common.wgsl"));
     let rows = 3 * EXACT_COARSEST;
     s.push_str(&format!(
-        "\n// The exact coarsest solve's most nodes a body, its rows and the packed length of\n\
-         // its bordered matrix (core::multigrid::EXACT_COARSEST).\n\
+        "\n// The exact coarsest solve's most nodes a body, its rows, the packed length of its\n\
+         // bordered matrix, and the floats a body's factor takes in `cfac`\n\
+         // (core::multigrid::EXACT_COARSEST).\n\
          const EXACT_NODES: u32 = {EXACT_COARSEST}u;\n\
          const EXACT_ROWS: u32 = {rows}u;\n\
          const EXACT_PACKED: u32 = {}u;\n\
+         const FACTOR_STRIDE: u32 = {FACTOR_STRIDE}u;\n\
          // Vec4s of a body's material record in `mats` (gpu::lattice's MAT_RECORD).\n\
          const MAT_STRIDE: u32 = {}u;\n",
         packed_len(rows + 1),

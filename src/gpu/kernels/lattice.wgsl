@@ -1691,181 +1691,329 @@ fn chol_add(i: u32, k: u32, blk: mat3x3<f32>) {
     }
 }
 
-// The coarsest level (pc.level, its reduction table from pc.first) solved exactly, a
-// workgroup per body (striding over the bodies), as core::multigrid's solve_coarsest
-// (core::dense::solve_bordered): the body's matrix M/h² + S + Σ_e R K Rᵀ over its free
-// nodes assembled (held nodes' rows and columns the identity's, their right-hand side 0;
-// each node's own terms, then its elements' blocks one element slot a round, the lattice
-// giving a node at most eight) with the right-hand side as its last row, eliminated in
-// place (right-looking LDLᵀ, a node's three columns a step, the border row's part of it
-// the forward substitution), then solved backward. A body whose matrix has a pivot that
-// is not positive keeps a zero correction. The plan takes this kernel only where no body
-// has more than EXACT_NODES nodes on the level.
-@compute @workgroup_size(256)
-fn solve_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-                  @builtin(local_invocation_index) lid: u32) {
-    let l = pc.level;
-    let n = params.n_total;
-    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
-        if (lid == 0u) {
-            exact_range = body_nodes(b, l, EXACT_NODES);
+// Assembles body `range`'s matrix M/h² + S + Σ_e R K Rᵀ on level pc.level into `chol`
+// (held nodes' rows and columns the identity's; each node's own terms, then its
+// elements' blocks one element slot a round, the lattice giving a node at most eight),
+// with room for the border row m, zeroed, where `border` (the caller writes the
+// right-hand side there).
+fn exact_assemble(lid: u32, range: vec2<u32>, border: bool) {
+    let nn = range.y - range.x;
+    let m = 3u * nn;
+    let rows = select(m, m + 1u, border);
+    for (var q = lid; q < rows * (rows + 1u) / 2u; q = q + 256u) {
+        chol[q] = 0.0;
+    }
+    workgroupBarrier();
+    if (lid < nn) {
+        let j = range.x + lid;
+        var d = identity3();
+        if (!held(j)) {
+            let mass = nodes[j].x / params.h2;
+            d = mat3x3<f32>(vec3<f32>(mass, 0.0, 0.0), vec3<f32>(0.0, mass, 0.0),
+                            vec3<f32>(0.0, 0.0, mass)) + extra_block(j);
         }
-        let range = workgroupUniformLoad(&exact_range);
-        let nn = range.y - range.x;
-        let m = 3u * nn;
-        for (var q = lid; q < (m + 1u) * (m + 2u) / 2u; q = q + 256u) {
-            chol[q] = 0.0;
+        chol_add(lid, lid, d);
+    }
+    // Eight threads a node, one a corner of the node's element in this round: within
+    // a round each thread adds to its own node's rows at its own corner's columns.
+    let local = lid / 8u;
+    let cb = lid % 8u;
+    let j = range.x + min(local, max(nn, 1u) - 1u);
+    let free = local < nn && !held(j);
+    for (var s = 0u; s < 8u; s = s + 1u) {
+        workgroupBarrier();
+        let at = topo[j] + s;
+        if (free && at < topo[j + 1u]) {
+            let ec = topo[at];
+            let e = ec >> 3u;
+            let k = corner(e, cb);
+            if (k <= j && !held(k)) {
+                let ki = kinfo(e);
+                let r = quat_mat(rot[e]);
+                let blk = r * (kblock(bitcast<u32>(ki.x), ec & 7u, cb) * ki.y) * transpose(r);
+                chol_add(local, k - range.x, blk);
+            }
+        }
+    }
+}
+
+// The pivot node's own 3 × 3 block at step kb of the elimination, as every thread
+// takes it: its diagonal after the steps within it (d0, d1, d2), their inverses (0 for a
+// pivot that is not positive) and its entries below the diagonal (a10, a20, and a21
+// after step 3 kb).
+struct Pivot {
+    d: vec3<f32>,
+    inv: vec3<f32>,
+    a10: f32,
+    a20: f32,
+    a21: f32,
+}
+
+// Step kb's pivot block, eliminated in place (`chol[packed(3 kb + r, 3 kb + c)]` before
+// its own steps; after the elimination, as the factor holds it).
+fn exact_pivot(kb: u32, eliminated: bool) -> Pivot {
+    let k0 = 3u * kb;
+    let p1 = packed(k0 + 1u, k0);
+    let p2 = packed(k0 + 2u, k0);
+    var v: Pivot;
+    v.d.x = chol[packed(k0, k0)];
+    v.inv.x = select(0.0, 1.0 / v.d.x, v.d.x > 0.0);
+    v.a10 = chol[p1];
+    v.a20 = chol[p2];
+    if (eliminated) {
+        v.d.y = chol[p1 + 1u];
+        v.inv.y = select(0.0, 1.0 / v.d.y, v.d.y > 0.0);
+        v.a21 = chol[p2 + 1u];
+        v.d.z = chol[p2 + 2u];
+    } else {
+        v.d.y = chol[p1 + 1u] - v.a10 * (v.a10 * v.inv.x);
+        v.inv.y = select(0.0, 1.0 / v.d.y, v.d.y > 0.0);
+        v.a21 = chol[p2 + 1u] - v.a20 * (v.a10 * v.inv.x);
+        v.d.z = chol[p2 + 2u] - v.a20 * (v.a20 * v.inv.x) - v.a21 * (v.a21 * v.inv.y);
+    }
+    v.inv.z = select(0.0, 1.0 / v.d.z, v.d.z > 0.0);
+    return v;
+}
+
+// Eliminates `chol` (nn nodes, m = 3 nn rows, and the border row m where `border`) in
+// place, a node (three columns) at a time: every step k applies a_ij -= a_ik (a_jk / d_k)
+// to the rows and columns past k, each entry's three updates in column order, so the
+// result is the column-at-a-time elimination's (core::dense::solve_bordered) to the bit.
+// Every thread eliminates the pivot node's own 3 × 3 block alike (so the result, whether
+// every pivot is positive, is the workgroup's); then the three columns below it, a row a
+// thread; then the trailing triangle, a pair of nodes (3 × 3 entries) a thread.
+fn exact_eliminate(lid: u32, nn: u32, border: bool) -> bool {
+    let m = 3u * nn;
+    let end = select(m, m + 1u, border);
+    var ok = true;
+    for (var kb = 0u; kb < nn; kb = kb + 1u) {
+        workgroupBarrier();
+        let k0 = 3u * kb;
+        let v = exact_pivot(kb, false);
+        ok = ok && all(v.d > vec3<f32>(0.0));
+        // The pivot node's columns on the rows past it (row k0 + 3 + q).
+        for (var q = lid; q + k0 + 3u < end; q = q + 256u) {
+            let p = packed(k0 + 3u + q, k0);
+            let x0 = chol[p];
+            let x1 = chol[p + 1u] - x0 * (v.a10 * v.inv.x);
+            chol[p + 1u] = x1;
+            chol[p + 2u] = chol[p + 2u] - x0 * (v.a20 * v.inv.x) - x1 * (v.a21 * v.inv.y);
         }
         workgroupBarrier();
-        if (lid < nn) {
-            let j = range.x + lid;
-            var d = identity3();
-            var rhs = vec3<f32>(0.0);
-            if (!held(j)) {
-                let mass = nodes[j].x / params.h2;
-                d = mat3x3<f32>(vec3<f32>(mass, 0.0, 0.0), vec3<f32>(0.0, mass, 0.0),
-                                vec3<f32>(0.0, 0.0, mass)) + extra_block(j);
-                rhs = vecs[V_RHS * n + j].xyz;
-            }
-            chol_add(lid, lid, d);
-            chol[packed(m, 3u * lid)] = rhs.x;
-            chol[packed(m, 3u * lid + 1u)] = rhs.y;
-            chol[packed(m, 3u * lid + 2u)] = rhs.z;
+        if (lid == 0u) {
+            chol[packed(k0 + 1u, k0 + 1u)] = v.d.y;
+            chol[packed(k0 + 2u, k0 + 1u)] = v.a21;
+            chol[packed(k0 + 2u, k0 + 2u)] = v.d.z;
         }
-        // Eight threads a node, one a corner of the node's element in this round: within
-        // a round each thread adds to its own node's rows at its own corner's columns.
-        let local = lid / 8u;
-        let cb = lid % 8u;
-        let j = range.x + min(local, max(nn, 1u) - 1u);
-        let free = local < nn && !held(j);
-        for (var s = 0u; s < 8u; s = s + 1u) {
-            workgroupBarrier();
-            let at = topo[j] + s;
-            if (free && at < topo[j + 1u]) {
-                let ec = topo[at];
-                let e = ec >> 3u;
-                let k = corner(e, cb);
-                if (k <= j && !held(k)) {
-                    let ki = kinfo(e);
-                    let r = quat_mat(rot[e]);
-                    let blk = r * (kblock(bitcast<u32>(ki.x), ec & 7u, cb) * ki.y) * transpose(r);
-                    chol_add(local, k - range.x, blk);
-                }
+        // Node pairs (a, b), b <= a, of the t nodes past the pivot, and with the border
+        // (local node t, its one row m) after them; pair q at a (a + 1) / 2 + b.
+        let t = nn - kb - 1u;
+        let pairs = select(t * (t + 1u) / 2u, (t + 1u) * (t + 2u) / 2u - 1u, border);
+        for (var q = lid; q < pairs; q = q + 256u) {
+            var a = u32((sqrt(8.0 * f32(q) + 1.0) - 1.0) * 0.5);
+            if ((a + 1u) * (a + 2u) / 2u <= q) {
+                a = a + 1u;
             }
-        }
-        // Elimination, a node (three columns) at a time: every step k applies
-        // a_ij -= a_ik (a_jk / d_k) to the rows and columns past k (the border row's
-        // entries included), each entry's three updates in column order, so the result
-        // is the column-at-a-time elimination's (core::dense::solve_bordered) to the
-        // bit. Every thread eliminates the pivot node's own 3 × 3 block alike (so `ok`
-        // is the workgroup's); then the three columns below it, a row a thread; then the
-        // trailing triangle, a pair of nodes (3 × 3 entries) a thread.
-        var ok = true;
-        for (var kb = 0u; kb < nn; kb = kb + 1u) {
-            workgroupBarrier();
-            let k0 = 3u * kb;
-            let p1 = packed(k0 + 1u, k0);
-            let p2 = packed(k0 + 2u, k0);
-            let d0 = chol[packed(k0, k0)];
-            let i0 = select(0.0, 1.0 / d0, d0 > 0.0);
-            let a10 = chol[p1];
-            let a20 = chol[p2];
-            let d1 = chol[p1 + 1u] - a10 * (a10 * i0);
-            let i1 = select(0.0, 1.0 / d1, d1 > 0.0);
-            let a21 = chol[p2 + 1u] - a20 * (a10 * i0);
-            let d2 = chol[p2 + 2u] - a20 * (a20 * i0) - a21 * (a21 * i1);
-            let i2 = select(0.0, 1.0 / d2, d2 > 0.0);
-            ok = ok && d0 > 0.0 && d1 > 0.0 && d2 > 0.0;
-            // The pivot node's columns on the rows past it (row k0 + 3 + q).
-            for (var q = lid; q + k0 + 3u <= m; q = q + 256u) {
-                let p = packed(k0 + 3u + q, k0);
-                let x0 = chol[p];
-                let x1 = chol[p + 1u] - x0 * (a10 * i0);
-                chol[p + 1u] = x1;
-                chol[p + 2u] = chol[p + 2u] - x0 * (a20 * i0) - x1 * (a21 * i1);
+            if (a * (a + 1u) / 2u > q) {
+                a = a - 1u;
             }
-            workgroupBarrier();
-            if (lid == 0u) {
-                chol[p1 + 1u] = d1;
-                chol[p2 + 1u] = a21;
-                chol[p2 + 2u] = d2;
-            }
-            // Node pairs (a, b), b <= a, of the t nodes past the pivot and the border
-            // (local node t, its one row m); pair q at a (a + 1) / 2 + b.
-            let t = nn - kb - 1u;
-            for (var q = lid; q + 1u < (t + 1u) * (t + 2u) / 2u; q = q + 256u) {
-                var a = u32((sqrt(8.0 * f32(q) + 1.0) - 1.0) * 0.5);
-                if ((a + 1u) * (a + 2u) / 2u <= q) {
-                    a = a + 1u;
-                }
-                if (a * (a + 1u) / 2u > q) {
-                    a = a - 1u;
-                }
-                let b = q - a * (a + 1u) / 2u;
-                let jb = k0 + 3u + 3u * b;
-                let pj0 = packed(jb, k0);
-                let pj1 = packed(jb + 1u, k0);
-                let pj2 = packed(jb + 2u, k0);
-                let cj = array<vec3<f32>, 3>(
-                    vec3<f32>(chol[pj0], chol[pj0 + 1u], chol[pj0 + 2u]) * vec3<f32>(i0, i1, i2),
-                    vec3<f32>(chol[pj1], chol[pj1 + 1u], chol[pj1 + 2u]) * vec3<f32>(i0, i1, i2),
-                    vec3<f32>(chol[pj2], chol[pj2 + 1u], chol[pj2 + 2u]) * vec3<f32>(i0, i1, i2));
-                var rows = 3u;
-                if (a == t) {
-                    rows = 1u;
-                }
-                for (var r = 0u; r < rows; r = r + 1u) {
-                    let i = k0 + 3u + 3u * a + r;
-                    let pi = packed(i, k0);
-                    let ci = vec3<f32>(chol[pi], chol[pi + 1u], chol[pi + 2u]);
-                    for (var c = 0u; c < 3u; c = c + 1u) {
-                        let j = jb + c;
-                        if (j <= i) {
-                            let p = packed(i, j);
-                            chol[p] = chol[p] - ci.x * cj[c].x - ci.y * cj[c].y - ci.z * cj[c].z;
-                        }
+            let b = q - a * (a + 1u) / 2u;
+            let jb = k0 + 3u + 3u * b;
+            let pj0 = packed(jb, k0);
+            let pj1 = packed(jb + 1u, k0);
+            let pj2 = packed(jb + 2u, k0);
+            let cj = array<vec3<f32>, 3>(
+                vec3<f32>(chol[pj0], chol[pj0 + 1u], chol[pj0 + 2u]) * v.inv,
+                vec3<f32>(chol[pj1], chol[pj1 + 1u], chol[pj1 + 2u]) * v.inv,
+                vec3<f32>(chol[pj2], chol[pj2 + 1u], chol[pj2 + 2u]) * v.inv);
+            let rows = select(3u, 1u, a == t);
+            for (var r = 0u; r < rows; r = r + 1u) {
+                let i = k0 + 3u + 3u * a + r;
+                let pi = packed(i, k0);
+                let ci = vec3<f32>(chol[pi], chol[pi + 1u], chol[pi + 2u]);
+                for (var c = 0u; c < 3u; c = c + 1u) {
+                    let j = jb + c;
+                    if (j <= i) {
+                        let p = packed(i, j);
+                        chol[p] = chol[p] - ci.x * cj[c].x - ci.y * cj[c].y - ci.z * cj[c].z;
                     }
                 }
             }
         }
+    }
+    workgroupBarrier();
+    return ok;
+}
+
+// Given this thread's entry z of L⁻¹ b (row lid), y = D⁻¹ z, then Lᵀ x = y backward, a
+// node at a time (each entry's updates in the column-at-a-time order): every thread
+// takes the node's three unknowns alike, then updates the rows before it, a row a
+// thread; x into exact_x. `chol` holds the factor.
+fn exact_backward(lid: u32, nn: u32, z: f32) {
+    let m = 3u * nn;
+    var own = 0.0;
+    if (lid < m) {
+        own = 1.0 / chol[packed(lid, lid)];
+        exact_y[lid] = z * own;
+    }
+    for (var kb = nn; kb > 0u; kb = kb - 1u) {
+        let k0 = 3u * (kb - 1u);
         workgroupBarrier();
-        // y = D⁻¹ z, then Lᵀ x = y backward, a node at a time (each entry's updates in
-        // the column-at-a-time order): every thread takes the node's three unknowns
-        // alike, then updates the rows before it, a row a thread; x into exact_x.
-        var own = 0.0;
-        if (lid < m) {
-            own = 1.0 / chol[packed(lid, lid)];
-            exact_y[lid] = chol[packed(m, lid)] * own;
+        let p1 = packed(k0 + 1u, k0);
+        let p2 = packed(k0 + 2u, k0);
+        let x2 = exact_y[k0 + 2u];
+        let x1 = exact_y[k0 + 1u] - chol[p2 + 1u] * (1.0 / chol[p1 + 1u]) * x2;
+        let own0 = 1.0 / chol[packed(k0, k0)];
+        let x0 = exact_y[k0] - chol[p2] * own0 * x2 - chol[p1] * own0 * x1;
+        if (lid < k0) {
+            exact_y[lid] = exact_y[lid] - chol[p2 + lid - k0] * own * x2
+                - chol[p1 + lid - k0] * own * x1 - chol[packed(k0, lid)] * own * x0;
         }
-        for (var kb = nn; kb > 0u; kb = kb - 1u) {
-            let k0 = 3u * (kb - 1u);
+        if (lid == 0u) {
+            exact_x[k0] = x0;
+            exact_x[k0 + 1u] = x1;
+            exact_x[k0 + 2u] = x2;
+        }
+    }
+    workgroupBarrier();
+}
+
+// Writes the solution in exact_x as body `range`'s coarse correction (zero on held nodes,
+// and everywhere where `ok` is false); then a barrier before the next body's.
+fn exact_write(lid: u32, range: vec2<u32>, ok: bool) {
+    let n = params.n_total;
+    for (var i = lid; i < range.y - range.x; i = i + 256u) {
+        var x = vec3<f32>(exact_x[3u * i], exact_x[3u * i + 1u], exact_x[3u * i + 2u]);
+        if (!ok || held(range.x + i)) {
+            x = vec3<f32>(0.0);
+        }
+        vecs[V_DELTA * n + range.x + i] = vec4<f32>(x, 0.0);
+    }
+    // Every thread has read this body's range and solution before the next's.
+    workgroupBarrier();
+}
+
+// Body b's range of nodes on level pc.level (at most EXACT_NODES), the same in every
+// thread.
+fn exact_body(lid: u32, b: u32) -> vec2<u32> {
+    if (lid == 0u) {
+        exact_range = body_nodes(b, pc.level, EXACT_NODES);
+    }
+    return workgroupUniformLoad(&exact_range);
+}
+
+// The coarsest level (pc.level, its reduction table from pc.first) solved exactly, a
+// workgroup per body (striding over the bodies), as core::multigrid's solve_coarsest
+// (core::dense::solve_bordered): the body's matrix (`exact_assemble`) with the
+// right-hand side as its last row, eliminated in place (right-looking LDLᵀ, the border
+// row's part of it the forward substitution), then solved backward. A body whose matrix
+// has a pivot that is not positive keeps a zero correction. The plan takes this kernel
+// only where no body has more than EXACT_NODES nodes on the level, and where the world
+// keeps no factor between V-cycles (else `factor_coarsest` and `solve_factored`).
+@compute @workgroup_size(256)
+fn solve_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                  @builtin(local_invocation_index) lid: u32) {
+    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
+        let range = exact_body(lid, b);
+        let nn = range.y - range.x;
+        let m = 3u * nn;
+        exact_assemble(lid, range, true);
+        if (lid < nn) {
+            let j = range.x + lid;
+            var rhs = vec3<f32>(0.0);
+            if (!held(j)) {
+                rhs = vecs[V_RHS * params.n_total + j].xyz;
+            }
+            chol[packed(m, 3u * lid)] = rhs.x;
+            chol[packed(m, 3u * lid + 1u)] = rhs.y;
+            chol[packed(m, 3u * lid + 2u)] = rhs.z;
+        }
+        let ok = exact_eliminate(lid, nn, true);
+        var z = 0.0;
+        if (lid < m) {
+            z = chol[packed(m, lid)];
+        }
+        exact_backward(lid, nn, z);
+        exact_write(lid, range, ok);
+    }
+}
+
+// Each body's coarsest-level matrix (as `solve_coarsest` assembles it, without the
+// right-hand side) factorised, L D Lᵀ, into `cfac` (body b's packed lower triangle from
+// b FACTOR_STRIDE, and last in its stride 1 where every pivot is positive, else 0): once
+// a Newton iteration, the matrix being the same in each of its V-cycles.
+@compute @workgroup_size(256)
+fn factor_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                   @builtin(local_invocation_index) lid: u32) {
+    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
+        let range = exact_body(lid, b);
+        let nn = range.y - range.x;
+        let m = 3u * nn;
+        exact_assemble(lid, range, false);
+        let ok = exact_eliminate(lid, nn, false);
+        let base = b * FACTOR_STRIDE;
+        for (var q = lid; q < m * (m + 1u) / 2u; q = q + 256u) {
+            cfac[base + q] = chol[q];
+        }
+        if (lid == 0u) {
+            cfac[base + FACTOR_STRIDE - 1u] = select(0.0, 1.0, ok);
+        }
+        workgroupBarrier();
+    }
+}
+
+// The coarsest level solved exactly from the factor `factor_coarsest` kept: each body's
+// right-hand side (held nodes' 0) through L z = b forward, a node at a time (each entry's
+// updates in the order and form the bordered elimination gives its border row, so the
+// answer is `solve_coarsest`'s), then backward (`exact_backward`).
+@compute @workgroup_size(256)
+fn solve_factored(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                  @builtin(local_invocation_index) lid: u32) {
+    let n = params.n_total;
+    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
+        let range = exact_body(lid, b);
+        let nn = range.y - range.x;
+        let m = 3u * nn;
+        let base = b * FACTOR_STRIDE;
+        for (var q = lid; q < m * (m + 1u) / 2u; q = q + 256u) {
+            chol[q] = cfac[base + q];
+        }
+        let ok = cfac[base + FACTOR_STRIDE - 1u] > 0.5;
+        if (lid < nn) {
+            let j = range.x + lid;
+            var rhs = vec3<f32>(0.0);
+            if (!held(j)) {
+                rhs = vecs[V_RHS * n + j].xyz;
+            }
+            exact_y[3u * lid] = rhs.x;
+            exact_y[3u * lid + 1u] = rhs.y;
+            exact_y[3u * lid + 2u] = rhs.z;
+        }
+        for (var kb = 0u; kb < nn; kb = kb + 1u) {
             workgroupBarrier();
-            let p1 = packed(k0 + 1u, k0);
-            let p2 = packed(k0 + 2u, k0);
-            let x2 = exact_y[k0 + 2u];
-            let x1 = exact_y[k0 + 1u] - chol[p2 + 1u] * (1.0 / chol[p1 + 1u]) * x2;
-            let own0 = 1.0 / chol[packed(k0, k0)];
-            let x0 = exact_y[k0] - chol[p2] * own0 * x2 - chol[p1] * own0 * x1;
-            if (lid < k0) {
-                exact_y[lid] = exact_y[lid] - chol[p2 + lid - k0] * own * x2
-                    - chol[p1 + lid - k0] * own * x1 - chol[packed(k0, lid)] * own * x0;
+            let k0 = 3u * kb;
+            let v = exact_pivot(kb, true);
+            let z0 = exact_y[k0];
+            let z1 = exact_y[k0 + 1u] - z0 * (v.a10 * v.inv.x);
+            let z2 = exact_y[k0 + 2u] - z0 * (v.a20 * v.inv.x) - z1 * (v.a21 * v.inv.y);
+            for (var j = k0 + 3u + lid; j < m; j = j + 256u) {
+                let p = packed(j, k0);
+                exact_y[j] = exact_y[j] - z0 * (chol[p] * v.inv.x) - z1 * (chol[p + 1u] * v.inv.y)
+                    - z2 * (chol[p + 2u] * v.inv.z);
             }
             if (lid == 0u) {
-                exact_x[k0] = x0;
-                exact_x[k0 + 1u] = x1;
-                exact_x[k0 + 2u] = x2;
+                exact_x[k0] = z0;
+                exact_x[k0 + 1u] = z1;
+                exact_x[k0 + 2u] = z2;
             }
         }
         workgroupBarrier();
-        for (var i = lid; i < nn; i = i + 256u) {
-            var x = vec3<f32>(exact_x[3u * i], exact_x[3u * i + 1u], exact_x[3u * i + 2u]);
-            if (!ok || held(range.x + i)) {
-                x = vec3<f32>(0.0);
-            }
-            vecs[V_DELTA * n + range.x + i] = vec4<f32>(x, 0.0);
+        var z = 0.0;
+        if (lid < m) {
+            z = exact_x[lid];
         }
-        // Every thread has read this body's range and solution before the next's.
-        workgroupBarrier();
+        exact_backward(lid, nn, z);
+        exact_write(lid, range, ok);
     }
 }
 

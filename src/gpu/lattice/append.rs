@@ -97,7 +97,7 @@ impl AppendBasis {
         if !layout.pack_all(model, &mg, state, &mut writes) {
             return Ok(None);
         }
-        let shape = shape_of(
+        let mut shape = shape_of(
             &layout,
             self.shape.smoother,
             self.shape.pairs,
@@ -106,6 +106,7 @@ impl AppendBasis {
             self.shape.fused_coarsest,
             self.shape.one_thread_rows_from,
         );
+        shape.factor_kept = self.shape.factor_kept;
         let (dispatches, records, pass_index) = passes_of(&shape, self.newton);
         if records.len() > self.pass_room {
             return Ok(None);

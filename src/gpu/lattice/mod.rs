@@ -15,7 +15,9 @@
 //! the CPU path).
 
 use super::buffers::GpuCollider;
-use super::kernels::lattice::{Kernel, LatticeKernels, MAX_COLLIDERS, SLOTS, WORKGROUP};
+use super::kernels::lattice::{
+    FACTOR_STRIDE, Kernel, LatticeKernels, MAX_COLLIDERS, SLOTS, WORKGROUP,
+};
 use crate::core::TissueError;
 use crate::core::colliders::Collider;
 use crate::core::model::{Discretisation, Material, Model};
@@ -158,6 +160,9 @@ pub struct Shape {
     pub fused_coarsest: u32,
     /// [`LatticeOptions::one_thread_rows_from`].
     pub one_thread_rows_from: u32,
+    /// The world keeps each body's coarsest-level factor between V-cycles
+    /// ([`LatticeOptions::keep_coarsest_factor`], and the factor buffer fits the device).
+    pub factor_kept: bool,
 }
 
 impl Shape {
@@ -180,6 +185,14 @@ impl Shape {
         self.sweeps.exact_coarsest
             && self.levels.len() > 1
             && self.most_coarsest as usize <= EXACT_COARSEST
+    }
+
+    /// Whether the coarsest level, solved exactly, is factorised once a Newton iteration
+    /// (`factor_coarsest`) and solved from that factor in each V-cycle
+    /// (`solve_factored`), rather than assembled and factorised in each V-cycle
+    /// (`solve_coarsest`). The answers are the same.
+    pub fn coarsest_factored(&self) -> bool {
+        self.coarsest_exact() && self.factor_kept
     }
 }
 
@@ -207,6 +220,13 @@ pub struct LatticeOptions {
     /// The sums' order differs, so the answers differ by rounding. 0: always one thread a
     /// node; `u32::MAX`: never. Default 16,384.
     pub one_thread_rows_from: u32,
+    /// Where the coarsest level is solved exactly ([`Sweeps::exact_coarsest`]), each
+    /// body's matrix is factorised once a Newton iteration and the factor kept for its
+    /// V-cycles (the matrix does not change between them), at 4 × `FACTOR_STRIDE` bytes
+    /// a body (about 14 KB); false, or where that buffer would pass the device's largest
+    /// storage binding, each V-cycle assembles and factorises it again. The answer is
+    /// the same either way. Default true.
+    pub keep_coarsest_factor: bool,
 }
 
 /// [`LatticeOptions::one_thread_rows_from`]'s default.
@@ -219,6 +239,7 @@ impl Default for LatticeOptions {
             room: 1.0,
             fused_coarsest: FUSED_COARSEST,
             one_thread_rows_from: ONE_THREAD_ROWS_FROM,
+            keep_coarsest_factor: true,
         }
     }
 }
@@ -289,6 +310,13 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         // level's rotations and contact blocks, all made above).
         let total = shape.levels.last().map_or(0, |lv| lv[0] + lv[1]);
         push(Kernel::Diag, 0, total, 0, 0, groups(total));
+        // The coarsest level's factor for this iteration's V-cycles (its matrix reads the
+        // rotations and contact blocks made above).
+        if shape.coarsest_factored() {
+            let l = shape.levels.len() - 1;
+            let [t0, tn] = shape.tables[1 + l];
+            push(Kernel::FactorCoarsest, t0, tn, l as u32, 0, picks);
+        }
         if shape.cycles <= 1 {
             vcycle(shape, 0, &mut push);
         } else {
@@ -386,14 +414,12 @@ fn vcycle(shape: &Shape, l: usize, push: &mut impl FnMut(Kernel, u32, u32, u32, 
         let count = shape.sweeps.on_level(l, true, shape.smoother);
         if shape.coarsest_exact() {
             let [t0, tn] = shape.tables[1 + l];
-            push(
-                Kernel::CoarsestExact,
-                t0,
-                tn,
-                l as u32,
-                0,
-                pick_groups(shape),
-            );
+            let kernel = if shape.coarsest_factored() {
+                Kernel::CoarsestFactored
+            } else {
+                Kernel::CoarsestExact
+            };
+            push(kernel, t0, tn, l as u32, 0, pick_groups(shape));
         } else if shape.coarsest_fused() {
             // Every sweep in one dispatch, a workgroup per body (its nodes from the
             // level's reduction table).
@@ -586,6 +612,7 @@ fn shape_of(
         most_coarsest: layout.most_nodes.last().copied().unwrap_or(0),
         fused_coarsest,
         one_thread_rows_from,
+        factor_kept: false,
     }
 }
 
@@ -809,7 +836,7 @@ impl GpuLattice {
             mg.smoother,
             pair_capacity > 0,
         );
-        let shape = shape_of(
+        let mut shape = shape_of(
             &layout,
             mg.smoother,
             (pair_capacity > 0).then_some(settings.contact_every),
@@ -903,6 +930,14 @@ impl GpuLattice {
         let cg = if shape.cycles > 1 { 3 * n } else { 0 };
         let vecs = zeroed("tissue lattice vectors", ((nt * 4 + cg) * 16) as u64)?;
         let nblk = zeroed("tissue lattice blocks", (nt * 6 * 16) as u64)?;
+        // Each body's coarsest-level factor, kept between V-cycles where it fits.
+        let factor_bytes = (bodies * FACTOR_STRIDE * 4) as u64;
+        shape.factor_kept =
+            options.keep_coarsest_factor && settings.sweeps.exact_coarsest && factor_bytes <= limit;
+        let cfac = zeroed(
+            "tissue lattice coarsest factor",
+            if shape.factor_kept { factor_bytes } else { 16 },
+        )?;
         let red = zeroed(
             "tissue lattice reductions",
             (red_floats(params.misc) * 4) as u64,
@@ -958,6 +993,7 @@ impl GpuLattice {
                 "topo" => &topo,
                 "nodes" => &nodes,
                 "bodyt" => &bodyt,
+                "cfac" => &cfac,
                 _ => &mats,
             }
         };
@@ -1019,7 +1055,7 @@ impl GpuLattice {
             topo,
             mats,
             bodyt,
-            _keep: vec![ef, vecs, nblk],
+            _keep: vec![ef, vecs, nblk, cfac],
         })
     }
 
@@ -1600,6 +1636,7 @@ mod tests {
             most_coarsest: 3,
             fused_coarsest: 0,
             one_thread_rows_from: u32::MAX,
+            factor_kept: false,
         }
     }
 
@@ -1811,6 +1848,42 @@ mod tests {
                     .collect()
             };
             assert_eq!(without(&p), without(&swept));
+            // With the factor kept: one factorisation a Newton iteration right after the
+            // diagonal blocks, over the same table, and each V-cycle's solve from it.
+            let kept = Shape {
+                factor_kept: true,
+                ..solved.clone()
+            };
+            assert!(kept.coarsest_factored() && !solved.coarsest_factored());
+            let pk = plan(&kept, 2);
+            let mut expect = Vec::new();
+            for d in &p {
+                let mut d = *d;
+                if d.kernel == Kernel::CoarsestExact {
+                    d.kernel = Kernel::CoarsestFactored;
+                }
+                expect.push(d);
+                if d.kernel == Kernel::Diag {
+                    expect.push(Dispatch {
+                        kernel: Kernel::FactorCoarsest,
+                        pass: PassRecord {
+                            first: solved.tables[3][0],
+                            count: solved.tables[3][1],
+                            level: 2,
+                            mode: 0,
+                        },
+                        groups: 3,
+                        indirect: false,
+                    });
+                }
+            }
+            assert_eq!(pk, expect);
+            assert_eq!(
+                pk.iter()
+                    .filter(|d| d.kernel == Kernel::FactorCoarsest)
+                    .count(),
+                2
+            );
         }
         for swept in [
             // A body past the most nodes the exact solve takes.
@@ -1827,11 +1900,17 @@ mod tests {
             },
         ] {
             assert!(!swept.coarsest_exact(), "{swept:?}");
-            assert!(
-                plan(&swept, 2)
-                    .iter()
-                    .all(|d| d.kernel != Kernel::CoarsestExact)
-            );
+            // Nothing exact is planned, whether or not the world keeps a factor.
+            for factor_kept in [false, true] {
+                let sh = Shape {
+                    factor_kept,
+                    ..swept.clone()
+                };
+                assert!(plan(&sh, 2).iter().all(|d| !matches!(
+                    d.kernel,
+                    Kernel::CoarsestExact | Kernel::FactorCoarsest | Kernel::CoarsestFactored
+                )));
+            }
         }
     }
 
