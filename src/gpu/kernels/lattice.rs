@@ -137,7 +137,8 @@ pub enum Kernel {
     Energy,
     /// `pick`: sums each body's partial sums and picks its step.
     Pick,
-    /// `advance`: takes the picked step.
+    /// `advance`: takes the picked step (and, for the line search's step where no
+    /// particle-contact projection follows, the boundary's projection).
     Advance,
     /// `forces`: element forces and rotations.
     Forces,
@@ -203,7 +204,8 @@ pub enum Kernel {
     CgDirection,
     /// `cg_matvec`: the direction times the Newton matrix, and the step's partial sums.
     CgMatvec,
-    /// `cg_update`: the conjugate gradients' step on the iterate and the residual.
+    /// `cg_update`: the conjugate gradients' step on the iterate and the residual (after
+    /// the last, each body's trust bound, as `trust`).
     CgUpdate,
     /// `translate_terms`: partial sums of each body's level-0 residual and mass for its
     /// translation step.
@@ -247,7 +249,7 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Advance,
         name: "advance",
         uses: &[
-            "params", "pc", "pos", "vecs", "red", "ccol", "nodes", "bodyt",
+            "params", "pc", "cols", "pos", "vecs", "red", "ccol", "nodes", "mats", "bodyt",
         ],
     },
     Entry {
@@ -419,7 +421,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::CgUpdate,
         name: "cg_update",
-        uses: &["params", "pc", "vecs", "red", "nodes"],
+        uses: &["params", "pc", "vecs", "red", "ccol", "nodes", "bodyt"],
     },
     Entry {
         kernel: Kernel::TranslateTerms,

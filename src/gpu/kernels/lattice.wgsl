@@ -715,8 +715,10 @@ fn pick_body(b: u32, mode: u32) {
     }
 }
 
-// y += α d for the free nodes, α their body's step (mode as `direction`; nothing at
-// α = 0); resets the bodies' trust bounds.
+// y += α d for the free nodes, α their body's step (mode bit 0 as `direction`'s mode;
+// nothing at α = 0); resets the bodies' trust bounds. Mode bit 1: then the node's
+// `boundary` (the line search's step where no particle-contact projection comes
+// between).
 @compute @workgroup_size(64)
 fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -726,15 +728,17 @@ fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
         atomicStore(&bodyt[j], bitcast<u32>(1.0));
         atomicStore(&bodyt[params.chunks.z + j], 0u);
     }
-    if (j >= params.lv[0].y || held_now(j)) {
+    if (j >= params.lv[0].y) {
         return;
     }
     let a = red[body_slot(node_body(j), B_ALPHA)];
-    if (a == 0.0) {
-        return;
+    if (!held_now(j) && a != 0.0) {
+        let y = pos[R_Y * params.n + j].xyz;
+        pos[R_Y * params.n + j] = vec4<f32>(y + direction(j, pc.mode & 1u) * a, 0.0);
     }
-    let y = pos[R_Y * params.n + j].xyz;
-    pos[R_Y * params.n + j] = vec4<f32>(y + direction(j, pc.mode) * a, 0.0);
+    if ((pc.mode & 2u) != 0u) {
+        boundary_node(j, false);
+    }
 }
 
 // Element forces at the iterate (core::multigrid::element_forces): pc.mode 0, the
@@ -2114,10 +2118,17 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    if (j >= params.lv[0].y || held_now(j)) {
+    if (j < params.lv[0].y) {
+        trust_node(j, vecs[V_DELTA * params.n_total + j].xyz);
+    }
+}
+
+// Node j's part of its body's trust bound for its step d (`trust`; after the last
+// conjugate-gradient update, `cg_update`).
+fn trust_node(j: u32, d: vec3<f32>) {
+    if (held_now(j)) {
         return;
     }
-    let d = vecs[V_DELTA * params.n_total + j].xyz;
     let b = node_body(j);
     if (!(is_finite_f(d.x) && is_finite_f(d.y) && is_finite_f(d.z))) {
         atomicMin(&bodyt[b], 0u);
@@ -2354,14 +2365,22 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
 // the corrections recorded for the touched colliders.
 @compute @workgroup_size(64)
 fn boundary(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let j = gid.x;
-    if (j >= params.lv[0].y || held(j)) {
+    if (gid.x < params.lv[0].y) {
+        boundary_node(gid.x, pc.mode == 1u);
+    }
+}
+
+// Node j's `boundary` (`projected`: its position from the particle contacts' projection
+// in V_RES); also the end of `advance`'s line-search step where no projection comes
+// between.
+fn boundary_node(j: u32, projected: bool) {
+    if (held(j)) {
         return;
     }
     let n = params.n;
     let y = pos[R_Y * n + j].xyz;
     var q = y;
-    if (pc.mode == 1u) {
+    if (projected) {
         q = vecs[V_RES * params.n_total + j].xyz;
     }
     if (params.misc.x == 0u) {
@@ -2536,7 +2555,8 @@ fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
 }
 
 // x += α p (mode bit 0 clear, the first iteration: x = α p), r −= α q; then the next
-// V-cycle's zero start, or, after the last iteration (mode bit 1), x as the Newton step.
+// V-cycle's zero start, or, after the last iteration (mode bit 1), x as the Newton step
+// and its node's part of the trust bound (`trust_node`: the plan then has no `trust`).
 @compute @workgroup_size(64)
 fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -2552,5 +2572,9 @@ fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     let ri = V_RHS * params.n_total + j;
     vecs[ri] = vec4<f32>(vecs[ri].xyz - vecs[cg_at(CG_Q) + j].xyz * a, 0.0);
     vecs[cg_at(CG_X) + j] = vec4<f32>(x, 0.0);
-    vecs[V_DELTA * params.n_total + j] = vec4<f32>(select(vec3<f32>(0.0), x, (pc.mode & 2u) != 0u), 0.0);
+    let last = (pc.mode & 2u) != 0u;
+    vecs[V_DELTA * params.n_total + j] = vec4<f32>(select(vec3<f32>(0.0), x, last), 0.0);
+    if (last) {
+        trust_node(j, x);
+    }
 }

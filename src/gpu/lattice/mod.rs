@@ -334,20 +334,26 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
                 push(Kernel::CgUpdate, 0, n, 0, k.min(1) | last << 1, groups(n));
             }
         }
-        push(Kernel::Trust, 0, n, 0, 0, groups(n));
+        // After conjugate gradients, their last update took each body's trust bound.
+        if shape.cycles <= 1 {
+            push(Kernel::Trust, 0, n, 0, 0, groups(n));
+        }
         push(Kernel::TrustScale, 0, n, 0, 0, groups(n));
         push(Kernel::Energy, e0, ec, 0, 1, ec);
         push(Kernel::Pick, 0, ec, 0, 1, picks);
         push(Kernel::Energy, e0, ec, 0, 2, ec);
         push(Kernel::Pick, 0, ec, 0, 4, picks);
-        push(Kernel::Advance, 0, n, 0, 1, groups(n));
         let pairs = shape
             .pairs
             .is_some_and(|every| (it + 1) % every.max(1) == 0 || it + 1 == newton);
         if pairs {
+            push(Kernel::Advance, 0, n, 0, 1, groups(n));
             push(Kernel::PairProject, 0, n, 0, 0, groups(n));
+            push(Kernel::Boundary, 0, n, 0, 1, groups(n));
+        } else {
+            // The step and the boundary's projection in one pass (mode bit 1).
+            push(Kernel::Advance, 0, n, 0, 1 | 2, groups(n));
         }
-        push(Kernel::Boundary, 0, n, 0, pairs as u32, groups(n));
     }
     // The element forces at the substep's end, for the colliders' reactions.
     push(Kernel::Forces, 0, ne, 0, 1, groups(ne));
@@ -2027,14 +2033,22 @@ mod tests {
 
     /// Particle contacts are projected after every `contact_every`-th Newton iteration
     /// and after the last, each time right before the colliders' projection, which then
-    /// starts from its result (mode 1); without them nothing is dispatched for them.
+    /// starts from its result (mode 1); without them nothing is dispatched for them, and
+    /// the line search's step takes the colliders' projection in the same pass
+    /// (`advance`, mode bit 1).
     #[test]
     fn particle_contacts_are_projected_on_their_schedule() {
+        let p = plan(&shape(), 3);
         assert!(
-            plan(&shape(), 3)
-                .iter()
-                .all(|d| d.kernel != Kernel::PairProject)
+            p.iter()
+                .all(|d| !matches!(d.kernel, Kernel::PairProject | Kernel::Boundary))
         );
+        let steps: Vec<u32> = p
+            .iter()
+            .filter(|d| d.kernel == Kernel::Advance)
+            .map(|d| d.pass.mode)
+            .collect();
+        assert_eq!(steps, [0, 3, 3, 3]);
         for (every, newton, expect) in [
             (1, 3, vec![0, 1, 2]),
             (2, 3, vec![1, 2]),
@@ -2046,13 +2060,26 @@ mod tests {
                 ..shape()
             };
             let p = plan(&s, newton);
-            let boundaries: Vec<&Dispatch> =
-                p.iter().filter(|d| d.kernel == Kernel::Boundary).collect();
-            assert_eq!(boundaries.len(), newton as usize);
-            let with: Vec<usize> = (0..boundaries.len())
-                .filter(|&k| boundaries[k].pass.mode == 1)
+            // Each Newton iteration's line-search step: with the projection after it
+            // (mode 1), or with the colliders' projection in the same pass (mode 3).
+            let steps: Vec<&Dispatch> = p
+                .iter()
+                .filter(|d| d.kernel == Kernel::Advance && d.pass.mode != 0)
+                .collect();
+            assert_eq!(steps.len(), newton as usize);
+            let with: Vec<usize> = (0..steps.len())
+                .filter(|&k| steps[k].pass.mode == 1)
                 .collect();
             assert_eq!(with, expect, "every {every}, {newton} Newton iterations");
+            assert_eq!(
+                p.iter().filter(|d| d.kernel == Kernel::Boundary).count(),
+                expect.len()
+            );
+            for (k, d) in p.iter().enumerate() {
+                if d.kernel == Kernel::Advance && d.pass.mode == 1 {
+                    assert_eq!(p[k + 1].kernel, Kernel::PairProject);
+                }
+            }
             for (k, d) in p.iter().enumerate() {
                 if d.kernel == Kernel::PairProject {
                     assert_eq!(p[k + 1].kernel, Kernel::Boundary);
@@ -2165,8 +2192,22 @@ mod tests {
                 (CgUpdate, 3),
             ]
         );
-        let trust = p.iter().position(|d| d.kernel == Trust).unwrap();
-        assert_eq!(p[trust - 1].kernel, CgUpdate);
+        // The last update takes the trust bounds (mode bit 1): no `trust` pass; the
+        // scaling follows it.
+        assert_eq!(count(Kernel::Trust), 0);
+        for (k, d) in p.iter().enumerate() {
+            if d.kernel == CgUpdate && d.pass.mode & 2 != 0 {
+                assert_eq!(p[k + 1].kernel, TrustScale);
+            }
+        }
+        assert_eq!(count(Kernel::TrustScale), 2);
+        assert_eq!(
+            plan(&shape(), 2)
+                .iter()
+                .filter(|d| d.kernel == Trust)
+                .count(),
+            2
+        );
         // One V-cycle: none of it.
         assert_eq!(
             plan(&shape(), 2)
