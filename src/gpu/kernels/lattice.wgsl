@@ -1897,6 +1897,14 @@ fn exact_write(lid: u32, range: vec2<u32>, ok: bool) {
     workgroupBarrier();
 }
 
+// Node j's right-hand side in the exact solve (0 on held nodes).
+fn exact_rhs(j: u32) -> vec3<f32> {
+    if (held(j)) {
+        return vec3<f32>(0.0);
+    }
+    return vecs[V_RHS * params.n_total + j].xyz;
+}
+
 // Body b's range of nodes on level pc.level (at most EXACT_NODES), the same in every
 // thread.
 fn exact_body(lid: u32, b: u32) -> vec2<u32> {
@@ -1923,11 +1931,7 @@ fn solve_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
         let m = 3u * nn;
         exact_assemble(lid, range, true);
         if (lid < nn) {
-            let j = range.x + lid;
-            var rhs = vec3<f32>(0.0);
-            if (!held(j)) {
-                rhs = vecs[V_RHS * params.n_total + j].xyz;
-            }
+            let rhs = exact_rhs(range.x + lid);
             chol[packed(m, 3u * lid)] = rhs.x;
             chol[packed(m, 3u * lid + 1u)] = rhs.y;
             chol[packed(m, 3u * lid + 2u)] = rhs.z;
@@ -1973,7 +1977,6 @@ fn factor_coarsest(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
 @compute @workgroup_size(256)
 fn solve_factored(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                   @builtin(local_invocation_index) lid: u32) {
-    let n = params.n_total;
     for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
         let range = exact_body(lid, b);
         let nn = range.y - range.x;
@@ -1984,11 +1987,7 @@ fn solve_factored(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
         }
         let ok = cfac[base + FACTOR_STRIDE - 1u] > 0.5;
         if (lid < nn) {
-            let j = range.x + lid;
-            var rhs = vec3<f32>(0.0);
-            if (!held(j)) {
-                rhs = vecs[V_RHS * n + j].xyz;
-            }
+            let rhs = exact_rhs(range.x + lid);
             exact_y[3u * lid] = rhs.x;
             exact_y[3u * lid + 1u] = rhs.y;
             exact_y[3u * lid + 2u] = rhs.z;
