@@ -161,7 +161,10 @@ pub struct SolverSettings {
     /// [`ElementSolver::Multigrid`]: Newton iterations per substep, taken in the first
     /// iterations of the substep (0: one in every iteration). Lets a world of lattice
     /// and cluster bodies give the clusters their `iterations` and the lattice the few
-    /// Newton iterations it needs. Default 1 (with [`Self::newton_cycles`] 2).
+    /// Newton iterations it needs. Each Newton iteration ends with the lattice
+    /// particles' projections (particle contacts every [`Self::contact_every`]-th and in
+    /// the last, then colliders and pins); the iterations after the last leave lattice
+    /// particles where it put them. Default 1 (with [`Self::newton_cycles`] 2).
     pub newton_iterations: u32,
     /// Vertex block descent: start from the last substep's acceleration along gravity
     /// (Chen et al. 2024's adaptive initialisation) instead of the velocity alone.
@@ -210,8 +213,8 @@ impl Default for SolverSettings {
     /// 1/60 s, one substep, gravity −9.81 m/s² along y; lattice bodies by
     /// Newton–multigrid, one Newton iteration (conjugate gradients over 2 V-cycles, then
     /// an energy line search), every step each body's own; the paper's clusters by 10 Gauss–Seidel
-    /// iterations (the remaining 8 iterations only project contacts, colliders and pins
-    /// on lattice bodies).
+    /// iterations (lattice bodies take no part in the iterations after their Newton
+    /// iteration: to the clusters they are obstacles held where it left them).
     fn default() -> Self {
         Self {
             dt: 1.0 / 60.0,
@@ -244,6 +247,17 @@ impl Default for SolverSettings {
 }
 
 impl SolverSettings {
+    /// The Newton iterations a substep takes on lattice bodies under
+    /// [`ElementSolver::Multigrid`]: the first [`Self::newton_iterations`] of the
+    /// [`Self::iterations`], or all of them for 0.
+    pub fn newton_count(&self) -> u32 {
+        if self.newton_iterations == 0 {
+            self.iterations
+        } else {
+            self.newton_iterations.min(self.iterations)
+        }
+    }
+
     /// Whether `other` differs from these settings only in what a step reads as it goes:
     /// gravity, velocity damping and the divergence speed. A [`Solver`] made with one
     /// then steps with the other once its [`Solver::settings`] are replaced; nothing it
@@ -499,6 +513,10 @@ pub struct Solver {
     /// Whether the current iteration solves particle contacts
     /// ([`SolverSettings::contact_every`]).
     contacts_now: bool,
+    /// Whether the current iteration projects the particle contacts of lattice
+    /// particles under Newton–multigrid: every [`SolverSettings::contact_every`]-th of
+    /// the substep's Newton iterations and the last of them.
+    lattice_contacts_now: bool,
     /// Per hexahedral element: multipliers and Jacobi corrections.
     element_work: Vec<ElementWork>,
     /// Per body: its hourglass modes (lattice bodies only).
@@ -582,6 +600,7 @@ impl Solver {
             snap: Vec::new(),
             counts: Vec::new(),
             contacts_now: true,
+            lattice_contacts_now: true,
             element_work: vec![ElementWork::ZERO; model.elements.len()],
             modes: Vec::new(),
             element_h: 0.0,
@@ -753,10 +772,13 @@ impl Solver {
                 }
             };
             trace(self, 0, &state.rot);
+            let newton = s.newton_count();
             for it in 0..s.iterations {
                 self.contacts_now =
                     (it + 1).is_multiple_of(s.contact_every) || it + 1 == s.iterations;
-                self.newton_now = s.newton_iterations == 0 || it < s.newton_iterations;
+                self.lattice_contacts_now =
+                    (it + 1).is_multiple_of(s.contact_every) || it + 1 == newton;
+                self.newton_now = it < newton;
                 self.iterate(model, state, control, &consts);
                 trace(self, it + 1, &state.rot);
             }
@@ -1708,7 +1730,10 @@ impl Solver {
         self.timings.clusters += ms(t);
         let t = std::time::Instant::now();
         for i in 0..n {
-            if self.settings.particle_contacts && self.contacts_now {
+            if self.settled(model, i) {
+                continue;
+            }
+            if self.contacts_of(model, i) {
                 let bi = model.particle_body[i] as usize;
                 for s in self.contact_start[i]..self.contact_start[i + 1] {
                     let j = self.contact_list[s as usize] as usize;
@@ -1716,7 +1741,7 @@ impl Solver {
                     let d = model.bodies[bi].radius + model.bodies[bj].radius;
                     let (wi, wj) = (
                         inv_mass(model, &self.pin_slot, i),
-                        inv_mass(model, &self.pin_slot, j),
+                        self.projection_inv_mass(model, j),
                     );
                     let di = solve_contact(self.p[i], self.p[j], wi, wj, d);
                     let dj = solve_contact(self.p[j], self.p[i], wj, wi, d);
@@ -1727,6 +1752,40 @@ impl Solver {
             self.p[i] = self.boundary(model, state, control, i, self.p[i]);
         }
         self.timings.boundary += ms(t);
+    }
+
+    /// Whether particle `j` is a lattice node stepped by Newton–multigrid.
+    fn newton_particle(&self, model: &Model, j: usize) -> bool {
+        self.settings.element_solver == ElementSolver::Multigrid && !model.elements_of(j).is_empty()
+    }
+
+    /// Whether the projection passes of this iteration leave particle `j` where it is: a
+    /// lattice node under Newton–multigrid in an iteration after the substep's Newton
+    /// iterations. Its particle contacts, colliders and pins are projected after each
+    /// Newton iteration, the GPU's way; the iterations after them are the clusters' (to
+    /// which it is an immovable obstacle).
+    fn settled(&self, model: &Model, j: usize) -> bool {
+        !self.newton_now && self.newton_particle(model, j)
+    }
+
+    /// Whether this iteration projects particle `j`'s particle contacts.
+    fn contacts_of(&self, model: &Model, j: usize) -> bool {
+        self.settings.particle_contacts
+            && if self.newton_particle(model, j) {
+                self.lattice_contacts_now
+            } else {
+                self.contacts_now
+            }
+    }
+
+    /// Particle `j`'s inverse mass as a partner in this iteration's contact projection,
+    /// 1/kg: 0 where pinned or [`Solver::settled`].
+    fn projection_inv_mass(&self, model: &Model, j: usize) -> f32 {
+        if self.settled(model, j) {
+            0.0
+        } else {
+            inv_mass(model, &self.pin_slot, j)
+        }
     }
 
     /// Colliders and pins for particle `i` at position `p` (records collider corrections).
@@ -1769,7 +1828,6 @@ impl Solver {
         let ri = self.settings.rotation_iterations;
         let threads = self.settings.threads;
         let omega = self.settings.relaxation;
-        let contacts = self.settings.particle_contacts && self.contacts_now;
         let contact_omega = self.settings.contact_relaxation;
         // Lattice particles under Newton–multigrid: never over-relaxed (see the field).
         let lattice_omega = if self.settings.element_solver == ElementSolver::Multigrid {
@@ -1839,6 +1897,9 @@ impl Solver {
         // correct the same overlap twice), then colliders and pins.
         let t = std::time::Instant::now();
         {
+            let mut projected = std::mem::take(&mut self.p);
+            let mut col = std::mem::take(&mut self.col);
+            let me = &*self;
             let p = &out;
             let cs = &self.contact_start;
             let cl = &self.contact_list;
@@ -1846,12 +1907,16 @@ impl Solver {
             let pin_targets = &state.pin_targets;
             let x = &state.x;
             let grab = &state.grab;
-            par::for_chunks_mut2(&mut self.p, &mut self.col, threads, |start, dst, col| {
+            par::for_chunks_mut2(&mut projected, &mut col, threads, |start, dst, col| {
                 for (k, (o, cid)) in dst.iter_mut().zip(col.iter_mut()).enumerate() {
                     let j = start + k;
                     let pj = p[j];
                     let mut q = pj;
-                    if contacts {
+                    if me.settled(model, j) {
+                        *o = q;
+                        continue;
+                    }
+                    if me.contacts_of(model, j) {
                         let bj = model.particle_body[j] as usize;
                         let wj = inv_mass(model, pin_slot, j);
                         let mut sum = Vec3::ZERO;
@@ -1860,7 +1925,7 @@ impl Solver {
                             let i = cl[s as usize] as usize;
                             let bi = model.particle_body[i] as usize;
                             let dist = model.bodies[bi].radius + model.bodies[bj].radius;
-                            let wi = inv_mass(model, pin_slot, i);
+                            let wi = me.projection_inv_mass(model, i);
                             let dc = solve_contact(pj, p[i], wj, wi, dist);
                             if dc != Vec3::ZERO {
                                 sum += dc;
@@ -1885,6 +1950,8 @@ impl Solver {
                     *o = q;
                 }
             });
+            self.p = projected;
+            self.col = col;
         }
         self.p2 = out;
         self.timings.boundary += ms(t);

@@ -667,16 +667,6 @@ fn red_floats(misc: [u32; 4]) -> usize {
     misc[3] as usize + 4 * MAX_COLLIDERS
 }
 
-/// The Newton iterations a substep of `settings` takes on lattice bodies (as the CPU
-/// solver: `newton_iterations` of the `iterations`, or all of them for 0).
-pub fn newton_count(settings: &SolverSettings) -> u32 {
-    if settings.newton_iterations == 0 {
-        settings.iterations
-    } else {
-        settings.newton_iterations.min(settings.iterations)
-    }
-}
-
 /// Lattice bodies stepped by Newton–multigrid on the GPU.
 pub struct GpuLattice {
     /// Where everything is in the buffers, and how much room is left.
@@ -972,7 +962,7 @@ impl GpuLattice {
             bytemuck::bytes_of(&params),
             BufferUsages::UNIFORM | BufferUsages::COPY_DST,
         )?;
-        let newton = newton_count(settings);
+        let newton = settings.newton_count();
         let (dispatches, records, pass_index) = passes_of(&shape, newton);
         // Room for records that an appended body makes distinct.
         let pass_room = records.len().max(1) * 2 + 16;
@@ -1074,7 +1064,7 @@ impl GpuLattice {
         if !self.settings.differs_only_in_steps(settings) || settings.validate().is_err() {
             return false;
         }
-        let newton = newton_count(settings);
+        let newton = settings.newton_count();
         let mut shape = self.shape.clone();
         shape.pairs = shape.pairs.map(|_| settings.contact_every);
         let (dispatches, records, pass_index) = passes_of(&shape, newton);
