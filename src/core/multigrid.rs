@@ -92,15 +92,18 @@ pub enum Smoother {
     /// last sweep's values, `x̂ = x_k + D⁻¹ (b − A x_k) / θ`,
     /// `x_{k+1} = ω_{k+1} (x̂ − x_{k−1}) + x_{k−1}`, with `θ` and `ω` from the interval
     /// `[λ_max / 10, 1.1 λ_max]` of `D⁻¹ A` ([`LatticeMultigrid::chebyshev`]). One
-    /// parallel pass a sweep where Gauss–Seidel needs eight. On the finest level, where
-    /// collider contacts add stiff penalties to single nodes, its damped node updates
-    /// leave part of a penalty unresolved after a few sweeps, and the contact force
-    /// reported from it spikes well above Gauss–Seidel's.
+    /// parallel pass a sweep where Gauss–Seidel needs eight, in pairs (the [`Sweeps`]
+    /// counts rounded up to even). At the default Newton iteration (conjugate gradients
+    /// over two V-cycles) it is as accurate as [`Smoother::Hybrid`] on a cantilever and
+    /// takes fewer GPU passes, but on the finest level, where contacts add stiff
+    /// penalties to single nodes, its damped node updates leave part of a penalty
+    /// unresolved: a box dropped on another does not come to rest, its particles
+    /// jittering (BENCHMARKS.md compares the smoothers).
     Chebyshev,
     /// Gauss–Seidel on the finest level (where the work is large and the contacts are:
-    /// each node's block, its contact penalty included, solved exactly) and Chebyshev on
-    /// the coarse levels (small, where a pass's fixed cost dominates and eight per sweep
-    /// add up).
+    /// each node's block, its contact penalties included, solved exactly) and Chebyshev
+    /// on the coarse levels (small, where a pass's fixed cost dominates and eight per
+    /// sweep add up). The default: it is the one that resolves contacts.
     #[default]
     Hybrid,
 }
