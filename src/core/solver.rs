@@ -1838,7 +1838,8 @@ impl Solver {
         let t = std::time::Instant::now();
         // Lattice bodies under a Newton-type element solver: solved first, on their own
         // (their particles belong to no cluster; the passes below add nothing to them
-        // but particle contacts, colliders and pins).
+        // but particle contacts, colliders and pins, and after the substep's Newton
+        // iterations nothing at all: `Solver::settled`).
         self.newton_type_elements(model, state, control);
         // Pass A: every cluster from the same positions.
         {
