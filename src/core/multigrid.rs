@@ -95,16 +95,19 @@ pub enum Smoother {
     /// parallel pass a sweep where Gauss–Seidel needs eight, in pairs (the [`Sweeps`]
     /// counts rounded up to even). At the default Newton iteration (conjugate gradients
     /// over two V-cycles) it is as accurate as [`Smoother::Hybrid`] on a cantilever and
-    /// takes fewer GPU passes, but on the finest level, where contacts add stiff
-    /// penalties to single nodes, its damped node updates leave part of a penalty
-    /// unresolved: a box dropped on another does not come to rest, its particles
-    /// jittering (BENCHMARKS.md compares the smoothers).
-    Chebyshev,
-    /// Gauss–Seidel on the finest level (where the work is large and the contacts are:
-    /// each node's block, its contact penalties included, solved exactly) and Chebyshev
-    /// on the coarse levels (small, where a pass's fixed cost dominates and eight per
-    /// sweep add up). The default: it is the one that resolves contacts.
+    /// takes fewer GPU passes. On the finest level, where contacts add stiff penalties
+    /// to single nodes, the damped polynomial updates alone would leave part of a
+    /// penalty unresolved (a box dropped on another would never come to rest), so each
+    /// run of sweeps there ends in one block-Jacobi pass over the nodes that carry a
+    /// contact penalty, each solving its own block whole from the sweeps' result. The
+    /// default (BENCHMARKS.md compares the smoothers).
     #[default]
+    Chebyshev,
+    /// Gauss–Seidel on the finest level (each node's block, its contact penalties
+    /// included, solved exactly in turn) and Chebyshev on the coarse levels (small,
+    /// where a pass's fixed cost dominates and eight per sweep add up). As accurate as
+    /// [`Smoother::Chebyshev`] and as good at contacts, but eight passes a sweep on the
+    /// largest level.
     Hybrid,
 }
 
@@ -1140,6 +1143,33 @@ impl LatticeMultigrid {
             }
             std::mem::swap(&mut prev, &mut next);
             std::mem::swap(&mut prev, &mut work.delta[l]);
+        }
+        if l == 0 && sweeps > 0 {
+            self.contact_pass(h2, work);
+        }
+    }
+
+    /// One block-Jacobi pass over level 0's free nodes that carry a contact penalty,
+    /// after its Chebyshev sweeps: `δ_j += D_j⁻¹ (rhs − A δ)_j`, every update computed
+    /// from the sweeps' result. The polynomial's damped updates leave part of a stiff
+    /// penalty on a single node unresolved (a box dropped on another never comes to
+    /// rest); this pass solves each such node's own block whole, as Gauss–Seidel does,
+    /// and leaves every other node as the sweeps left it.
+    fn contact_pass(&self, h2: f32, work: &mut MgWork) {
+        let Some(extra) = work.extra.first() else {
+            return;
+        };
+        let updates: Vec<(usize, Vec3)> = extra
+            .iter()
+            .enumerate()
+            .filter(|&(j, s)| *s != Mat3::ZERO && !self.fixed_at(0, j, work))
+            .map(|(j, _)| {
+                let ax = self.apply_row(0, j, &work.delta[0], h2, work);
+                (j, work.diag_inv[0][j] * (work.rhs[0][j] - ax))
+            })
+            .collect();
+        for (j, d) in updates {
+            work.delta[0][j] += d;
         }
     }
 

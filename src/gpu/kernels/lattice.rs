@@ -153,6 +153,9 @@ pub enum Kernel {
     Smooth,
     /// `smooth_chebyshev`: one Chebyshev–Jacobi sweep of a level.
     Chebyshev,
+    /// `contact_smooth`: level 0's contact pass after its Chebyshev sweeps (each node
+    /// with a contact penalty solved for its own block).
+    ContactSmooth,
     /// `smooth_coarsest`: every Chebyshev sweep of the coarsest level, a workgroup per
     /// body.
     Coarsest,
@@ -284,6 +287,13 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Chebyshev,
         name: "smooth_chebyshev",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "ccol", "elems", "kmat", "topo", "nodes",
+        ],
+    },
+    Entry {
+        kernel: Kernel::ContactSmooth,
+        name: "contact_smooth",
         uses: &[
             "params", "pc", "rot", "vecs", "nblk", "ccol", "elems", "kmat", "topo", "nodes",
         ],

@@ -1421,10 +1421,15 @@ fn chebyshev_weight(k: u32, rho2: f32) -> f32 {
     return w;
 }
 
+// A Chebyshev sweep's mode bit: the sweep also copies its result to V_RES, for level 0's
+// contact pass after it (`contact_smooth`).
+const COPY_MODE: u32 = 0x20000u;
+
 // Chebyshev sweep k of level l for node j given ax = (A x_k)_j: x_k is in region
 // V_DELTA for even k (V_PE for odd), x_{k+1} replaces x_{k−1} in the other region
-// (core::multigrid's smooth_chebyshev). An even number of sweeps ends in V_DELTA.
-fn chebyshev_node(j: u32, ax: vec3<f32>, l: u32, k: u32) {
+// (core::multigrid's smooth_chebyshev), and with `copy` goes to V_RES too. An even
+// number of sweeps ends in V_DELTA.
+fn chebyshev_node(j: u32, ax: vec3<f32>, l: u32, k: u32, copy: bool) {
     let n = params.n_total;
     let odd = (k & 1u) == 1u;
     let src = select(V_DELTA, V_PE, odd);
@@ -1443,35 +1448,61 @@ fn chebyshev_node(j: u32, ax: vec3<f32>, l: u32, k: u32) {
         next = (xh - prev) * chebyshev_weight(k, c.y) + prev;
     }
     vecs[dst * n + j] = vec4<f32>(next, 0.0);
+    if (copy) {
+        vecs[V_RES * n + j] = vec4<f32>(next, 0.0);
+    }
 }
 
 // Chebyshev sweep k of level l for the node at `first + i` (none from `end`), its row
 // split eight ways. Every thread of the workgroup calls it.
-fn chebyshev_split(i: u32, end: u32, lid: u32, l: u32, k: u32) {
+fn chebyshev_split(i: u32, end: u32, lid: u32, l: u32, k: u32, copy: bool) {
     let ax = split_row(i, i < end, select(V_DELTA, V_PE, (k & 1u) == 1u), lid);
     if (lid % 8u == 0u && i < end) {
-        chebyshev_node(i, ax, l, k);
+        chebyshev_node(i, ax, l, k, copy);
     }
 }
 
 // Chebyshev sweep pc.mode of level pc.level over its nodes pc.first ..
 // [.. pc.count], eight threads a node (one element each), eight nodes a workgroup,
 // the workgroups striding over the level; or, with ROW_MODE in pc.mode, one thread a
-// node.
+// node; with COPY_MODE, the result copied to V_RES as well.
 @compute @workgroup_size(64)
 fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                     @builtin(local_invocation_index) lid: u32) {
     let k = pc.mode & (ROW_MODE - 1u);
+    let copy = (pc.mode & COPY_MODE) != 0u;
     if ((pc.mode & ROW_MODE) != 0u) {
         for (var i = wg.x * LWG + lid; i < pc.count; i = i + nwg.x * LWG) {
             let j = pc.first + i;
-            chebyshev_node(j, apply_row(j, select(V_DELTA, V_PE, (k & 1u) == 1u)), pc.level, k);
+            chebyshev_node(j, apply_row(j, select(V_DELTA, V_PE, (k & 1u) == 1u)), pc.level, k, copy);
         }
         return;
     }
     for (var base = wg.x * 8u; base < pc.count; base = base + nwg.x * 8u) {
-        chebyshev_split(pc.first + base + lid / 8u, pc.first + pc.count, lid, pc.level, k);
+        chebyshev_split(pc.first + base + lid / 8u, pc.first + pc.count, lid, pc.level, k, copy);
     }
+}
+
+// Level 0's contact pass after its Chebyshev sweeps (core::multigrid's contact_pass), for
+// its nodes pc.first .. [.. pc.count]: each free node with a contact block takes
+// δ_j = x_j + D_j⁻¹ (rhs_j − (A x)_j), x the sweeps' result as the last sweep copied it
+// to V_RES (so that every update reads the same x); the others keep theirs.
+@compute @workgroup_size(64)
+fn contact_smooth(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= pc.count) {
+        return;
+    }
+    let j = pc.first + gid.x;
+    let s = extra_block(j);
+    let zero = vec3<f32>(0.0);
+    if (held_in_cycle(j) || (all(s[0] == zero) && all(s[1] == zero) && all(s[2] == zero))) {
+        return;
+    }
+    let n = params.n_total;
+    let o = 3u * j;
+    let dinv = mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+    let r = vecs[V_RHS * n + j].xyz - apply_row(j, V_RES);
+    vecs[V_DELTA * n + j] = vec4<f32>(vecs[V_RES * n + j].xyz + dinv * r, 0.0);
 }
 
 // The fused coarsest solve's row parts (xyz), 256 threads; the node range of the body it

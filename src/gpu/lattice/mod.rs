@@ -62,6 +62,9 @@ const MAX_PICK_GROUPS: u32 = 65_535;
 const CHEBYSHEV_GROUPS: u32 = 8192;
 /// A smoothing pass's mode bit (`ROW_MODE` in the shader): one thread a node.
 const ROW_MODE: u32 = 0x10000;
+/// A Chebyshev sweep's mode bit (`COPY_MODE` in the shader): its result copied for level
+/// 0's contact pass.
+const COPY_MODE: u32 = 0x20000;
 /// [`LatticeOptions::fused_coarsest`]'s default and its most: up to four rounds of 32
 /// nodes a sweep in a body's workgroup, the body's iterates in its workgroup memory
 /// (`COARSEST_NODES` in the shader).
@@ -386,15 +389,26 @@ fn sweeps(
         debug_assert!(count.is_multiple_of(2), "Chebyshev sweeps come in pairs");
         let [first, len, _, _] = shape.levels[l];
         let (mode, per_group) = rows(len);
+        // Level 0's last sweep copies its result for the contact pass after it
+        // (`LatticeMultigrid`'s `contact_pass`).
+        let contacts = l == 0 && count > 0;
         for k in 0..count {
+            let copy = if contacts && k + 1 == count {
+                COPY_MODE
+            } else {
+                0
+            };
             push(
                 Kernel::Chebyshev,
                 first,
                 len,
                 l as u32,
-                k | mode,
+                k | mode | copy,
                 len.div_ceil(per_group).min(CHEBYSHEV_GROUPS),
             );
+        }
+        if contacts {
+            push(Kernel::ContactSmooth, first, len, 0, 0, groups(len));
         }
         return;
     }
@@ -1685,6 +1699,47 @@ mod tests {
         }
     }
 
+    /// Under Chebyshev on level 0, each run of its sweeps ends in one that copies its
+    /// result (and only that one), followed at once by the contact pass over level 0's
+    /// nodes; where level 0 is smoothed by Gauss–Seidel there is no contact pass.
+    #[test]
+    fn level_zero_chebyshev_sweeps_end_in_the_contact_pass() {
+        for smoother in [Smoother::GaussSeidel, Smoother::Chebyshev, Smoother::Hybrid] {
+            let s = Shape {
+                smoother,
+                ..shape()
+            };
+            let p = plan(&s, 2);
+            let passes = p
+                .iter()
+                .filter(|d| d.kernel == Kernel::ContactSmooth)
+                .count();
+            if smoother.on_level(0) != Smoother::Chebyshev {
+                assert_eq!(passes, 0, "{smoother:?}");
+                assert!(p.iter().all(|d| d.pass.mode & COPY_MODE == 0));
+                continue;
+            }
+            // Two Newton iterations, the shape's cycles each, a pass after the sweeps
+            // before the coarse correction and after it.
+            let runs = 1 + (s.sweeps.before_on_level(0, smoother) > 0) as usize;
+            assert_eq!(runs, 2, "the shape smooths level 0 before and after");
+            assert_eq!(passes, 2 * s.cycles as usize * runs, "{smoother:?}");
+            for (i, d) in p.iter().enumerate() {
+                let copies = d.pass.mode & COPY_MODE != 0;
+                let next = p.get(i + 1).map(|d| d.kernel);
+                assert_eq!(copies, next == Some(Kernel::ContactSmooth), "{i}");
+                if copies {
+                    assert_eq!((d.kernel, d.pass.level), (Kernel::Chebyshev, 0));
+                }
+                if d.kernel == Kernel::ContactSmooth {
+                    let lv = s.levels[0];
+                    assert_eq!((d.pass.first, d.pass.count), (lv[0], lv[1]));
+                    assert_eq!(d.groups, groups(lv[1]));
+                }
+            }
+        }
+    }
+
     /// Where every body has few nodes on the coarsest level, and it is smoothed by
     /// Chebyshev, its sweeps are one dispatch (a workgroup per body, the sweep count its
     /// mode, its reduction table its range); a larger body, a limit of 0 or a
@@ -2101,8 +2156,9 @@ mod tests {
             assert_eq!(d.groups, count.div_ceil(8));
         }
         // Each smoothing run counts its sweeps from 0 (the Chebyshev weights restart).
+        // (Level 0's last sweep of a run copies its result for the contact pass.)
         let modes: Vec<u32> = cheb.iter().take(4).map(|d| d.pass.mode).collect();
-        assert_eq!(modes, [0, 1, 0, 1]);
+        assert_eq!(modes, [0, 1 | COPY_MODE, 0, 1]);
         // The hybrid: Gauss–Seidel by colour on level 0, Chebyshev below.
         let p = plan(
             &Shape {
