@@ -20,7 +20,7 @@
 //!    1/60 s (the default Newton iterations) on the GPU: whether every position stays finite,
 //!    the volume over the rest volume, the lowest point against the ground.
 //!
-//! Speed and accuracy run once per V-cycle smoother (`--smoother hybrid`, `chebyshev` or
+//! Speed and accuracy run once per V-cycle smoother (`--smoother chebyshev`, `hybrid` or
 //! `gs` for one of them). Markdown on stdout.
 //!
 //! ```text
@@ -38,7 +38,7 @@
 //! and after the coarse correction where they differ; default the library's,
 //! `0:1/0:2/30x`), `--no-touching` (speed: leave out
 //! the touching cubes),
-//! `--smoother hybrid|chebyshev|gs`, `--first N,...` (speed only: line-search candidates
+//! `--smoother chebyshev|hybrid|gs`, `--first N,...` (speed only: line-search candidates
 //! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
 //! default the library's), `--room R` (speed only: the worlds made with room for bodies
 //! appended later, `LatticeOptions::room`; default none), `--fused N,...` (speed only:
@@ -663,7 +663,7 @@ fn main() {
     let a = bench::Args::new();
     let quick = a.flag("--quick");
     let smoothers: Vec<Smoother> = match a.text("--smoother").map(String::as_str) {
-        None => vec![Smoother::Hybrid, Smoother::Chebyshev, Smoother::GaussSeidel],
+        None => vec![Smoother::Chebyshev, Smoother::Hybrid, Smoother::GaussSeidel],
         Some("hybrid") => vec![Smoother::Hybrid],
         Some("chebyshev") => vec![Smoother::Chebyshev],
         Some("gs") => vec![Smoother::GaussSeidel],
@@ -763,7 +763,7 @@ fn changes(g: &Gpu, bodies: u32) {
     let s = SolverSettings {
         particle_contacts: true,
         contact_every: 1,
-        ..settings(2, Vec3::new(0.0, -9.81, 0.0), 0.0, Smoother::Hybrid)
+        ..settings(2, Vec3::new(0.0, -9.81, 0.0), 0.0, Smoother::default())
     };
     eprintln!("changes: {bodies} touching cubes ...");
     let model = cubes_at(bodies, 0.057);

@@ -26,11 +26,11 @@
 //! the V-cycles of each (more than one: conjugate gradients). The error is that of the
 //! settled cantilever's tip (24 × 3 × 3 cm, 6 and 12 particles across, E from 1 kPa to
 //! 1 MPa) against the static answer of the same model, on the GPU, with the default
-//! V-cycle (BENCHMARKS.md, "The coarsest level solved exactly by default"):
+//! V-cycle and smoother (BENCHMARKS.md, "Chebyshev on level 0 with a contact pass"):
 //!
 //! | preset | Newton iterations × V-cycles | error of the settled tip |
 //! |---|---|---|
-//! | `Fast` | 1 × 1 | 0.6% at 1 kPa, 2.5% at 100 kPa (6 across), 7.7% at 100 kPa (12 across), 27% at 1 MPa (not settled after 1 s) |
+//! | `Fast` | 1 × 1 | 2.4% at 1 kPa, 2.6% at 100 kPa (6 across), 7.4% at 100 kPa (12 across), 26% at 1 MPa (not settled after 1 s) |
 //! | `Balanced` | 1 × 2 (the default) | ≤ 1% everywhere measured |
 //! | `Accurate` | 1 × 3 | ≤ 1% everywhere measured |
 //!
