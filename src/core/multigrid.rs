@@ -907,6 +907,10 @@ pub struct MgWork {
     /// them and leaves their residual out of the coarse levels', as
     /// [`LatticeMultigrid::krylov`] leaves them out of its directions.
     pub held: Vec<bool>,
+    /// Level 0's answer of the last solve by [`LatticeMultigrid::krylov`] or
+    /// [`LatticeMultigrid::two_direction`] (empty: none yet): the next two-direction
+    /// step's second direction.
+    pub last: Vec<Vec3>,
 }
 
 impl LatticeMultigrid {
@@ -1263,7 +1267,64 @@ impl LatticeMultigrid {
                 }
             }
         }
+        work.last.clone_from(&x);
         work.delta[0] = x;
+    }
+
+    /// Solves level 0's `A δ = work.rhs[0]` approximately by one V-cycle and the last
+    /// solve's answer `p` ([`MgWork::last`]): each body's `δ = a z + b p`, `z` the
+    /// V-cycle's correction, `a` and `b` minimising the quadratic model `½ δᵀ A δ − δᵀ r`
+    /// over the span of `z` and `p` (a two-dimensional Galerkin step, as recycled Krylov
+    /// methods reuse an earlier solve's subspace: Parks et al. 2006, "Recycling Krylov
+    /// subspaces for sequences of linear systems"). Successive Newton systems of a
+    /// settling body differ little and their answers share the smooth bending a V-cycle
+    /// corrects slowly (its coarse trilinear elements are stiff in bending), so the last
+    /// answer supplies what the V-cycle misses. Where `p` adds nothing (zero, the first
+    /// solve, or parallel to `z`) it is the V-cycle's correction scaled by its
+    /// energy-minimising step. The answer is left in `work.delta[0]`, and kept as the
+    /// next solve's `p`; nodes `held` (and the level's fixed ones) keep a zero correction,
+    /// and `p` is zero there too (and wherever it is not finite).
+    pub fn two_direction(&self, h2: f32, sweeps: Sweeps, held: &[bool], work: &mut MgWork) {
+        let n = self.levels[0].nodes;
+        let free = |j: usize| !held.get(j).copied().unwrap_or(false) && !self.levels[0].fixed[j];
+        work.held.clear();
+        work.held.extend_from_slice(held);
+        work.delta[0].iter_mut().for_each(|d| *d = Vec3::ZERO);
+        self.vcycle(0, h2, sweeps, work);
+        let z = std::mem::take(&mut work.delta[0]);
+        let last = std::mem::take(&mut work.last);
+        let p: Vec<Vec3> = (0..n)
+            .map(|j| match last.get(j) {
+                Some(v) if free(j) && v.is_finite() && last.len() == n => *v,
+                _ => Vec3::ZERO,
+            })
+            .collect();
+        let mut x = vec![Vec3::ZERO; n];
+        for w in self.levels[0].body_start.windows(2) {
+            let range = w[0] as usize..w[1] as usize;
+            // zᵀ A z, pᵀ A z, pᵀ A p, rᵀ z, rᵀ p over the body's free nodes.
+            let mut t = [0.0f64; 5];
+            for j in range.clone().filter(|&j| free(j)) {
+                let qz = self.apply_row(0, j, &z, h2, work);
+                let qp = self.apply_row(0, j, &p, h2, work);
+                let r = work.rhs[0][j];
+                for (s, v) in t.iter_mut().zip([
+                    z[j].dot(qz),
+                    p[j].dot(qz),
+                    p[j].dot(qp),
+                    r.dot(z[j]),
+                    r.dot(p[j]),
+                ]) {
+                    *s += v as f64;
+                }
+            }
+            let (a, b) = two_direction_weights(t);
+            for j in range {
+                x[j] = z[j] * a + p[j] * b;
+            }
+        }
+        work.delta[0].clone_from(&x);
+        work.last = x;
     }
 
     /// Each body's translation step on level 0: `t = (Σ m/h² I + S_j)⁻¹ Σ r` over its
@@ -1541,6 +1602,28 @@ impl Sweeps {
 impl Default for Sweeps {
     fn default() -> Self {
         Self::DEFAULT
+    }
+}
+
+/// The weights `(a, b)` of the two-direction step ([`LatticeMultigrid::two_direction`])
+/// from a body's sums `[zᵀAz, pᵀAz, pᵀAp, rᵀz, rᵀp]`: the minimiser of the quadratic model
+/// over `a z + b p` (Cramer's rule on the 2 × 2 system); `z` alone, scaled by its
+/// energy-minimising step, where the system is singular to rounding (`p` zero or
+/// parallel to `z`); zeros where nothing is finite and positive.
+pub fn two_direction_weights(t: [f64; 5]) -> (f32, f32) {
+    let [zz, pz, pp, rz, rp] = t;
+    let det = zz * pp - pz * pz;
+    let (a, b) = if pp > 0.0 && det > 1e-4 * zz * pp {
+        ((rz * pp - rp * pz) / det, (zz * rp - pz * rz) / det)
+    } else if zz > 0.0 {
+        (rz / zz, 0.0)
+    } else {
+        (0.0, 0.0)
+    };
+    if a.is_finite() && b.is_finite() {
+        (a as f32, b as f32)
+    } else {
+        (0.0, 0.0)
     }
 }
 

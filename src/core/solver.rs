@@ -240,7 +240,7 @@ impl Default for SolverSettings {
             newton_iterations: 1,
             descent_adaptive_init: false,
             smoother: Default::default(),
-            newton_cycles: 2,
+            newton_cycles: 1,
             sweeps: Default::default(),
         }
     }
@@ -1351,7 +1351,9 @@ impl Solver {
         self.mg_work.delta[0]
             .iter_mut()
             .for_each(|d| *d = Vec3::ZERO);
-        if self.settings.newton_cycles > 1 {
+        if self.settings.newton_cycles == 1 {
+            mg.two_direction(h2, self.settings.sweeps, &held, &mut self.mg_work);
+        } else {
             mg.krylov(
                 h2,
                 self.settings.newton_cycles,
@@ -1359,9 +1361,6 @@ impl Solver {
                 &held,
                 &mut self.mg_work,
             );
-        } else {
-            self.mg_work.held.clone_from(&held);
-            mg.vcycle(0, h2, self.settings.sweeps, &mut self.mg_work);
         }
         // Backtracking line search on the substep's energy
         // `Σ m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²` (active contacts and

@@ -605,8 +605,8 @@ impl TissueSettings {
     pub const PLUGIN_CONTACT_RELAXATION: f32 = 2.0;
     /// The default [`Self::newton_iterations`]: 1.
     pub const NEWTON_ITERATIONS: u32 = 1;
-    /// The default [`Self::newton_cycles`]: 2.
-    pub const NEWTON_CYCLES: u32 = 2;
+    /// The default [`Self::newton_cycles`]: 1 (the two-direction step).
+    pub const NEWTON_CYCLES: u32 = 1;
 
     /// The core solver settings of the CPU path ([`super::cpu`]): [`Self::to_core`] with
     /// Newton–multigrid for lattice bodies, [`Self::newton_iterations`] of them in each

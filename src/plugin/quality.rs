@@ -107,9 +107,8 @@ impl TissueQuality {
         }
         if body.discretisation == TissueDiscretisation::Lattice {
             let (newton, cycles) = match self {
-                TissueQuality::Fast => (1, 1),
-                TissueQuality::Balanced => (1, 2),
-                _ => (1, 3),
+                TissueQuality::Fast | TissueQuality::Balanced => (1, 1),
+                _ => (1, 2),
             };
             return Some(Preset {
                 newton_iterations: Some(newton),

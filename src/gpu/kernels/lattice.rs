@@ -205,6 +205,11 @@ pub enum Kernel {
     CgDots,
     /// `cg_direction`: the next conjugate direction.
     CgDirection,
+    /// `cg_recycle`: the two-direction step's second direction, the last solve's answer.
+    CgRecycle,
+    /// `cg_two_terms`: the two-direction step's partial sums (its directions times the
+    /// Newton matrix).
+    CgTwoTerms,
     /// `cg_matvec`: the direction times the Newton matrix, and the step's partial sums.
     CgMatvec,
     /// `cg_update`: the conjugate gradients' step on the iterate and the residual (after
@@ -420,6 +425,18 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::CgDirection,
         name: "cg_direction",
         uses: &["params", "pc", "vecs", "red", "ccol", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::CgRecycle,
+        name: "cg_recycle",
+        uses: &["params", "vecs", "ccol", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::CgTwoTerms,
+        name: "cg_two_terms",
+        uses: &[
+            "params", "pc", "rot", "vecs", "nblk", "red", "elems", "kmat", "topo", "nodes",
+        ],
     },
     Entry {
         kernel: Kernel::CgMatvec,

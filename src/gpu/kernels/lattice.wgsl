@@ -573,7 +573,8 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
 // second pass's candidates that does not, else 0 (and `args` back to none); mode 3: the
 // coarse correction's step of level `pc.level`; conjugate gradients: mode 5 the next
 // direction's β, mode 6 the step α along the direction and zᵀ r; mode 7 the body's
-// translation step (`translate_terms`).
+// translation step (`translate_terms`); mode 8 the two-direction step's weights
+// (`cg_two_terms`).
 @compute @workgroup_size(64)
 fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>,
         @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -598,6 +599,9 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
         table = 1u;
     } else if (mode == 7u) {
         used = 10u;
+        table = 1u;
+    } else if (mode == 8u) {
+        used = 5u;
         table = 1u;
     } else {
         table = 1u + pc.level;
@@ -710,6 +714,24 @@ fn pick_body(b: u32, mode: u32) {
         red[body_slot(b, B_SHIFT)] = t.x;
         red[body_slot(b, B_SHIFT + 1u)] = t.y;
         red[body_slot(b, B_SHIFT + 2u)] = t.z;
+    } else if (mode == 8u) {
+        // The two-direction step's weights (core::multigrid::two_direction_weights).
+        let w = wsum[0];
+        let det = w[0] * w[2] - w[1] * w[1];
+        var a = 0.0;
+        var bw = 0.0;
+        if (w[2] > 0.0 && det > 1e-4 * w[0] * w[2]) {
+            a = (w[3] * w[2] - w[4] * w[1]) / det;
+            bw = (w[0] * w[4] - w[1] * w[3]) / det;
+        } else if (w[0] > 0.0) {
+            a = w[3] / w[0];
+        }
+        if (!is_finite_f(a) || !is_finite_f(bw)) {
+            a = 0.0;
+            bw = 0.0;
+        }
+        red[body_slot(b, B_CG_ALPHA)] = a;
+        red[body_slot(b, B_CG_BETA)] = bw;
     } else {
         red[body_slot(b, B_MG_ALPHA + pc.level)] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
     }
@@ -2561,6 +2583,53 @@ fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[cg_at(CG_P) + j] = p;
 }
 
+// The two-direction step (core::multigrid::LatticeMultigrid::two_direction): its second
+// direction p, the last solve's answer x (0, with w = 1, on held nodes and where x is
+// not finite).
+@compute @workgroup_size(64)
+fn cg_recycle(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.lv[0].y) {
+        return;
+    }
+    let x = vecs[cg_at(CG_X) + j].xyz;
+    var p = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    if (!held_now(j) && is_finite_f(x.x) && is_finite_f(x.y) && is_finite_f(x.z)) {
+        p = vec4<f32>(x, 0.0);
+    }
+    vecs[cg_at(CG_P) + j] = p;
+}
+
+// The two-direction step's partial sums over a chunk of level 0's nodes (workgroup
+// pc.first + wg.x of its table): zᵀ A z, pᵀ A z, pᵀ A p, rᵀ z, rᵀ p (z the V-cycle's
+// correction, p from `cg_recycle`; held nodes left out).
+@compute @workgroup_size(64)
+fn cg_two_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
+    var t = array<f32, 5>(0.0, 0.0, 0.0, 0.0, 0.0);
+    let ch = chunk(pc.first + wg.x);
+    let zo = V_DELTA * params.n_total;
+    for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
+        let pw = vecs[cg_at(CG_P) + j];
+        if (pw.w != 0.0) {
+            continue;
+        }
+        let z = vecs[zo + j].xyz;
+        let p = pw.xyz;
+        let qz = apply_row_at(j, zo);
+        let qp = apply_row_at(j, cg_at(CG_P));
+        let r = vecs[V_RHS * params.n_total + j].xyz;
+        t[0] = t[0] + dot(z, qz);
+        t[1] = t[1] + dot(p, qz);
+        t[2] = t[2] + dot(p, qp);
+        t[3] = t[3] + dot(r, z);
+        t[4] = t[4] + dot(r, p);
+    }
+    for (var k = 0u; k < 5u; k = k + 1u) {
+        wsum[lid][k] = t[k];
+    }
+    reduce_partials(lid, wg.x, 5u);
+}
+
 // q = A p (0 on held nodes, the direction's w = 1), and partial sums of pᵀ q, rᵀ p and
 // rᵀ z, over a chunk of level 0's nodes (workgroup pc.first + wg.x of its table).
 @compute @workgroup_size(64)
@@ -2587,6 +2656,8 @@ fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
 // x += α p (mode bit 0 clear, the first iteration: x = α p), r −= α q; then the next
 // V-cycle's zero start, or, after the last iteration (mode bit 1), x as the Newton step
 // and its node's part of the trust bound (`trust_node`: the plan then has no `trust`).
+// Mode bit 2: the two-direction step instead, x = a z + b p (a, b the body's weights
+// in its α and β slots, z the V-cycle's correction), the residual left as it is.
 @compute @workgroup_size(64)
 fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -2595,12 +2666,17 @@ fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let a = red[body_slot(node_body(j), B_CG_ALPHA)];
     var x = vec3<f32>(0.0);
-    if ((pc.mode & 1u) != 0u) {
-        x = vecs[cg_at(CG_X) + j].xyz;
+    if ((pc.mode & 4u) != 0u) {
+        let b = red[body_slot(node_body(j), B_CG_BETA)];
+        x = vecs[V_DELTA * params.n_total + j].xyz * a + vecs[cg_at(CG_P) + j].xyz * b;
+    } else {
+        if ((pc.mode & 1u) != 0u) {
+            x = vecs[cg_at(CG_X) + j].xyz;
+        }
+        x = x + vecs[cg_at(CG_P) + j].xyz * a;
+        let ri = V_RHS * params.n_total + j;
+        vecs[ri] = vec4<f32>(vecs[ri].xyz - vecs[cg_at(CG_Q) + j].xyz * a, 0.0);
     }
-    x = x + vecs[cg_at(CG_P) + j].xyz * a;
-    let ri = V_RHS * params.n_total + j;
-    vecs[ri] = vec4<f32>(vecs[ri].xyz - vecs[cg_at(CG_Q) + j].xyz * a, 0.0);
     vecs[cg_at(CG_X) + j] = vec4<f32>(x, 0.0);
     let last = (pc.mode & 2u) != 0u;
     vecs[V_DELTA * params.n_total + j] = vec4<f32>(select(vec3<f32>(0.0), x, last), 0.0);

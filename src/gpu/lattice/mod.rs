@@ -321,7 +321,14 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
             push(Kernel::FactorCoarsest, t0, tn, l as u32, 0, picks);
         }
         if shape.cycles <= 1 {
+            // The two-direction step (LatticeMultigrid::two_direction): the V-cycle's
+            // correction and the last solve's answer, weighted per body; its update takes
+            // each body's trust bound, as conjugate gradients' last does.
             vcycle(shape, 0, &mut push);
+            push(Kernel::CgRecycle, 0, n, 0, 0, groups(n));
+            push(Kernel::CgTwoTerms, n0, nc, 0, 0, nc);
+            push(Kernel::Pick, 0, nc, 0, 8, picks);
+            push(Kernel::CgUpdate, 0, n, 0, 4 | 2, groups(n));
         } else {
             // Conjugate gradients, a V-cycle per iteration (LatticeMultigrid::krylov).
             for k in 0..shape.cycles {
@@ -337,10 +344,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
                 push(Kernel::CgUpdate, 0, n, 0, k.min(1) | last << 1, groups(n));
             }
         }
-        // After conjugate gradients, their last update took each body's trust bound.
-        if shape.cycles <= 1 {
-            push(Kernel::Trust, 0, n, 0, 0, groups(n));
-        }
+        // The last update took each body's trust bound.
         push(Kernel::TrustScale, 0, n, 0, 0, groups(n));
         push(Kernel::Energy, e0, ec, 0, 1, ec);
         push(Kernel::Pick, 0, ec, 0, 1, picks);
@@ -935,9 +939,10 @@ impl GpuLattice {
         let pos = made("tissue lattice pos", Buf::Pos)?;
         let rot = made("tissue lattice rot", Buf::Rot)?;
         let ef = zeroed("tissue lattice forces", layout.ne_slots() as u64 * 8 * 16)?;
-        // The V-cycle's 4 regions of every level's nodes, then with conjugate gradients
-        // their iterate, direction and product (level 0's nodes each).
-        let cg = if shape.cycles > 1 { 3 * n } else { 0 };
+        // The V-cycle's 4 regions of every level's nodes, then conjugate gradients'
+        // iterate, direction and product (level 0's nodes each; the two-direction step of
+        // one V-cycle uses the first two: its answer and its second direction).
+        let cg = if shape.cycles > 1 { 3 * n } else { 2 * n };
         let vecs = zeroed("tissue lattice vectors", ((nt * 4 + cg) * 16) as u64)?;
         let nblk = zeroed("tissue lattice blocks", (nt * 6 * 16) as u64)?;
         // Each body's coarsest-level factor, kept between V-cycles where it fits.
@@ -2247,21 +2252,28 @@ mod tests {
             }
         }
         assert_eq!(count(Kernel::TrustScale), 2);
-        assert_eq!(
-            plan(&shape(), 2)
-                .iter()
-                .filter(|d| d.kernel == Trust)
-                .count(),
-            2
+        assert_eq!(count(Kernel::CgRecycle) + count(Kernel::CgTwoTerms), 0);
+        // One V-cycle: the two-direction step after it (its second direction, its sums,
+        // its weights, its update taking the trust bounds), no conjugate gradients.
+        let one = plan(&shape(), 2);
+        assert!(
+            one.iter()
+                .all(|d| !matches!(d.kernel, CgDots | CgDirection | CgMatvec | Trust))
         );
-        // One V-cycle: none of it.
-        assert_eq!(
-            plan(&shape(), 2)
-                .iter()
-                .filter(|d| matches!(d.kernel, CgDots | CgDirection | CgMatvec | CgUpdate))
-                .count(),
-            0
-        );
+        let after: Vec<(Kernel, u32)> = one
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| d.kernel == Kernel::CgRecycle)
+            .flat_map(|(k, _)| one[k..k + 5].iter().map(|d| (d.kernel, d.pass.mode)))
+            .collect();
+        let step = [
+            (CgRecycle, 0),
+            (CgTwoTerms, 0),
+            (Pick, 8),
+            (CgUpdate, 4 | 2),
+            (TrustScale, 0),
+        ];
+        assert_eq!(after, [step, step].concat());
     }
 
     /// The plan visits every level once per V-cycle, smooths each colour the configured
@@ -2351,6 +2363,10 @@ mod tests {
                         assert_eq!(d.pass.mode, 7);
                         1
                     }
+                    Kernel::CgTwoTerms => {
+                        assert_eq!(d.pass.mode, 8);
+                        1
+                    }
                     other => panic!("pick after {other:?}"),
                 };
                 let [first, count] = s.tables[table];
@@ -2362,10 +2378,11 @@ mod tests {
             }
             assert!(d.groups > 0);
         }
-        // The trust region needs no reduction: each body's bound by atomics.
+        // The trust region needs no reduction: each body's bound by atomics, in the
+        // step's update.
         assert!(
             p.iter()
-                .filter(|d| d.kernel == Kernel::Trust)
+                .filter(|d| d.kernel == Kernel::CgUpdate)
                 .all(|d| d.groups == 100u32.div_ceil(WORKGROUP))
         );
     }
