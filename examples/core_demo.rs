@@ -4,7 +4,7 @@
 //!
 //! Everything is the core's default: the body (`BodyDesc::default()`: lattice elements
 //! of soft tissue, E = 10 kPa, ν = 0.45, 1060 kg/m³) and the solver
-//! (`SolverSettings::default()`: Newton–multigrid, 1 Newton iteration of 2 V-cycles per 1/60 s step).
+//! (`SolverSettings::default()`: Newton–multigrid, 1 Newton iteration of 1 V-cycle per 1/60 s step).
 //!
 //! ```text
 //! cargo run --release --example core_demo

@@ -26,7 +26,7 @@
 //! `--lattice` times the plugin's and the core's default body on the same liver instead
 //! (`--sizes a,b,..` for other particle counts, as in the scaling rows):
 //! hexahedral lattice elements of liver tissue (E = 5.5 kPa, ν = 0.45), stepped by
-//! Newton–multigrid with `SolverSettings::default()` (1 Newton iteration of 2 V-cycles per 1/60 s
+//! Newton–multigrid with `SolverSettings::default()` (1 Newton iteration of 1 V-cycle per 1/60 s
 //! step), on the CPU (all cores) and the GPU (`GpuLattice`). No KNN: a lattice body has
 //! no clusters. Markdown on stdout, `table1_lattice.json` in the output folder.
 //!

@@ -2183,7 +2183,7 @@ fn lattice_bodies_in_contact_match_the_cpu() {
 /// box resting on the ground, lifts it by 2 cm and opens again. The grasped nodes, the
 /// lift, the release and the forces on the ground and the grasper match the CPU (to
 /// rounding before contact decisions can differ, then as well as the CPU matches itself
-/// started 0.1 µm away).
+/// started 0.1 µm away, at most twice that difference's largest so far).
 #[test]
 fn lattice_graspers_match_the_cpu() {
     use bevy_tissue::core::colliders::GraspMode;
@@ -2193,6 +2193,12 @@ fn lattice_graspers_match_the_cpu() {
     let mut run = Lockstep::new(g, lattice_box(Vec3::splat(0.02), 0.025));
     let top = run.start.iter().fold(f32::MIN, |a, p| a.max(p.y));
     let mut lifted = 0.0f32;
+    // The largest difference of the perturbed CPUs so far: after the release the box
+    // falls on the ground and the runs part as chaotically as the perturbed CPUs do
+    // (GPU − CPU within 1.7 times their difference at every step to the release, mostly
+    // equal to it), but their difference at one step can dip (to half the GPU's three
+    // steps after the release).
+    let mut own_so_far = 0.0f32;
     for step in 0..50u32 {
         let (mode, lift) = match step {
             0..10 => (GraspMode::Open, 0.0),
@@ -2212,6 +2218,7 @@ fn lattice_graspers_match_the_cpu() {
             colliders: vec![Collider::ground(0.0), grasper],
         };
         let c = run.step(g, &control);
+        own_so_far = own_so_far.max(c.own);
         if c.own < 1e-6 {
             // Before the CPU's own decisions can differ: the ground's and the grasper's
             // forces as on the CPU (or as close as the perturbed CPU's are to it).
@@ -2225,11 +2232,12 @@ fn lattice_graspers_match_the_cpu() {
             }
         }
         assert!(
-            c.diff <= (2.0 * c.own).max(1e-4 * c.moved) + 1e-6,
-            "step {step}: GPU − CPU {} m (CPU moved {} m; CPU − nudged CPU {} m)",
+            c.diff <= (2.0 * own_so_far).max(1e-4 * c.moved) + 1e-6,
+            "step {step}: GPU − CPU {} m (CPU moved {} m; CPU − nudged CPU {} m, at most {} m so far)",
             c.diff,
             c.moved,
-            c.own
+            c.own,
+            own_so_far
         );
         if step == 39 {
             lifted = run.gpu.1.x.iter().fold(f32::MIN, |a, p| a.max(p.y)) - top;

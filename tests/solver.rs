@@ -728,9 +728,10 @@ fn lattice_box_dropped_onto_another_rests_on_it() {
 /// A free lattice body falls at gravity's rate (no damping): its centre's drop after 1,
 /// 3, 10 and 30 steps of 1/60 s within 0.5% of implicit Euler's `g h² n (n + 1) / 2`,
 /// with 2 Newton iterations of one V-cycle for soft bodies on an 8 and a 4 mm lattice;
-/// with 1 Newton iteration of conjugate gradients over 2 V-cycles (the default) for soft
-/// bodies and stiff ones (1 and 10 MPa) on both lattices; and with one V-cycle (the
-/// `Fast` quality) or two Gauss–Seidel sweeps on level 0 for a stiff one; and with each
+/// with 1 Newton iteration of conjugate gradients over 2 V-cycles for soft bodies and
+/// stiff ones (1 and 10 MPa) on both lattices; and with one V-cycle and the
+/// two-direction step (the default) or two Gauss–Seidel sweeps on level 0 for a stiff
+/// one; and with each
 /// V-cycle's translation step (`Sweeps::translation`). A stiff body's rigid motion is
 /// held by its mass alone, which the smoothing barely moves: the coarsest level's exact
 /// solve carries it (with that level swept instead, only the translation step did: the

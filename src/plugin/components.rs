@@ -538,15 +538,16 @@ pub struct TissueSettings {
     /// the CPU).
     pub backend: TissueBackend,
     /// Newton iterations per substep of lattice bodies (default 1). Their accuracy does
-    /// not hang on it the way XPBD's hangs on `iterations`: one of 2 V-cycles lands
-    /// close to the static answer of a cantilever from 1 kPa to 1 MPa (BENCHMARKS.md,
-    /// "The coarsest level solved exactly by default").
+    /// not hang on it the way XPBD's hangs on `iterations`: one of one V-cycle lands
+    /// within 1% of the static answer of a cantilever from 1 kPa to 1 MPa (BENCHMARKS.md,
+    /// "The two-direction step").
     pub newton_iterations: u32,
-    /// Multigrid V-cycles per Newton iteration of lattice bodies (default 2): more than
-    /// one solve the Newton step by conjugate gradients, each V-cycle a preconditioner
-    /// step. One Newton iteration of 2 V-cycles is about as accurate as 2 Newton
-    /// iterations of one and faster, and a stiff body falls at the rate gravity sets
-    /// where one V-cycle lags.
+    /// Multigrid V-cycles per Newton iteration of lattice bodies (default 1). One: each
+    /// body's step is the V-cycle's correction and the last step's answer, weighted to
+    /// minimise the step's energy model over the two (the last answer carries the
+    /// smooth bending one V-cycle resolves slowly, so a stiff body settles at the rate
+    /// gravity sets). More than one solve the Newton step by conjugate gradients, each
+    /// V-cycle a preconditioner step.
     pub newton_cycles: u32,
     /// The V-cycle's smoothing sweeps for lattice bodies, after and before the coarse
     /// correction on the particles and on the levels between, and on the coarsest level

@@ -18,21 +18,26 @@
 //! let background = SoftBody { quality: TissueQuality::Fast, ..default() };
 //! let organ = SoftBody { quality: TissueQuality::Accurate, ..default() };
 //! let demand = demanded([&background, &organ]).unwrap();
-//! assert_eq!((demand.newton_iterations, demand.newton_cycles), (Some(1), Some(3)));
+//! assert_eq!((demand.newton_iterations, demand.newton_cycles), (Some(1), Some(2)));
 //! ```
 //!
 //! **Lattice bodies** (the default, [`TissueDiscretisation::Lattice`]) are stepped by
 //! Newton–multigrid at one substep of the step; a level sets its Newton iterations and
-//! the V-cycles of each (more than one: conjugate gradients). The error is that of the
+//! the V-cycles of each (one: the two-direction step, the V-cycle's correction and the
+//! last step's answer combined; more: conjugate gradients). The error is that of the
 //! settled cantilever's tip (24 × 3 × 3 cm, 6 and 12 particles across, E from 1 kPa to
 //! 1 MPa) against the static answer of the same model, on the GPU, with the default
-//! V-cycle and smoother (BENCHMARKS.md, "Chebyshev on level 0 with a contact pass"):
+//! V-cycle and smoother (BENCHMARKS.md, "The two-direction step"):
 //!
 //! | preset | Newton iterations × V-cycles | error of the settled tip |
 //! |---|---|---|
-//! | `Fast` | 1 × 1 | 2.4% at 1 kPa, 2.6% at 100 kPa (6 across), 7.4% at 100 kPa (12 across), 26% at 1 MPa (not settled after 1 s) |
-//! | `Balanced` | 1 × 2 (the default) | ≤ 1% everywhere measured |
-//! | `Accurate` | 1 × 3 | ≤ 1% everywhere measured |
+//! | `Fast`, `Balanced` | 1 × 1 (the default) | ≤ 1% everywhere measured |
+//! | `Accurate` | 1 × 2 | ≤ 1% everywhere measured |
+//!
+//! `Fast` and `Balanced` are the same step for lattice bodies: nothing cheaper than one
+//! V-cycle a step was measured within a few percent (one V-cycle without the last
+//! step's answer is 26% short at 1 MPa). `Accurate` solves each Newton step more
+//! exactly, for scenes harder than the cantilever.
 //!
 //! **Cluster bodies** (the paper's model) come from `examples/speed_accuracy.rs` on the
 //! H100 (BENCHMARKS.md, "Speed against accuracy"; 1,000-particle bar, GPU Jacobi,
@@ -107,6 +112,7 @@ impl TissueQuality {
         }
         if body.discretisation == TissueDiscretisation::Lattice {
             let (newton, cycles) = match self {
+                // One V-cycle is already within 1% (see the module's table).
                 TissueQuality::Fast | TissueQuality::Balanced => (1, 1),
                 _ => (1, 2),
             };
@@ -208,7 +214,12 @@ mod tests {
             let f = work(TissueQuality::Fast.preset(&b).unwrap());
             let m = work(TissueQuality::Balanced.preset(&b).unwrap());
             let a = work(TissueQuality::Accurate.preset(&b).unwrap());
-            assert!(f < m && m < a, "{b:?}");
+            // Lattice bodies: `Fast` is `Balanced` (nothing cheaper is accurate).
+            if b.discretisation == TissueDiscretisation::Lattice {
+                assert!(f == m && m < a, "{b:?}");
+            } else {
+                assert!(f < m && m < a, "{b:?}");
+            }
         }
         // Lattice bodies ask for Newton iterations only; the balanced level is the
         // plugin's default.
@@ -259,7 +270,7 @@ mod tests {
                 s.newton_iterations,
                 s.newton_cycles
             ),
-            (5, 1, 1, 3)
+            (5, 1, 1, 2)
         );
     }
 }

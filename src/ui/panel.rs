@@ -314,8 +314,8 @@ pub(crate) fn settings_widgets(
         "Newton iterations",
     ));
     e.add(&r.on_hover_text(
-        "Newton–multigrid iterations per substep of lattice bodies (default 1: with 2 \
-         V-cycles, within a few percent of the static answer from 1 kPa to 1 MPa)",
+        "Newton–multigrid iterations per substep of lattice bodies (default 1: with 1 \
+         V-cycle, within 1% of the static answer from 1 kPa to 1 MPa)",
     ));
     let r = ui.add(slider(
         &mut s.newton_cycles,
@@ -323,9 +323,9 @@ pub(crate) fn settings_widgets(
         "V-cycles / Newton iteration",
     ));
     e.add(&r.on_hover_text(
-        "Multigrid V-cycles per Newton iteration of lattice bodies (default 2; more than \
-         one solve the Newton step by conjugate gradients: with 1 Newton iteration, \
-         faster for the same accuracy)",
+        "Multigrid V-cycles per Newton iteration of lattice bodies (default 1: the \
+         V-cycle's correction combined with the last step's answer; more than one solve \
+         the Newton step by conjugate gradients)",
     ));
     let r = ui.add(slider(
         &mut s.sweeps.coarsest,

@@ -720,7 +720,7 @@ fn pick_body(b: u32, mode: u32) {
         let det = w[0] * w[2] - w[1] * w[1];
         var a = 0.0;
         var bw = 0.0;
-        if (w[2] > 0.0 && det > 1e-4 * w[0] * w[2]) {
+        if (w[2] > 0.0 && det > 1e-2 * w[0] * w[2]) {
             a = (w[3] * w[2] - w[4] * w[1]) / det;
             bw = (w[0] * w[4] - w[1] * w[3]) / det;
         } else if (w[0] > 0.0) {
