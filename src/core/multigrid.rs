@@ -1719,6 +1719,19 @@ mod tests {
     use crate::core::procedural;
     use crate::core::sampling::Resolution;
 
+    /// The cantilever's 1/60 s substep system on a 6 mm lattice: the model, its
+    /// multigrid, `h²` (s²), unrotated elements, and the free nodes `j` with
+    /// `j % every == at` marked held (as grasped ones are).
+    fn bar_system(every: usize, at: usize) -> (Model, LatticeMultigrid, f32, Vec<Quat>, Vec<bool>) {
+        let model = bar(0.006);
+        let mg = LatticeMultigrid::new(&model, 64, 8);
+        let rot = vec![Quat::IDENTITY; model.elements.len()];
+        let held = (0..model.particle_count())
+            .map(|j| j % every == at && !mg.levels[0].fixed[j])
+            .collect();
+        (model, mg, 1.0 / 3600.0, rot, held)
+    }
+
     fn bar(spacing: f32) -> Model {
         let mut model = Model::new();
         model
@@ -2000,14 +2013,8 @@ mod tests {
     /// correction and moves the others; without them held it moves those too.
     #[test]
     fn a_vcycle_keeps_held_nodes_still() {
-        let model = bar(0.006);
-        let mg = LatticeMultigrid::new(&model, 64, 8);
-        let h2 = 1.0f32 / 3600.0;
-        let rot = vec![Quat::IDENTITY; model.elements.len()];
+        let (model, mg, h2, rot, held) = bar_system(13, 4);
         let n = model.particle_count();
-        let held: Vec<bool> = (0..n)
-            .map(|j| j % 13 == 4 && !mg.levels[0].fixed[j])
-            .collect();
         let run = |hold: bool| {
             let mut work = MgWork::default();
             mg.prepare(&rot, h2, &mut work);
@@ -2073,14 +2080,8 @@ mod tests {
     /// answer is kept for the next step.
     #[test]
     fn the_two_direction_step_uses_the_last_answer() {
-        let model = bar(0.006);
-        let mg = LatticeMultigrid::new(&model, 64, 8);
-        let h2 = 1.0f32 / 3600.0;
-        let rot = vec![Quat::IDENTITY; model.elements.len()];
+        let (model, mg, h2, rot, held) = bar_system(97, 5);
         let n = model.particle_count();
-        let held: Vec<bool> = (0..n)
-            .map(|j| j % 97 == 5 && !mg.levels[0].fixed[j])
-            .collect();
         let free = |j: usize| !held[j] && !mg.levels[0].fixed[j];
         let fresh = |g: f32| {
             let mut work = MgWork::default();
@@ -2157,15 +2158,9 @@ mod tests {
     /// held (as grasped ones are), they stay at zero and the rest converges, more slowly.
     #[test]
     fn krylov_beats_as_many_vcycles() {
-        let model = bar(0.006);
-        let mg = LatticeMultigrid::new(&model, 64, 8);
-        let h2 = 1.0f32 / 3600.0;
-        let rot = vec![Quat::IDENTITY; model.elements.len()];
+        let (model, mg, h2, rot, some) = bar_system(97, 5);
         let n = model.particle_count();
         let none = vec![false; n];
-        let some: Vec<bool> = (0..n)
-            .map(|j| j % 97 == 5 && !mg.levels[0].fixed[j])
-            .collect();
         for held in [&none, &some] {
             let free = |j: usize| !held[j] && !mg.levels[0].fixed[j];
             let fresh = || {
