@@ -1292,13 +1292,16 @@ impl LatticeMultigrid {
         work.delta[0].iter_mut().for_each(|d| *d = Vec3::ZERO);
         self.vcycle(0, h2, sweeps, work);
         let z = std::mem::take(&mut work.delta[0]);
-        let last = std::mem::take(&mut work.last);
-        let p: Vec<Vec3> = (0..n)
-            .map(|j| match last.get(j) {
-                Some(v) if free(j) && v.is_finite() && last.len() == n => *v,
-                _ => Vec3::ZERO,
-            })
-            .collect();
+        // A last answer of another length (none yet, or another model) is no direction.
+        let mut p = std::mem::take(&mut work.last);
+        if p.len() != n {
+            p = vec![Vec3::ZERO; n];
+        }
+        for (j, v) in p.iter_mut().enumerate() {
+            if !free(j) || !v.is_finite() {
+                *v = Vec3::ZERO;
+            }
+        }
         let mut x = vec![Vec3::ZERO; n];
         for w in self.levels[0].body_start.windows(2) {
             let range = w[0] as usize..w[1] as usize;

@@ -183,8 +183,6 @@ pub enum Kernel {
     AlphaTerms,
     /// `correct`: adds the scaled coarse correction.
     Correct,
-    /// `trust`: each body's trust-region bound on its step.
-    Trust,
     /// `trust_scale`: each body's step scaled to its trust-region bound.
     TrustScale,
     /// `finish`: velocities and positions at the end of a substep.
@@ -212,8 +210,8 @@ pub enum Kernel {
     CgTwoTerms,
     /// `cg_matvec`: the direction times the Newton matrix, and the step's partial sums.
     CgMatvec,
-    /// `cg_update`: the conjugate gradients' step on the iterate and the residual (after
-    /// the last, each body's trust bound, as `trust`).
+    /// `cg_update`: the conjugate gradients' step on the iterate and the residual, or the
+    /// two-direction step; after the last, each body's trust bound.
     CgUpdate,
     /// `translate_terms`: partial sums of each body's level-0 residual and mass for its
     /// translation step.
@@ -364,11 +362,6 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Correct,
         name: "correct",
         uses: &["params", "pc", "vecs", "red", "nodes"],
-    },
-    Entry {
-        kernel: Kernel::Trust,
-        name: "trust",
-        uses: &["params", "vecs", "ccol", "nodes", "bodyt"],
     },
     Entry {
         kernel: Kernel::TrustScale,

@@ -2164,19 +2164,10 @@ fn correct(@builtin(global_invocation_id) gid: vec3<u32>) {
 // The trust region, body by body (core::solver's Newton iteration): no free node moves
 // more than its reach (half its body's lattice spacing) in one iteration, plus the step
 // |v| h of the fastest collider its body touches (`contacts`), plus gravity's step from
-// rest |g| h² where it touches nothing. Each body's bound, the least reach / |δ| of its
+// rest |g| h² where it touches nothing. Node j's part of its body's bound for its step d
+// (taken by the solve's last update, `cg_update`): the least reach / |δ| of the body's
 // nodes (at most 1; 0 where a δ is not finite), into `bodyt` (f32 bits: for
 // non-negative floats their order).
-@compute @workgroup_size(64)
-fn trust(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let j = gid.x;
-    if (j < params.lv[0].y) {
-        trust_node(j, vecs[V_DELTA * params.n_total + j].xyz);
-    }
-}
-
-// Node j's part of its body's trust bound for its step d (`trust`; after the last
-// conjugate-gradient update, `cg_update`).
 fn trust_node(j: u32, d: vec3<f32>) {
     if (held_now(j)) {
         return;
@@ -2309,7 +2300,7 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
             rhs = rhs + dn.xyz * (sc.y * (r - d));
             extra = extra + outer(dn.xyz, dn.xyz) * sc.y;
             mask = mask | (1u << k);
-            // The collider's step widens its body's trust region (`trust`).
+            // The collider's step widens its body's trust region (`trust_node`).
             atomicMax(&bodyt[params.chunks.z + node_body(j)], bitcast<u32>(length(cols[k].vel.xyz) * params.h));
         }
         for (var s = pr.x; s < pr.y; s = s + 1u) {
@@ -2655,7 +2646,7 @@ fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
 
 // x += α p (mode bit 0 clear, the first iteration: x = α p), r −= α q; then the next
 // V-cycle's zero start, or, after the last iteration (mode bit 1), x as the Newton step
-// and its node's part of the trust bound (`trust_node`: the plan then has no `trust`).
+// and its node's part of the trust bound (`trust_node`).
 // Mode bit 2: the two-direction step instead, x = a z + b p (a, b the body's weights
 // in its α and β slots, z the V-cycle's correction), the residual left as it is.
 @compute @workgroup_size(64)

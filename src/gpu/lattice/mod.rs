@@ -2211,11 +2211,7 @@ mod tests {
             .filter(|d| {
                 matches!(
                     d.kernel,
-                    Kernel::CgDots
-                        | Kernel::CgDirection
-                        | Kernel::CgMatvec
-                        | Kernel::CgUpdate
-                        | Kernel::Trust
+                    Kernel::CgDots | Kernel::CgDirection | Kernel::CgMatvec | Kernel::CgUpdate
                 ) || (d.kernel == Kernel::Pick && (5..=6).contains(&d.pass.mode))
             })
             .map(|d| (d.kernel, d.pass.mode))
@@ -2243,9 +2239,7 @@ mod tests {
                 (CgUpdate, 3),
             ]
         );
-        // The last update takes the trust bounds (mode bit 1): no `trust` pass; the
-        // scaling follows it.
-        assert_eq!(count(Kernel::Trust), 0);
+        // The last update takes the trust bounds (mode bit 1); the scaling follows it.
         for (k, d) in p.iter().enumerate() {
             if d.kernel == CgUpdate && d.pass.mode & 2 != 0 {
                 assert_eq!(p[k + 1].kernel, TrustScale);
@@ -2258,7 +2252,7 @@ mod tests {
         let one = plan(&shape(), 2);
         assert!(
             one.iter()
-                .all(|d| !matches!(d.kernel, CgDots | CgDirection | CgMatvec | Trust))
+                .all(|d| !matches!(d.kernel, CgDots | CgDirection | CgMatvec))
         );
         let after: Vec<(Kernel, u32)> = one
             .iter()
