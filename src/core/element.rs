@@ -365,6 +365,17 @@ impl CubeOperator {
         *sigma * (corner_sign(a) * 0.25) + Self::hourglass_row(a, r)
     }
 
+    /// `vᵀ K u` for the unit cube's stiffness `K` (N·m for values in m, a 1 m cube) from
+    /// `u`'s response `(sigma, r)` ([`Self::response`]) and `v`'s moments `(g, q)`
+    /// ([`Self::moments`]): `Σ_k σ_k · g_k / 4 + Σ_α r_α · q_α`, the sum over the corners
+    /// of `v_a ·` [`Self::row`] without a row (both vectors' moments in one frame).
+    #[inline]
+    pub fn product(sigma: &Mat3, r: &[Vec3; 4], g: &Mat3, q: &[Vec3; 4]) -> f32 {
+        let stress =
+            sigma.x_axis.dot(g.x_axis) + sigma.y_axis.dot(g.y_axis) + sigma.z_axis.dot(g.z_axis);
+        0.25 * stress + (r[0].dot(q[0]) + r[1].dot(q[1]) + r[2].dot(q[2]) + r[3].dot(q[3]))
+    }
+
     /// The unit cube's stiffness times corner values `x`, every row (N for x in m).
     pub fn apply(&self, x: &[Vec3; CORNERS]) -> [Vec3; CORNERS] {
         let (g, q) = Self::moments(x);
@@ -1029,6 +1040,56 @@ mod tests {
                         );
                     }
                 }
+            }
+        }
+    }
+
+    /// `product` is `vᵀ K u` of the 24 × 24 matrix, for random vectors in a random
+    /// frame (both vectors' moments turned by one rotation, as the solvers take them),
+    /// and symmetric in `u`, `v`.
+    #[test]
+    fn cube_product_is_the_stiffness_bilinear_form() {
+        for (e, nu) in [(1.0e3f32, 0.3f32), (1.0e6, 0.49)] {
+            let mat = Hyperelastic::new(e, nu);
+            let k = cube_stiffness(mat.mu as f64, mat.lambda as f64);
+            let op = CubeOperator::of(&mat);
+            let scale: f64 = k.iter().fold(0.0, |m, v| m.max(v.abs()));
+            let mut seed = 11u64;
+            for _ in 0..20 {
+                let mut corners = || -> [Vec3; CORNERS] {
+                    std::array::from_fn(|_| {
+                        Vec3::new(noise(&mut seed), noise(&mut seed), noise(&mut seed))
+                    })
+                };
+                let (u, v) = (corners(), corners());
+                let axis = Vec3::new(noise(&mut seed), noise(&mut seed), 1.0).normalize();
+                let r = Mat3::from_axis_angle(axis, 2.0 * noise(&mut seed));
+                let rt = r.transpose();
+                let turned = |x: &[Vec3; CORNERS]| {
+                    let (g, q) = CubeOperator::moments(x);
+                    (rt * g, q.map(|w| rt * w))
+                };
+                let ((gu, qu), (gv, qv)) = (turned(&u), turned(&v));
+                let (su, ru) = op.response(&gu, &qu);
+                let (sv, rv) = op.response(&gv, &qv);
+                let got = CubeOperator::product(&su, &ru, &gv, &qv) as f64;
+                let back = CubeOperator::product(&sv, &rv, &gu, &qu) as f64;
+                // vᵀ K u of the matrix, with both vectors in the element's frame.
+                let (ul, vl) = (u.map(|w| rt * w), v.map(|w| rt * w));
+                let want: f64 = (0..24)
+                    .map(|a| {
+                        let row: f64 = (0..24)
+                            .map(|c| k[a * 24 + c] * ul[c / 3][c % 3] as f64)
+                            .sum();
+                        row * vl[a / 3][a % 3] as f64
+                    })
+                    .sum();
+                let size = 24.0 * scale;
+                assert!((got - want).abs() <= 1e-5 * size, "E {e}: {got} vs {want}");
+                assert!(
+                    (back - want).abs() <= 1e-5 * size,
+                    "E {e}: {back} vs {want}"
+                );
             }
         }
     }

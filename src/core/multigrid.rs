@@ -1302,32 +1302,72 @@ impl LatticeMultigrid {
                 *v = Vec3::ZERO;
             }
         }
+        let sums = self.two_direction_sums(h2, &z, &p, &free, work);
         let mut x = vec![Vec3::ZERO; n];
-        for w in self.levels[0].body_start.windows(2) {
-            let range = w[0] as usize..w[1] as usize;
-            // zᵀ A z, pᵀ A z, pᵀ A p, rᵀ z, rᵀ p over the body's free nodes.
-            let mut t = [0.0f64; 5];
-            for j in range.clone().filter(|&j| free(j)) {
-                let qz = self.apply_row(0, j, &z, h2, work);
-                let qp = self.apply_row(0, j, &p, h2, work);
-                let r = work.rhs[0][j];
-                for (s, v) in t.iter_mut().zip([
-                    z[j].dot(qz),
-                    p[j].dot(qz),
-                    p[j].dot(qp),
+        for (w, t) in self.levels[0].body_start.windows(2).zip(sums) {
+            let (a, b) = two_direction_weights(t);
+            for j in w[0] as usize..w[1] as usize {
+                x[j] = z[j] * a + p[j] * b;
+            }
+        }
+        work.delta[0].clone_from(&x);
+        work.last = x;
+    }
+
+    /// Each body's `[zᵀAz, pᵀAz, pᵀAp, rᵀz, rᵀp]` on level 0 (`r` its right-hand side; `z`
+    /// and `p` zero where not `free`), as the GPU's `cg_two_terms` sums them: each
+    /// element's three stiffness products once, from both vectors' moments in its frame
+    /// ([`CubeOperator::product`]), then each free node's own terms (`M/h² + S` and the
+    /// residual). Together they are the rows' sums `Σ_j z_j · (A z)_j` and so on, without
+    /// a row.
+    fn two_direction_sums(
+        &self,
+        h2: f32,
+        z: &[Vec3],
+        p: &[Vec3],
+        free: &impl Fn(usize) -> bool,
+        work: &MgWork,
+    ) -> Vec<[f64; 5]> {
+        let lv = &self.levels[0];
+        let mut t = vec![[0.0f64; 5]; lv.body_start.len().saturating_sub(1)];
+        for (e, corners) in lv.elements.iter().enumerate() {
+            let b = lv.body[e] as usize;
+            let (Some(Some(op)), Some(sums)) = (self.unit_operator.get(b), t.get_mut(b)) else {
+                continue;
+            };
+            let rt = work.rot[0][e].transpose();
+            let moments = |v: &[Vec3]| {
+                let (g, q) = CubeOperator::moments(&corners.map(|c| v[c as usize]));
+                (rt * g, q.map(|w| rt * w))
+            };
+            let ((gz, qz), (gp, qp)) = (moments(z), moments(p));
+            let (sz, rz) = op.response(&gz, &qz);
+            let (sp, rp) = op.response(&gp, &qp);
+            let s = lv.scale[e];
+            sums[0] += (s * CubeOperator::product(&sz, &rz, &gz, &qz)) as f64;
+            sums[1] += (s * CubeOperator::product(&sz, &rz, &gp, &qp)) as f64;
+            sums[2] += (s * CubeOperator::product(&sp, &rp, &gp, &qp)) as f64;
+        }
+        for (w, sums) in lv.body_start.windows(2).zip(t.iter_mut()) {
+            for j in (w[0] as usize..w[1] as usize).filter(|&j| free(j)) {
+                let m = Mat3::from_diagonal(Vec3::splat(lv.mass[j] / h2));
+                let a = match work.extra[0].get(j) {
+                    Some(s) => m + *s,
+                    None => m,
+                };
+                let (az, r) = (a * z[j], work.rhs[0][j]);
+                for (s, v) in sums.iter_mut().zip([
+                    z[j].dot(az),
+                    p[j].dot(az),
+                    p[j].dot(a * p[j]),
                     r.dot(z[j]),
                     r.dot(p[j]),
                 ]) {
                     *s += v as f64;
                 }
             }
-            let (a, b) = two_direction_weights(t);
-            for j in range {
-                x[j] = z[j] * a + p[j] * b;
-            }
         }
-        work.delta[0].clone_from(&x);
-        work.last = x;
+        t
     }
 
     /// Each body's translation step on level 0: `t = (Σ m/h² I + S_j)⁻¹ Σ r` over its

@@ -203,10 +203,8 @@ pub enum Kernel {
     CgDots,
     /// `cg_direction`: the next conjugate direction.
     CgDirection,
-    /// `cg_recycle`: the two-direction step's second direction, the last solve's answer.
-    CgRecycle,
-    /// `cg_two_terms`: the two-direction step's partial sums (its directions times the
-    /// Newton matrix).
+    /// `cg_two_terms`: the two-direction step's partial sums (its directions' products
+    /// with the Newton matrix, element by element, over the energy table's chunks).
     CgTwoTerms,
     /// `cg_matvec`: the direction times the Newton matrix, and the step's partial sums.
     CgMatvec,
@@ -420,15 +418,10 @@ pub const ENTRIES: &[Entry] = &[
         uses: &["params", "pc", "vecs", "red", "ccol", "nodes"],
     },
     Entry {
-        kernel: Kernel::CgRecycle,
-        name: "cg_recycle",
-        uses: &["params", "vecs", "ccol", "nodes"],
-    },
-    Entry {
         kernel: Kernel::CgTwoTerms,
         name: "cg_two_terms",
         uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "red", "elems", "kmat", "topo", "nodes",
+            "params", "pc", "rot", "vecs", "nblk", "red", "ccol", "elems", "kmat", "nodes",
         ],
     },
     Entry {

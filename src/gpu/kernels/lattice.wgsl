@@ -602,7 +602,6 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
         table = 1u;
     } else if (mode == 8u) {
         used = 5u;
-        table = 1u;
     } else {
         table = 1u + pc.level;
     }
@@ -914,15 +913,16 @@ fn cube_op(kb: u32) -> CubeOp {
     return CubeOp(kmat[o], kmat[o + 1u], kmat[o + 2u], kmat[o + 3u], kmat[o + 4u]);
 }
 
-// A level-0 element's R K Rᵀ x at corner a (times `scale`, V/h²) from its body's unit
-// cube operator `op` (core::element::CubeOperator: the one-point stress and the
-// hourglass block's pairs, triple and singles), stored in the five vec4 after the body's
-// 64 unit blocks in `kmat`: μ, λ, the pairs' (0,0) (0,1) (1,1), the triple's diagonal
-// and (0,1) (1,2) (2,0), the singles.
-fn cube_op_row(op: CubeOp, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
-               x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
-               x7: vec3<f32>) -> vec3<f32> {
-    // Moments: g = Σ x_j c_jᵀ and the hourglass coordinates (CubeOperator::moments).
+// A unit cube operator's moments of corner values x turned into an element's frame:
+// g = Rᵀ Σ_j x_j c_jᵀ and the hourglass coordinates q = Rᵀ q(x) (rt = Rᵀ;
+// core::element::CubeOperator::moments).
+struct CubeMoments {
+    g: mat3x3<f32>,
+    q: Hg,
+};
+
+fn cube_moments(rt: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>, x2: vec3<f32>, x3: vec3<f32>,
+                x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>, x7: vec3<f32>) -> CubeMoments {
     let s01 = x1 + x0;
     let d01 = x1 - x0;
     let s23 = x3 + x2;
@@ -931,21 +931,48 @@ fn cube_op_row(op: CubeOp, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1
     let d45 = x5 - x4;
     let s67 = x7 + x6;
     let d67 = x7 - x6;
-    let rt = transpose(r);
     let g = rt * mat3x3<f32>((d01 + d23) + (d45 + d67), (s23 - s01) + (s67 - s45),
                              (s45 + s67) - (s01 + s23));
     let q = Hg(rt * ((d23 - d01) + (d67 - d45)), rt * ((s67 - s45) - (s23 - s01)),
                rt * ((d45 + d67) - (d01 + d23)), rt * ((d67 - d45) - (d23 - d01)));
-    // Response (CubeOperator::response).
-    let e = (g + transpose(g)) * 0.25;
+    return CubeMoments(g, q);
+}
+
+// The operator's response to moments m (CubeOperator::response): the stress of the
+// strain sym(g) / 4 and the hourglass block times the coordinates.
+struct CubeResponse {
+    sigma: mat3x3<f32>,
+    rq: Hg,
+};
+
+fn cube_response(op: CubeOp, m: CubeMoments) -> CubeResponse {
+    let e = (m.g + transpose(m.g)) * 0.25;
     let tr = e[0].x + e[1].y + e[2].z;
     let lt = 0.5 * op.k0.y * tr;
     let sigma = e * op.k0.x + mat3x3<f32>(vec3<f32>(lt, 0.0, 0.0), vec3<f32>(0.0, lt, 0.0),
                                           vec3<f32>(0.0, 0.0, lt));
-    let rq = hourglass_response(op, q);
+    return CubeResponse(sigma, hourglass_response(op, m.q));
+}
+
+// vᵀ K u of the unit cube's stiffness K from u's response and v's moments
+// (CubeOperator::product): Σ_k σ_k · g_k / 4 + Σ_α (Q q_u)_α · q_v,α.
+fn cube_product(u: CubeResponse, v: CubeMoments) -> f32 {
+    let s = u.sigma;
+    return 0.25 * (dot(s[0], v.g[0]) + dot(s[1], v.g[1]) + dot(s[2], v.g[2])) + hg_dot(v.q, u.rq);
+}
+
+// A level-0 element's R K Rᵀ x at corner a (times `scale`, V/h²) from its body's unit
+// cube operator `op` (core::element::CubeOperator: the one-point stress and the
+// hourglass block's pairs, triple and singles), stored in the five vec4 after the body's
+// 64 unit blocks in `kmat`: μ, λ, the pairs' (0,0) (0,1) (1,1), the triple's diagonal
+// and (0,1) (1,2) (2,0), the singles.
+fn cube_op_row(op: CubeOp, a: u32, scale: f32, r: mat3x3<f32>, x0: vec3<f32>, x1: vec3<f32>,
+               x2: vec3<f32>, x3: vec3<f32>, x4: vec3<f32>, x5: vec3<f32>, x6: vec3<f32>,
+               x7: vec3<f32>) -> vec3<f32> {
+    let u = cube_response(op, cube_moments(transpose(r), x0, x1, x2, x3, x4, x5, x6, x7));
     // Row a (CubeOperator::row).
     let c = corner_sign(a);
-    let f = sigma * (c * 0.25) + hourglass_row(a, rq);
+    let f = u.sigma * (c * 0.25) + hourglass_row(a, u.rq);
     return r * f * scale;
 }
 
@@ -2574,46 +2601,62 @@ fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
     vecs[cg_at(CG_P) + j] = p;
 }
 
-// The two-direction step (core::multigrid::LatticeMultigrid::two_direction): its second
-// direction p, the last solve's answer x (0, with w = 1, on held nodes and where x is
-// not finite).
-@compute @workgroup_size(64)
-fn cg_recycle(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let j = gid.x;
-    if (j >= params.lv[0].y) {
-        return;
-    }
+// The two-direction step's second direction at node j (core::multigrid::
+// LatticeMultigrid::two_direction): the last solve's answer, 0 on held nodes and where it
+// is not finite.
+fn recycled(j: u32) -> vec3<f32> {
     let x = vecs[cg_at(CG_X) + j].xyz;
-    var p = vec4<f32>(0.0, 0.0, 0.0, 1.0);
-    if (!held_now(j) && is_finite_f(x.x) && is_finite_f(x.y) && is_finite_f(x.z)) {
-        p = vec4<f32>(x, 0.0);
+    if (held_now(j) || !(is_finite_f(x.x) && is_finite_f(x.y) && is_finite_f(x.z))) {
+        return vec3<f32>(0.0);
     }
-    vecs[cg_at(CG_P) + j] = p;
+    return x;
 }
 
-// The two-direction step's partial sums over a chunk of level 0's nodes (workgroup
-// pc.first + wg.x of its table): zᵀ A z, pᵀ A z, pᵀ A p, rᵀ z, rᵀ p (z the V-cycle's
-// correction, p from `cg_recycle`; held nodes left out).
+// The two-direction step's partial sums over a chunk of the energy table (workgroup
+// pc.first + wg.x: a run of one body's elements, then of its level-0 nodes): zᵀ A z,
+// pᵀ A z, pᵀ A p, rᵀ z, rᵀ p (z the V-cycle's correction, p `recycled`, both 0 on held
+// nodes). Each element adds its stiffness's three products once, from both vectors'
+// moments (`cube_product`), and each free node its own terms (M/h² + S and the residual
+// r), which together are the rows' sums without evaluating a row.
 @compute @workgroup_size(64)
 fn cg_two_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     var t = array<f32, 5>(0.0, 0.0, 0.0, 0.0, 0.0);
     let ch = chunk(pc.first + wg.x);
     let zo = V_DELTA * params.n_total;
-    for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
-        let pw = vecs[cg_at(CG_P) + j];
-        if (pw.w != 0.0) {
-            continue;
+    for (var i = ch.x + lid; i < ch.x + ch.y; i = i + LWG) {
+        if (i < params.ne) {
+            let e = i;
+            let c0 = elems[3u * e];
+            let c1 = elems[3u * e + 1u];
+            let k = kinfo(e);
+            let op = cube_op(bitcast<u32>(k.x));
+            let rt = transpose(quat_mat(rot[e]));
+            let mz = cube_moments(rt, vecs[zo + c0.x].xyz, vecs[zo + c0.y].xyz, vecs[zo + c0.z].xyz,
+                                  vecs[zo + c0.w].xyz, vecs[zo + c1.x].xyz, vecs[zo + c1.y].xyz,
+                                  vecs[zo + c1.z].xyz, vecs[zo + c1.w].xyz);
+            let mp = cube_moments(rt, recycled(c0.x), recycled(c0.y), recycled(c0.z), recycled(c0.w),
+                                  recycled(c1.x), recycled(c1.y), recycled(c1.z), recycled(c1.w));
+            let uz = cube_response(op, mz);
+            let up = cube_response(op, mp);
+            t[0] = t[0] + k.y * cube_product(uz, mz);
+            t[1] = t[1] + k.y * cube_product(uz, mp);
+            t[2] = t[2] + k.y * cube_product(up, mp);
+        } else {
+            let j = i - params.ne;
+            if (!held_now(j)) {
+                let z = vecs[zo + j].xyz;
+                let p = recycled(j);
+                let r = vecs[V_RHS * params.n_total + j].xyz;
+                let m = nodes[j].x / params.h2;
+                let s = extra_block(j);
+                let az = z * m + s * z;
+                t[0] = t[0] + dot(z, az);
+                t[1] = t[1] + dot(p, az);
+                t[2] = t[2] + dot(p, p * m + s * p);
+                t[3] = t[3] + dot(r, z);
+                t[4] = t[4] + dot(r, p);
+            }
         }
-        let z = vecs[zo + j].xyz;
-        let p = pw.xyz;
-        let qz = apply_row_at(j, zo);
-        let qp = apply_row_at(j, cg_at(CG_P));
-        let r = vecs[V_RHS * params.n_total + j].xyz;
-        t[0] = t[0] + dot(z, qz);
-        t[1] = t[1] + dot(p, qz);
-        t[2] = t[2] + dot(p, qp);
-        t[3] = t[3] + dot(r, z);
-        t[4] = t[4] + dot(r, p);
     }
     for (var k = 0u; k < 5u; k = k + 1u) {
         wsum[lid][k] = t[k];
@@ -2648,7 +2691,8 @@ fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
 // V-cycle's zero start, or, after the last iteration (mode bit 1), x as the Newton step
 // and its node's part of the trust bound (`trust_node`).
 // Mode bit 2: the two-direction step instead, x = a z + b p (a, b the body's weights
-// in its α and β slots, z the V-cycle's correction), the residual left as it is.
+// in its α and β slots, z the V-cycle's correction, p `recycled`), the residual left as
+// it is.
 @compute @workgroup_size(64)
 fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
@@ -2659,7 +2703,7 @@ fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     var x = vec3<f32>(0.0);
     if ((pc.mode & 4u) != 0u) {
         let b = red[body_slot(node_body(j), B_CG_BETA)];
-        x = vecs[V_DELTA * params.n_total + j].xyz * a + vecs[cg_at(CG_P) + j].xyz * b;
+        x = vecs[V_DELTA * params.n_total + j].xyz * a + recycled(j) * b;
     } else {
         if ((pc.mode & 1u) != 0u) {
             x = vecs[cg_at(CG_X) + j].xyz;

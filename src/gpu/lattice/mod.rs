@@ -324,10 +324,10 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
             // The two-direction step (LatticeMultigrid::two_direction): the V-cycle's
             // correction and the last solve's answer, weighted per body; its update takes
             // each body's trust bound, as conjugate gradients' last does.
+            // Its sums go element by element, over the energy table.
             vcycle(shape, 0, &mut push);
-            push(Kernel::CgRecycle, 0, n, 0, 0, groups(n));
-            push(Kernel::CgTwoTerms, n0, nc, 0, 0, nc);
-            push(Kernel::Pick, 0, nc, 0, 8, picks);
+            push(Kernel::CgTwoTerms, e0, ec, 0, 0, ec);
+            push(Kernel::Pick, 0, ec, 0, 8, picks);
             push(Kernel::CgUpdate, 0, n, 0, 4 | 2, groups(n));
         } else {
             // Conjugate gradients, a V-cycle per iteration (LatticeMultigrid::krylov).
@@ -941,8 +941,9 @@ impl GpuLattice {
         let ef = zeroed("tissue lattice forces", layout.ne_slots() as u64 * 8 * 16)?;
         // The V-cycle's 4 regions of every level's nodes, then conjugate gradients'
         // iterate, direction and product (level 0's nodes each; the two-direction step of
-        // one V-cycle uses the first two: its answer and its second direction).
-        let cg = if shape.cycles > 1 { 3 * n } else { 2 * n };
+        // one V-cycle uses the first: its answer, kept as the next step's second
+        // direction).
+        let cg = if shape.cycles > 1 { 3 * n } else { n };
         let vecs = zeroed("tissue lattice vectors", ((nt * 4 + cg) * 16) as u64)?;
         let nblk = zeroed("tissue lattice blocks", (nt * 6 * 16) as u64)?;
         // Each body's coarsest-level factor, kept between V-cycles where it fits.
@@ -2246,8 +2247,8 @@ mod tests {
             }
         }
         assert_eq!(count(Kernel::TrustScale), 2);
-        assert_eq!(count(Kernel::CgRecycle) + count(Kernel::CgTwoTerms), 0);
-        // One V-cycle: the two-direction step after it (its second direction, its sums,
+        assert_eq!(count(Kernel::CgTwoTerms), 0);
+        // One V-cycle: the two-direction step after it (its sums over the energy table,
         // its weights, its update taking the trust bounds), no conjugate gradients.
         let one = plan(&shape(), 2);
         assert!(
@@ -2257,11 +2258,10 @@ mod tests {
         let after: Vec<(Kernel, u32)> = one
             .iter()
             .enumerate()
-            .filter(|(_, d)| d.kernel == Kernel::CgRecycle)
-            .flat_map(|(k, _)| one[k..k + 5].iter().map(|d| (d.kernel, d.pass.mode)))
+            .filter(|(_, d)| d.kernel == Kernel::CgTwoTerms)
+            .flat_map(|(k, _)| one[k..k + 4].iter().map(|d| (d.kernel, d.pass.mode)))
             .collect();
         let step = [
-            (CgRecycle, 0),
             (CgTwoTerms, 0),
             (Pick, 8),
             (CgUpdate, 4 | 2),
@@ -2359,7 +2359,7 @@ mod tests {
                     }
                     Kernel::CgTwoTerms => {
                         assert_eq!(d.pass.mode, 8);
-                        1
+                        0
                     }
                     other => panic!("pick after {other:?}"),
                 };
