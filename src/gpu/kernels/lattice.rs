@@ -137,6 +137,9 @@ pub enum Kernel {
     Energy,
     /// `pick`: sums each body's partial sums and picks its step.
     Pick,
+    /// `pick_pending`: the line search's second pick, for the bodies its first left
+    /// pending (dispatched indirectly, only where there are any).
+    PickPending,
     /// `advance`: takes the picked step (and, for the line search's step where no
     /// particle-contact projection follows, the boundary's projection).
     Advance,
@@ -250,10 +253,15 @@ pub const ENTRIES: &[Entry] = &[
         uses: &["params", "pc", "red", "args", "elems"],
     },
     Entry {
+        kernel: Kernel::PickPending,
+        name: "pick_pending",
+        uses: &["params", "pc", "red", "elems"],
+    },
+    Entry {
         kernel: Kernel::Advance,
         name: "advance",
         uses: &[
-            "params", "pc", "cols", "pos", "vecs", "red", "ccol", "nodes", "mats", "bodyt",
+            "params", "pc", "cols", "pos", "vecs", "red", "args", "ccol", "nodes", "mats", "bodyt",
         ],
     },
     Entry {
@@ -264,7 +272,9 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Residual,
         name: "residual",
-        uses: &["params", "pos", "ef", "vecs", "ccol", "topo", "nodes"],
+        uses: &[
+            "params", "pos", "ef", "vecs", "args", "ccol", "topo", "nodes",
+        ],
     },
     Entry {
         kernel: Kernel::CoarsenLevel,
@@ -377,7 +387,7 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Contacts,
         name: "contacts",
         uses: &[
-            "params", "cols", "pos", "vecs", "nblk", "ccol", "nodes", "mats", "bodyt",
+            "params", "cols", "pos", "vecs", "nblk", "args", "ccol", "nodes", "mats", "bodyt",
         ],
     },
     Entry {

@@ -26,6 +26,12 @@ const B_CG_RZ: u32 = 3u;      // conjugate gradients: the last zᵀ r
 const B_CG_BETA: u32 = 4u;    // conjugate gradients: the next direction's β
 const B_SHIFT: u32 = 5u;      // + 0..2: the body's translation step (xyz)
 const B_MG_ALPHA: u32 = 8u;   // + level: the coarse correction's step
+// Indirect dispatches' workgroup counts in `args` (x, y, z each; gpu::lattice's
+// `ARGS_*` offsets): the line search's second energy pass, its `pick`, and level 0's
+// contact pass (dispatched only where some node has a contact block).
+const ARGS_LINE: u32 = 0u;
+const ARGS_PENDING: u32 = 4u;
+const ARGS_CONTACT: u32 = 8u;
 
 const R_X: u32 = 0u;
 const R_Y: u32 = 1u;
@@ -569,8 +575,9 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
 // and picks its step. mode 0: the first iterate's s of lowest energy (s = 1 unless
 // another is lower); mode 1: the first of the line search's first candidates that does
 // not raise the body's energy (else 0, the body pending, and the second pass's
-// workgroups, `pc.count`, into `args`); mode 4: for a pending body, the first of the
-// second pass's candidates that does not, else 0 (and `args` back to none); mode 3: the
+// workgroups, `pc.count`, and its own for mode 4 into `args`); mode 4 (`pick_pending`,
+// dispatched only then): for a pending body, the first of the second pass's candidates
+// that does not, else 0; mode 3: the
 // coarse correction's step of level `pc.level`; conjugate gradients: mode 5 the next
 // direction's β, mode 6 the step α along the direction and zᵀ r; mode 7 the body's
 // translation step (`translate_terms`); mode 8 the two-direction step's weights
@@ -578,19 +585,36 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
 @compute @workgroup_size(64)
 fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>,
         @builtin(num_workgroups) nwg: vec3<u32>) {
-    let mode = pc.mode;
+    // The line search's second pass (and its pick) where a body's first candidates all
+    // failed; `advance` sets them back to none.
+    if (pick_bodies(lid, wg.x, nwg.x, pc.mode) && pc.mode == 1u) {
+        atomicStore(&args[ARGS_LINE], pc.count);
+        atomicStore(&args[ARGS_PENDING], nwg.x);
+    }
+}
+
+// `pick`'s mode 4, dispatched (indirectly) only where some body's first line-search
+// candidates all failed; a kernel of its own, as an indirect dispatch may not write the
+// buffer its count is in.
+@compute @workgroup_size(64)
+fn pick_pending(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>,
+                @builtin(num_workgroups) nwg: vec3<u32>) {
+    pick_bodies(lid, wg.x, nwg.x, 4u);
+}
+
+// `pick` of workgroup `wid` of `groups` in mode `mode`: whether a body it picked for is
+// left pending (mode 1).
+fn pick_bodies(lid: u32, wid: u32, groups: u32, mode: u32) -> bool {
     // The sums this mode reads, and their table.
     var used = 2u;
     var table = 0u;
+    var pending = false;
     if (mode == 0u) {
         used = FIRST_CANDIDATES + 1u;
     } else if (mode == 1u) {
         used = part_a();
     } else if (mode == 4u) {
         used = LINE_CANDIDATES - part_a();
-        if (lid == 0u && wg.x == 0u) {
-            atomicStore(&args[0], 0u);
-        }
     } else if (mode == 5u) {
         used = 1u;
         table = 1u;
@@ -605,7 +629,7 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
     } else {
         table = 1u + pc.level;
     }
-    for (var b = wg.x; b < params.count.x; b = b + nwg.x) {
+    for (var b = wid; b < params.count.x; b = b + groups) {
         let r = body_chunks(table, b);
         // The last body's sums have been read.
         workgroupBarrier();
@@ -640,14 +664,16 @@ fn pick(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: ve
                 }
             }
         }
-        if (lid == 0u) {
-            pick_body(b, mode);
+        if (lid == 0u && pick_body(b, mode)) {
+            pending = true;
         }
     }
+    return pending;
 }
 
-// `pick`'s choice for body b from the sums in wsum[0].
-fn pick_body(b: u32, mode: u32) {
+// `pick`'s choice for body b from the sums in wsum[0]: whether the body is left pending
+// (mode 1: none of the line search's first candidates taken).
+fn pick_body(b: u32, mode: u32) -> bool {
     if (mode == 0u) {
         // A candidate is taken only where it lowers the energy by more than FIRST_TIE of
         // its scale; closer, the energies tie to rounding and s = 1 stays
@@ -673,9 +699,7 @@ fn pick_body(b: u32, mode: u32) {
         }
         red[body_slot(b, B_ALPHA)] = a;
         red[body_slot(b, B_PENDING)] = select(1.0, 0.0, found);
-        if (!found) {
-            atomicStore(&args[0], pc.count);
-        }
+        return !found;
     } else if (mode == 4u) {
         if (red[body_slot(b, B_PENDING)] > 0.5) {
             var a = 0.0;
@@ -734,10 +758,12 @@ fn pick_body(b: u32, mode: u32) {
     } else {
         red[body_slot(b, B_MG_ALPHA + pc.level)] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
     }
+    return false;
 }
 
 // y += α d for the free nodes, α their body's step (mode bit 0 as `direction`'s mode;
-// nothing at α = 0); resets the bodies' trust bounds. Mode bit 1: then the node's
+// nothing at α = 0); resets the bodies' trust bounds and the line search's second
+// pass. Mode bit 1: then the node's
 // `boundary` (the line search's step where no particle-contact projection comes
 // between).
 @compute @workgroup_size(64)
@@ -748,6 +774,11 @@ fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (j < params.chunks.z) {
         atomicStore(&bodyt[j], bitcast<u32>(1.0));
         atomicStore(&bodyt[params.chunks.z + j], 0u);
+    }
+    // No second line-search pass until a `pick` asks for one (this iteration's ran).
+    if (j == 0u) {
+        atomicStore(&args[ARGS_LINE], 0u);
+        atomicStore(&args[ARGS_PENDING], 0u);
     }
     if (j >= params.lv[0].y) {
         return;
@@ -812,6 +843,11 @@ fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
+    // No contact pass until `contacts` finds a contact block (the last iteration's
+    // passes have run).
+    if (j == 0u) {
+        atomicStore(&args[ARGS_CONTACT], 0u);
+    }
     if (j >= params.lv[0].y) {
         return;
     }
@@ -2296,9 +2332,11 @@ fn contact_scale(j: u32) -> vec2<f32> {
 // the node whose list has it, with that node's stiffness; a free partner counts it twice
 // in its block, the coupling the V-cycle does not see). Adds the penalty forces to its
 // right-hand side, sets its extra stiffness k n nᵀ (zero without contacts) and records
-// which colliders are in contact.
+// which colliders are in contact. A node with a contact block asks for level 0's
+// contact pass (`contact_smooth`, over the same nodes, one thread a node: this pass's
+// workgroups).
 @compute @workgroup_size(64)
-fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn contacts(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let j = gid.x;
     if (j >= params.lv[0].y) {
         return;
@@ -2364,6 +2402,10 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
     nblk[o] = vec4<f32>(extra[0], 0.0);
     nblk[o + 1u] = vec4<f32>(extra[1], 0.0);
     nblk[o + 2u] = vec4<f32>(extra[2], 0.0);
+    let zero = vec3<f32>(0.0);
+    if (any(extra[0] != zero) || any(extra[1] != zero) || any(extra[2] != zero)) {
+        atomicStore(&args[ARGS_CONTACT], nwg.x);
+    }
     let t = ccol[C_TOUCH * n + j];
     ccol[C_TOUCH * n + j] = vec4<f32>(t.x, bitcast<f32>(mask), t.zw);
 }

@@ -128,9 +128,29 @@ pub struct Dispatch {
     pub pass: PassRecord,
     /// Workgroups (at most: an indirect dispatch takes its count from the GPU).
     pub groups: u32,
-    /// The workgroup count is the one the kernel before it wrote (the line search's
-    /// second pass, dispatched only when its first candidates all failed).
-    pub indirect: bool,
+    /// Where the workgroup count is, where a kernel before it writes it: the `args`
+    /// word ([`ARGS_LINE`], [`ARGS_PENDING`], [`ARGS_CONTACT`]); `None`, `groups`.
+    pub indirect: Option<u32>,
+}
+
+/// `args` word of the line search's second energy pass's workgroups (set by the first
+/// pass's `pick` where some body's first candidates all failed; else 0).
+pub const ARGS_LINE: u32 = 0;
+/// `args` word of that second pass's `pick` (set with [`ARGS_LINE`]).
+pub const ARGS_PENDING: u32 = 4;
+/// `args` word of level 0's contact pass after the Chebyshev sweeps (set by `contacts`
+/// where some node has a contact block, cleared by `residual` before it).
+pub const ARGS_CONTACT: u32 = 8;
+
+/// The indirect dispatches' `args`: three (x, y, z) workgroup counts, each padded to four
+/// words, x 0 until a kernel sets it.
+const ARGS_INITIAL: [u32; 12] = [0, 1, 1, 0, 0, 1, 1, 0, 0, 1, 1, 0];
+
+/// Whether dispatch `d` makes the colliders' reactions (their forces at the substep's
+/// end and the sums of them): nothing to do without colliders.
+fn for_reactions(d: &Dispatch) -> bool {
+    matches!(d.kernel, Kernel::ForcePartials | Kernel::ForceTotal)
+        || (d.kernel == Kernel::Forces && d.pass.mode == 1)
 }
 
 /// The shape of a hierarchy as the plan needs it.
@@ -279,7 +299,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
                     mode,
                 },
                 groups,
-                indirect: false,
+                indirect: None,
             });
         }
     };
@@ -349,7 +369,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
         push(Kernel::Energy, e0, ec, 0, 1, ec);
         push(Kernel::Pick, 0, ec, 0, 1, picks);
         push(Kernel::Energy, e0, ec, 0, 2, ec);
-        push(Kernel::Pick, 0, ec, 0, 4, picks);
+        push(Kernel::PickPending, 0, ec, 0, 4, picks);
         let pairs = shape
             .pairs
             .is_some_and(|every| (it + 1) % every.max(1) == 0 || it + 1 == newton);
@@ -368,7 +388,12 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
     push(Kernel::ForcePartials, 0, n, 0, 0, reduction_groups(n));
     push(Kernel::ForceTotal, 0, reduction_groups(n), 0, 0, 1);
     for d in &mut out {
-        d.indirect = d.kernel == Kernel::Energy && d.pass.mode == 2;
+        d.indirect = match (d.kernel, d.pass.mode) {
+            (Kernel::Energy, 2) => Some(ARGS_LINE),
+            (Kernel::PickPending, _) => Some(ARGS_PENDING),
+            (Kernel::ContactSmooth, _) => Some(ARGS_CONTACT),
+            _ => None,
+        };
     }
     out
 }
@@ -723,7 +748,7 @@ pub struct GpuLattice {
     ccol: Buffer,
     /// Reductions and the collider forces.
     red: Buffer,
-    /// The line search's second pass's workgroup count (indirect dispatch).
+    /// The indirect dispatches' workgroup counts ([`ARGS_LINE`] and the others).
     args: Buffer,
     /// Where the collider force totals start in `red` (floats).
     force_out: u32,
@@ -969,7 +994,7 @@ impl GpuLattice {
         let ccol = made("tissue lattice collider state", Buf::Ccol)?;
         let args = make(
             "tissue lattice indirect",
-            bytemuck::cast_slice(&[0u32, 1, 1, 0]),
+            bytemuck::cast_slice(&ARGS_INITIAL),
             BufferUsages::STORAGE | BufferUsages::INDIRECT | BufferUsages::COPY_DST,
         )?;
         let cols = make(
@@ -1152,9 +1177,10 @@ impl GpuLattice {
         );
     }
 
-    /// Dispatches of one time step.
+    /// Dispatches of one time step (with the colliders as last set; the clearing of their
+    /// force sums once a step not counted).
     pub fn dispatch_count(&self) -> usize {
-        self.dispatches.len() * self.substeps as usize
+        self.running().count() * self.substeps as usize
     }
 
     /// The buffer of positions and velocities: five regions (positions, iterate,
@@ -1188,13 +1214,22 @@ impl GpuLattice {
             timestamp_writes,
         });
         for i in 0..steps * self.substeps {
-            if i % self.substeps == 0 {
+            if i % self.substeps == 0 && self.colliders > 0 {
                 self.encode_clear(&mut pass, kernels);
             }
-            for i in 0..self.dispatches.len() {
+            for i in self.running() {
                 self.encode(&mut pass, kernels, i);
             }
         }
+    }
+
+    /// The plan's dispatches that run with the world as it is now (its indices): the
+    /// colliders' reaction passes only where there are colliders (`set_colliders`;
+    /// without, they would find nothing to sum).
+    fn running(&self) -> impl Iterator<Item = usize> + '_ {
+        let reactions = self.colliders > 0;
+        (0..self.dispatches.len())
+            .filter(move |&i| reactions || !for_reactions(&self.dispatches[i]))
     }
 
     /// Encodes the clearing of the colliders' force sums, once a step.
@@ -1218,8 +1253,8 @@ impl GpuLattice {
             &[]
         };
         pass.set_bind_group(0, &self.groups[k], offsets);
-        if d.indirect {
-            pass.dispatch_workgroups_indirect(&self.args, 0);
+        if let Some(word) = d.indirect {
+            pass.dispatch_workgroups_indirect(&self.args, 4 * word as u64);
         } else {
             pass.dispatch_workgroups(d.groups, 1, 1);
         }
@@ -1268,8 +1303,8 @@ impl GpuLattice {
         rec: &mut dyn super::world::PassRecorder,
     ) {
         for _ in 0..steps * self.substeps {
-            for (i, d) in self.dispatches.iter().enumerate() {
-                let name = Self::dispatch_name(d);
+            for i in self.running() {
+                let name = Self::dispatch_name(&self.dispatches[i]);
                 let ts = rec.timestamps(name);
                 let timestamp_writes =
                     ts.as_ref().map(|(qs, i)| wgpu::ComputePassTimestampWrites {
@@ -1310,9 +1345,9 @@ impl GpuLattice {
         names.push("force_clear");
         pass.write_timestamp(set, first + 1);
         for _ in 0..self.substeps {
-            for (i, d) in self.dispatches.iter().enumerate() {
+            for i in self.running() {
                 self.encode(&mut pass, kernels, i);
-                names.push(Self::dispatch_name(d));
+                names.push(Self::dispatch_name(&self.dispatches[i]));
                 pass.write_timestamp(set, first + names.len() as u32);
             }
         }
@@ -1707,7 +1742,9 @@ mod tests {
 
     /// Under Chebyshev on level 0, each run of its sweeps ends in one that copies its
     /// result (and only that one), followed at once by the contact pass over level 0's
-    /// nodes; where level 0 is smoothed by Gauss–Seidel there is no contact pass.
+    /// nodes (dispatched indirectly, with the `contacts` pass's workgroups where that
+    /// finds a contact); where level 0 is smoothed by Gauss–Seidel there is no contact
+    /// pass.
     #[test]
     fn level_zero_chebyshev_sweeps_end_in_the_contact_pass() {
         for smoother in [Smoother::GaussSeidel, Smoother::Chebyshev, Smoother::Hybrid] {
@@ -1741,6 +1778,11 @@ mod tests {
                     let lv = s.levels[0];
                     assert_eq!((d.pass.first, d.pass.count), (lv[0], lv[1]));
                     assert_eq!(d.groups, groups(lv[1]));
+                    // Dispatched with the workgroups `contacts` writes where it finds a
+                    // contact block: its own.
+                    assert_eq!(d.indirect, Some(ARGS_CONTACT));
+                    let contacts = p.iter().find(|c| c.kernel == Kernel::Contacts);
+                    assert_eq!(contacts.map(|c| c.groups), Some(d.groups));
                 }
             }
         }
@@ -1930,7 +1972,7 @@ mod tests {
                             mode: 0,
                         },
                         groups: 3,
-                        indirect: false,
+                        indirect: None,
                     });
                 }
             }
@@ -2342,13 +2384,23 @@ mod tests {
         // Level 1 has an empty colour (7): 7 colours × 4 sweeps; level 0: 8 × 4;
         // coarsest: 8 × 30.
         assert_eq!(count(Kernel::Smooth), 2 * (8 * 4 + 7 * 4 + 8 * 30));
-        // One energy pass for the first iterate, two per line search (the second
-        // indirect: it runs only when the first candidates fail).
+        // One energy pass for the first iterate, two per line search (the second and its
+        // `pick` indirect: they run only when the first candidates fail).
         assert_eq!(count(Kernel::Energy), 5);
-        assert_eq!(p.iter().filter(|d| d.indirect).count(), 2);
+        let indirect: Vec<(Kernel, u32, Option<u32>)> = p
+            .iter()
+            .filter(|d| d.indirect.is_some())
+            .map(|d| (d.kernel, d.pass.mode, d.indirect))
+            .collect();
+        let line = [
+            (Kernel::Energy, 2, Some(ARGS_LINE)),
+            (Kernel::PickPending, 4, Some(ARGS_PENDING)),
+        ];
+        assert_eq!(indirect, [line, line].concat());
         for (i, d) in p.iter().enumerate() {
-            if d.kernel == Kernel::Pick {
+            if matches!(d.kernel, Kernel::Pick | Kernel::PickPending) {
                 let before = &p[i - 1];
+                assert_eq!(d.kernel == Kernel::PickPending, d.pass.mode == 4);
                 assert_eq!(d.groups, s.bodies);
                 let table = match before.kernel {
                     Kernel::Energy => 0,
