@@ -852,9 +852,21 @@ fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     var f = vec3<f32>(0.0);
-    for (var s = topo[j]; s < topo[j + 1u]; s = s + 1u) {
-        let ec = topo[s];
-        f = f + ef[8u * (ec >> 3u) + (ec & 7u)].xyz;
+    var s = topo[j];
+    let end = topo[j + 1u];
+    // Four at a time, as `restrict_node`.
+    for (; s + 4u <= end; s = s + 4u) {
+        let f0 = ef[8u * (topo[s] >> 3u) + (topo[s] & 7u)].xyz;
+        let f1 = ef[8u * (topo[s + 1u] >> 3u) + (topo[s + 1u] & 7u)].xyz;
+        let f2 = ef[8u * (topo[s + 2u] >> 3u) + (topo[s + 2u] & 7u)].xyz;
+        let f3 = ef[8u * (topo[s + 3u] >> 3u) + (topo[s + 3u] & 7u)].xyz;
+        f = f + f0;
+        f = f + f1;
+        f = f + f2;
+        f = f + f3;
+    }
+    for (; s < end; s = s + 1u) {
+        f = f + ef[8u * (topo[s] >> 3u) + (topo[s] & 7u)].xyz;
     }
     let n = params.n;
     var r = (pos[R_T * n + j].xyz - pos[R_Y * n + j].xyz) * (nodes[j].x / params.h2) + f;
@@ -878,7 +890,20 @@ fn coarsen_rot(e: u32) {
     let c = params.child_base + e - params.lv[1].z;
     let first = rot[topo[topo[c]]];
     var sum = vec4<f32>(0.0);
-    for (var s = topo[c]; s < topo[c + 1u]; s = s + 1u) {
+    var s = topo[c];
+    let end = topo[c + 1u];
+    // Four at a time, as `restrict_node`.
+    for (; s + 4u <= end; s = s + 4u) {
+        let q0 = rot[topo[s]];
+        let q1 = rot[topo[s + 1u]];
+        let q2 = rot[topo[s + 2u]];
+        let q3 = rot[topo[s + 3u]];
+        sum = sum + select(q0, -q0, dot(q0, first) < 0.0);
+        sum = sum + select(q1, -q1, dot(q1, first) < 0.0);
+        sum = sum + select(q2, -q2, dot(q2, first) < 0.0);
+        sum = sum + select(q3, -q3, dot(q3, first) < 0.0);
+    }
+    for (; s < end; s = s + 1u) {
         let q = rot[topo[s]];
         sum = sum + select(q, -q, dot(q, first) < 0.0);
     }
@@ -1318,9 +1343,24 @@ fn fine_residual_node(j: u32) {
 // the finer level's residual r from the `vecs` region `src`.
 fn restrict_node(j: u32, src: u32) {
     let c = params.restr_base + j - params.lv[1].x;
+    let base = src * params.n_total;
     var r = vec3<f32>(0.0);
-    for (var s = topo[c]; s < topo[c + 1u]; s = s + 2u) {
-        r = r + vecs[src * params.n_total + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
+    var s = topo[c];
+    let end = topo[c + 1u];
+    // Four entries at a time, their loads issued together (a list's loads one after
+    // another are a chain of latencies); the sum in the list's order all the same.
+    for (; s + 8u <= end; s = s + 8u) {
+        let v0 = vecs[base + topo[s]].xyz;
+        let v1 = vecs[base + topo[s + 2u]].xyz;
+        let v2 = vecs[base + topo[s + 4u]].xyz;
+        let v3 = vecs[base + topo[s + 6u]].xyz;
+        r = r + v0 * bitcast<f32>(topo[s + 1u]);
+        r = r + v1 * bitcast<f32>(topo[s + 3u]);
+        r = r + v2 * bitcast<f32>(topo[s + 5u]);
+        r = r + v3 * bitcast<f32>(topo[s + 7u]);
+    }
+    for (; s < end; s = s + 2u) {
+        r = r + vecs[base + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
     }
     if (held(j)) {
         r = vec3<f32>(0.0);
@@ -1335,8 +1375,22 @@ fn prolong_node(j: u32, add: bool) {
     var e = vec3<f32>(0.0);
     if (!held_in_cycle(j)) {
         let c = params.prol_base + j;
-        for (var s = topo[c]; s < topo[c + 1u]; s = s + 2u) {
-            e = e + vecs[V_DELTA * params.n_total + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
+        let base = V_DELTA * params.n_total;
+        var s = topo[c];
+        let end = topo[c + 1u];
+        // Four at a time, as `restrict_node`.
+        for (; s + 8u <= end; s = s + 8u) {
+            let v0 = vecs[base + topo[s]].xyz;
+            let v1 = vecs[base + topo[s + 2u]].xyz;
+            let v2 = vecs[base + topo[s + 4u]].xyz;
+            let v3 = vecs[base + topo[s + 6u]].xyz;
+            e = e + v0 * bitcast<f32>(topo[s + 1u]);
+            e = e + v1 * bitcast<f32>(topo[s + 3u]);
+            e = e + v2 * bitcast<f32>(topo[s + 5u]);
+            e = e + v3 * bitcast<f32>(topo[s + 7u]);
+        }
+        for (; s < end; s = s + 2u) {
+            e = e + vecs[base + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
         }
     }
     if (add) {
@@ -2415,7 +2469,20 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
 fn lump_extra(j: u32) {
     let c = params.restr_base + j - params.lv[1].x;
     var s = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
-    for (var i = topo[c]; i < topo[c + 1u]; i = i + 2u) {
+    var i = topo[c];
+    let end = topo[c + 1u];
+    // Four at a time, as `restrict_node`.
+    for (; i + 8u <= end; i = i + 8u) {
+        let b0 = extra_block(topo[i]);
+        let b1 = extra_block(topo[i + 2u]);
+        let b2 = extra_block(topo[i + 4u]);
+        let b3 = extra_block(topo[i + 6u]);
+        s = s + b0 * bitcast<f32>(topo[i + 1u]);
+        s = s + b1 * bitcast<f32>(topo[i + 3u]);
+        s = s + b2 * bitcast<f32>(topo[i + 5u]);
+        s = s + b3 * bitcast<f32>(topo[i + 7u]);
+    }
+    for (; i < end; i = i + 2u) {
         s = s + extra_block(topo[i]) * bitcast<f32>(topo[i + 1u]);
     }
     let o = 3u * (params.n_total + j);
