@@ -854,7 +854,7 @@ fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     var f = vec3<f32>(0.0);
     var s = topo[j];
     let end = topo[j + 1u];
-    // Four at a time, as `restrict_node`.
+    // Four at a time, as `weighted_sum`.
     for (; s + 4u <= end; s = s + 4u) {
         let f0 = ef[8u * (topo[s] >> 3u) + (topo[s] & 7u)].xyz;
         let f1 = ef[8u * (topo[s + 1u] >> 3u) + (topo[s + 1u] & 7u)].xyz;
@@ -892,7 +892,7 @@ fn coarsen_rot(e: u32) {
     var sum = vec4<f32>(0.0);
     var s = topo[c];
     let end = topo[c + 1u];
-    // Four at a time, as `restrict_node`.
+    // Four at a time, as `weighted_sum`.
     for (; s + 4u <= end; s = s + 4u) {
         let q0 = rot[topo[s]];
         let q1 = rot[topo[s + 1u]];
@@ -1339,16 +1339,14 @@ fn fine_residual_node(j: u32) {
     vecs[V_RES * params.n_total + j] = vec4<f32>(r, 0.0);
 }
 
-// Coarse node j's right-hand side (Pᵀ r)_j (0 on held nodes) and a zero correction,
-// the finer level's residual r from the `vecs` region `src`.
-fn restrict_node(j: u32, src: u32) {
-    let c = params.restr_base + j - params.lv[1].x;
-    let base = src * params.n_total;
+// Σ w v_i over the weighted list at `topo[c]` (node, weight bits pairs), v the `vecs`
+// values from `base`: four entries at a time, their loads issued together (a list's
+// loads one after another are a chain of latencies), the sum in the list's order all
+// the same.
+fn weighted_sum(c: u32, base: u32) -> vec3<f32> {
     var r = vec3<f32>(0.0);
     var s = topo[c];
     let end = topo[c + 1u];
-    // Four entries at a time, their loads issued together (a list's loads one after
-    // another are a chain of latencies); the sum in the list's order all the same.
     for (; s + 8u <= end; s = s + 8u) {
         let v0 = vecs[base + topo[s]].xyz;
         let v1 = vecs[base + topo[s + 2u]].xyz;
@@ -1362,6 +1360,13 @@ fn restrict_node(j: u32, src: u32) {
     for (; s < end; s = s + 2u) {
         r = r + vecs[base + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
     }
+    return r;
+}
+
+// Coarse node j's right-hand side (Pᵀ r)_j (0 on held nodes) and a zero correction,
+// the finer level's residual r from the `vecs` region `src`.
+fn restrict_node(j: u32, src: u32) {
+    var r = weighted_sum(params.restr_base + j - params.lv[1].x, src * params.n_total);
     if (held(j)) {
         r = vec3<f32>(0.0);
     }
@@ -1374,24 +1379,7 @@ fn restrict_node(j: u32, src: u32) {
 fn prolong_node(j: u32, add: bool) {
     var e = vec3<f32>(0.0);
     if (!held_in_cycle(j)) {
-        let c = params.prol_base + j;
-        let base = V_DELTA * params.n_total;
-        var s = topo[c];
-        let end = topo[c + 1u];
-        // Four at a time, as `restrict_node`.
-        for (; s + 8u <= end; s = s + 8u) {
-            let v0 = vecs[base + topo[s]].xyz;
-            let v1 = vecs[base + topo[s + 2u]].xyz;
-            let v2 = vecs[base + topo[s + 4u]].xyz;
-            let v3 = vecs[base + topo[s + 6u]].xyz;
-            e = e + v0 * bitcast<f32>(topo[s + 1u]);
-            e = e + v1 * bitcast<f32>(topo[s + 3u]);
-            e = e + v2 * bitcast<f32>(topo[s + 5u]);
-            e = e + v3 * bitcast<f32>(topo[s + 7u]);
-        }
-        for (; s < end; s = s + 2u) {
-            e = e + vecs[base + topo[s]].xyz * bitcast<f32>(topo[s + 1u]);
-        }
+        e = weighted_sum(params.prol_base + j, V_DELTA * params.n_total);
     }
     if (add) {
         let dj = V_DELTA * params.n_total + j;
@@ -2471,7 +2459,7 @@ fn lump_extra(j: u32) {
     var s = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     var i = topo[c];
     let end = topo[c + 1u];
-    // Four at a time, as `restrict_node`.
+    // Four at a time, as `weighted_sum`.
     for (; i + 8u <= end; i = i + 8u) {
         let b0 = extra_block(topo[i]);
         let b1 = extra_block(topo[i + 2u]);
