@@ -2033,6 +2033,49 @@ fn lattice_colliders_match_the_cpu() {
     );
 }
 
+/// A world stepped without colliders records no reaction passes; given the ground
+/// later, it records them again and its collider forces are the CPU's: a box falls
+/// freely for its first steps (no collider, nothing it could touch), then with the
+/// ground set lands on it. The forces must agree while the runs agree to a micrometre,
+/// over at least three steps of pressing on the ground.
+#[test]
+fn lattice_collider_reactions_resume_when_colliders_are_set() {
+    let Some(g) = gpu() else {
+        return;
+    };
+    let mut run = Lockstep::new(g, lattice_box(Vec3::new(0.03, 0.02, 0.02), 0.03));
+    let bare = run.gpu.0.dispatch_count();
+    let mut pressed = 0;
+    for step in 0..40u32 {
+        let colliders = if step < 2 {
+            Vec::new()
+        } else {
+            vec![Collider::ground(0.0)]
+        };
+        let c = run.step(g, &Control { colliders });
+        let count = run.gpu.0.dispatch_count();
+        if step < 2 {
+            assert_eq!(count, bare, "step {step}: no colliders, no reaction passes");
+            assert!(c.gpu_forces.is_empty() && c.cpu_forces.is_empty());
+        } else {
+            // `forces` at the substep's end, `force_partials` and `force_total`.
+            assert_eq!(count, bare + 3, "step {step}: the reaction passes are back");
+            if c.diff <= 1e-6 {
+                let (gf, cf) = (c.gpu_forces[0], c.cpu_forces[0]);
+                assert!(
+                    gf.distance(cf) <= 1e-3 * cf.length() + 1e-4,
+                    "step {step}: GPU {gf} N, CPU {cf} N"
+                );
+                pressed += (cf.y < 0.0) as u32;
+            }
+        }
+    }
+    assert!(
+        pressed >= 3,
+        "forces compared on the ground at {pressed} steps"
+    );
+}
+
 /// Lattice bodies touching each other on the GPU against the CPU (Jacobi, particle
 /// contacts in every Newton iteration, lists refreshed every step): a box dropped onto
 /// another box that rests on the ground. The pairs push as penalties inside the Newton
