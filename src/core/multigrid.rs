@@ -1012,6 +1012,16 @@ impl LatticeMultigrid {
         y + self.stiffness_row(l, j, x, &work.rot[l])
     }
 
+    /// Node `j` of level `l`'s own block of the Newton matrix, `m_j/h² I + S_j` (N/m;
+    /// `S_j` its contact block, where it has one).
+    fn own_block(&self, l: usize, j: usize, h2: f32, work: &MgWork) -> Mat3 {
+        let m = Mat3::from_diagonal(Vec3::splat(self.levels[l].mass[j] / h2));
+        match work.extra.get(l).and_then(|e| e.get(j)) {
+            Some(s) => m + *s,
+            None => m,
+        }
+    }
+
     /// Whether node `j` of level `l` keeps a zero correction: fixed on its level, or on
     /// level 0 held in this solve ([`MgWork::held`]).
     fn fixed_at(&self, l: usize, j: usize, work: &MgWork) -> bool {
@@ -1077,11 +1087,7 @@ impl LatticeMultigrid {
                     add(a, i, i, Mat3::IDENTITY);
                     continue;
                 }
-                let mut d = Mat3::from_diagonal(Vec3::splat(lv.mass[j] / h2));
-                if let Some(s) = work.extra[l].get(j) {
-                    d += *s;
-                }
-                add(a, i, i, d);
+                add(a, i, i, self.own_block(l, j, h2, work));
                 for (r, v) in work.rhs[l][j].to_array().into_iter().enumerate() {
                     a[packed(m, 3 * i + r)] = v;
                 }
@@ -1350,11 +1356,7 @@ impl LatticeMultigrid {
         }
         for (w, sums) in lv.body_start.windows(2).zip(t.iter_mut()) {
             for j in (w[0] as usize..w[1] as usize).filter(|&j| free(j)) {
-                let m = Mat3::from_diagonal(Vec3::splat(lv.mass[j] / h2));
-                let a = match work.extra[0].get(j) {
-                    Some(s) => m + *s,
-                    None => m,
-                };
+                let a = self.own_block(0, j, h2, work);
                 let (az, r) = (a * z[j], work.rhs[0][j]);
                 for (s, v) in sums.iter_mut().zip([
                     z[j].dot(az),
@@ -1379,15 +1381,7 @@ impl LatticeMultigrid {
     /// smoothing barely moves and the coarse levels approximate, is taken whole. Bodies
     /// with a fixed node (pinned, or outside the lattice) take none.
     fn translate_bodies(&self, h2: f32, r: &mut [Vec3], work: &mut MgWork) {
-        let lv = &self.levels[0];
-        let block = |j: usize| -> Mat3 {
-            let m = Mat3::from_diagonal(Vec3::splat(lv.mass[j] / h2));
-            match work.extra.first().and_then(|e| e.get(j)) {
-                Some(s) => m + *s,
-                None => m,
-            }
-        };
-        for w in lv.body_start.windows(2) {
+        for w in self.levels[0].body_start.windows(2) {
             let nodes = w[0] as usize..w[1] as usize;
             if nodes.clone().any(|j| self.fixed_at(0, j, work)) {
                 continue;
@@ -1395,7 +1389,7 @@ impl LatticeMultigrid {
             let (mut sum, mut a) = (DVec3::ZERO, DMat3::ZERO);
             for j in nodes.clone() {
                 sum += r[j].as_dvec3();
-                a += block(j).as_dmat3();
+                a += self.own_block(0, j, h2, work).as_dmat3();
             }
             let t = a.inverse() * sum;
             if a.determinant() <= 0.0 || !t.is_finite() {
@@ -1403,7 +1397,7 @@ impl LatticeMultigrid {
             }
             let t = t.as_vec3();
             for j in nodes {
-                r[j] -= block(j) * t;
+                r[j] -= self.own_block(0, j, h2, work) * t;
                 work.delta[0][j] += t;
             }
         }
