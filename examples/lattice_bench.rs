@@ -52,7 +52,10 @@
 //! V-cycles, 0 makes it again in each, `LatticeOptions::keep_coarsest_factor`; default
 //! the library's), `--profile` (GPU time
 //! per kernel of each speed row: timestamps between the dispatches of one pass where the
-//! device writes them there, else every dispatch in its own timed pass).
+//! device writes them there, else every dispatch in its own timed pass; these stall the
+//! GPU at each dispatch, so they give shares, not costs), `--costs` (each dispatch's
+//! cost in each speed row's step: the step's GPU time with that dispatch recorded twice
+//! less the plain step's).
 //!
 //! `--changes` (what changing a world of `--bodies` touching cubes costs: made again
 //! for one more body, one appended into its room, one retired, gravity; and the step's
@@ -168,6 +171,105 @@ fn wait(g: &Gpu, world: &GpuLattice) {
     let _ = read_buffer(&g.device, &g.queue, world.pos_buffer(), 0, 16);
 }
 
+/// A world of `model` with its contact candidates of the start (the bodies fall
+/// together, side by side), stepped 5 times (pipelines, caches, the first steps' larger
+/// line-search work).
+fn warm_world(g: &Gpu, model: &Model, s: &SolverSettings, options: LatticeOptions) -> GpuLattice {
+    let state = State::new(model);
+    let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
+        .unwrap_or_else(|e| fail("GPU lattice", e));
+    if world.has_particle_contacts() {
+        let mut lists = Solver::new(model, s.clone()).unwrap_or_else(|e| fail("solver", e));
+        lists.refresh_contacts(model, &state.x);
+        let (start, list) = lists.contact_lists();
+        world
+            .set_contacts(&g.queue, start, list)
+            .unwrap_or_else(|e| fail("contact lists", e));
+    }
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    world.record(&mut enc, &g.kernels, 5, None);
+    g.queue.submit([enc.finish()]);
+    wait(g, &world);
+    world
+}
+
+/// GPU ms per step of `steps` steps of `world` (timestamps around them), with its
+/// `twice`-th dispatch of a step recorded twice where given; `None` without timestamps.
+fn gpu_ms(g: &Gpu, world: &GpuLattice, steps: u32, twice: Option<usize>) -> Option<f64> {
+    let mut prof = GpuProfiler::new(&g.device, &g.queue, 1)?;
+    let mut enc = g.device.create_command_encoder(&Default::default());
+    let ts = prof.timestamps("lattice");
+    world.record_doubling(
+        &mut enc,
+        &g.kernels,
+        steps,
+        ts.as_ref().map(|(q, i)| (q, *i)),
+        twice,
+    );
+    prof.resolve(&mut enc);
+    g.queue.submit([enc.finish()]);
+    let t = prof.read(&g.device, &g.queue);
+    t.get("lattice").map(|v| v.0 / steps as f64)
+}
+
+/// Each dispatch's cost in the step, by doubling: the GPU time per step with that one
+/// dispatch recorded twice, less the plain step's timed just before it (the median of 3
+/// rounds; each run 20 steps of the same world). No timestamps
+/// between the dispatches, so nothing stalls; a doubled dispatch that changes the state
+/// (an `advance`, a sweep) also changes the work after it a little.
+fn costs(
+    g: &Gpu,
+    name: &str,
+    model: &Model,
+    s: &SolverSettings,
+    options: LatticeOptions,
+) -> String {
+    use std::fmt::Write;
+    const STEPS: u32 = 20;
+    const ROUNDS: usize = 3;
+    let mut out = String::new();
+    let world = warm_world(g, model, s, options);
+    let names = world.dispatch_names();
+    // Each doubled run beside a plain one just before it: the world's state moves on
+    // (a falling body settles, the line search's second pass stops), and the GPU's
+    // clocks with it, so a plain step timed once would not be the one to subtract.
+    let mut plain = Vec::new();
+    let mut extra = vec![Vec::new(); names.len()];
+    for _ in 0..ROUNDS {
+        for (k, d) in extra.iter_mut().enumerate() {
+            let (Some(base), Some(twice)) = (
+                gpu_ms(g, &world, STEPS, None),
+                gpu_ms(g, &world, STEPS, Some(k)),
+            ) else {
+                return out;
+            };
+            plain.push(base);
+            d.push(twice - base);
+        }
+    }
+    let base = bench::median(plain);
+    let _ = writeln!(
+        out,
+        "
+Cost of each dispatch by doubling, {name}, {} Newton iteration(s) of {} V-cycle(s): the plain step {base:.4} ms (median of its runs of {STEPS} steps)
+",
+        s.newton_iterations, s.newton_cycles
+    );
+    let _ = writeln!(
+        out,
+        "| # | dispatch | µs per step |
+|---|---|---|"
+    );
+    let mut sum = 0.0;
+    for (k, (n, d)) in names.iter().zip(extra).enumerate() {
+        let us = bench::median(d) * 1e3;
+        sum += us;
+        let _ = writeln!(out, "| {k} | {n} | {us:.1} |");
+    }
+    let _ = writeln!(out, "| | sum | {sum:.1} (the step: {:.1}) |", base * 1e3);
+    out
+}
+
 /// GPU ms per step (timestamps), wall ms per step (median of 5), dispatches per step.
 fn time(
     g: &Gpu,
@@ -176,23 +278,7 @@ fn time(
     steps: u32,
     options: LatticeOptions,
 ) -> (Option<f64>, f64, usize) {
-    let state = State::new(model);
-    let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
-        .unwrap_or_else(|e| fail("GPU lattice", e));
-    if world.has_particle_contacts() {
-        // The contact candidates of the start (the bodies fall together, side by side).
-        let mut lists = Solver::new(model, s.clone()).unwrap_or_else(|e| fail("solver", e));
-        lists.refresh_contacts(model, &state.x);
-        let (start, list) = lists.contact_lists();
-        world
-            .set_contacts(&g.queue, start, list)
-            .unwrap_or_else(|e| fail("contact lists", e));
-    }
-    // Warm up (pipelines, caches, the first steps' larger line-search work).
-    let mut enc = g.device.create_command_encoder(&Default::default());
-    world.record(&mut enc, &g.kernels, 5, None);
-    g.queue.submit([enc.finish()]);
-    wait(g, &world);
+    let world = warm_world(g, model, s, options);
     let mut walls = Vec::new();
     for _ in 0..5 {
         let t = Instant::now();
@@ -203,21 +289,11 @@ fn time(
         walls.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
     }
     walls.sort_by(f64::total_cmp);
-    let gpu_ms = GpuProfiler::new(&g.device, &g.queue, 1).map(|mut prof| {
-        let mut enc = g.device.create_command_encoder(&Default::default());
-        let ts = prof.timestamps("lattice");
-        world.record(
-            &mut enc,
-            &g.kernels,
-            steps,
-            ts.as_ref().map(|(q, i)| (q, *i)),
-        );
-        prof.resolve(&mut enc);
-        g.queue.submit([enc.finish()]);
-        let t = prof.read(&g.device, &g.queue);
-        t.get("lattice").map_or(f64::NAN, |v| v.0 / steps as f64)
-    });
-    (gpu_ms, walls[2], world.dispatch_count())
+    (
+        gpu_ms(g, &world, steps, None),
+        walls[2],
+        world.dispatch_count(),
+    )
 }
 
 /// GPU ms per step of each kernel: timestamps between the dispatches of one pass where
@@ -319,6 +395,7 @@ fn speed(
     quick: bool,
     bodies: u32,
     profile_kernels: bool,
+    cost_kernels: bool,
     smoothers: &[Smoother],
     firsts: &[u32],
     fuseds: &[u32],
@@ -399,6 +476,15 @@ fn speed(
                         sweeps_name(sw),
                         gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
                     );
+                    if cost_kernels {
+                        profiles.push(costs(
+                            g,
+                            &format!("{name}, {sm:?}, rows {row}, fused {fused}, first {first}, sweeps {}", sweeps_name(sw)),
+                            model,
+                            &s,
+                            options,
+                        ));
+                    }
                     if profile_kernels {
                         profiles.push(profile(
                             g,
@@ -694,6 +780,7 @@ fn main() {
             quick,
             a.num("--bodies", 1000u32),
             a.flag("--profile"),
+            a.flag("--costs"),
             &smoothers,
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
             &a.list("--fused", &[LatticeOptions::default().fused_coarsest]),

@@ -911,14 +911,15 @@ fn coarsen_rot(e: u32) {
 }
 
 // Level pc.level (1 and below) from the finer one, one thread per node and element: each
-// element's rotation (`coarsen_rot`) and each node's extra stiffness (`lump_extra`).
+// element's rotation (`coarsen_rot`) and each node's extra stiffness (`lump_extra`; none
+// where nothing can touch).
 @compute @workgroup_size(64)
 fn coarsen_level(@builtin(global_invocation_id) gid: vec3<u32>) {
     let lv = params.lv[pc.level];
     if (lv.z + gid.x < lv.w) {
         coarsen_rot(lv.z + gid.x);
     }
-    if (lv.x + gid.x < lv.y) {
+    if (contacts_on() && lv.x + gid.x < lv.y) {
         lump_extra(lv.x + gid.x);
     }
 }
@@ -940,7 +941,18 @@ fn kinfo(e: u32) -> vec2<f32> {
     return vec2<f32>(bitcast<f32>(info.x), sc);
 }
 
+// Whether a node can have a contact block this step: there are colliders or particle
+// contacts. Without, the contact passes are not recorded and every block reads as zero
+// (what the buffer holds from before is stale).
+fn contacts_on() -> bool {
+    return params.misc.x > 0u || params.pair.x != 0u;
+}
+
+// Node j's contact stiffness (N/m over h², a level's lumped blocks below level 0).
 fn extra_block(j: u32) -> mat3x3<f32> {
+    if (!contacts_on()) {
+        return mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    }
     let o = 3u * (params.n_total + j);
     return mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
 }
@@ -2285,7 +2297,7 @@ fn trust_node(j: u32, d: vec3<f32>) {
         // Near something (an active collider contact, or particle-contact candidates):
         // half a spacing; else gravity's step more.
         let pr = pair_range(j);
-        let near = bitcast<u32>(ccol[C_TOUCH * params.n + j].y) != 0u || pr.x < pr.y;
+        let near = contacts_on() && (bitcast<u32>(ccol[C_TOUCH * params.n + j].y) != 0u || pr.x < pr.y);
         let tool = bitcast<f32>(atomicLoad(&bodyt[params.chunks.z + b]));
         let reach = nodes[j].z + tool + select(length(params.gravity.xyz) * params.h2, 0.0, near);
         if (len > reach) {

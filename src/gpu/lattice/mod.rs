@@ -153,6 +153,20 @@ fn for_reactions(d: &Dispatch) -> bool {
         || (d.kernel == Kernel::Forces && d.pass.mode == 1)
 }
 
+/// Whether dispatch `d` makes or takes the level-0 contact blocks (`contacts`, and
+/// the contact pass after the Chebyshev sweeps): nothing to do where nothing can touch
+/// (no colliders, no particle contacts), where the kernels read every contact block as
+/// zero.
+fn for_contacts(d: &Dispatch) -> bool {
+    matches!(d.kernel, Kernel::Contacts | Kernel::ContactSmooth)
+}
+
+/// Whether dispatch `d` of the plan is recorded in a world with `colliders` and, if
+/// `pairs`, particle contacts between its bodies.
+fn runs(d: &Dispatch, colliders: bool, pairs: bool) -> bool {
+    (colliders || !for_reactions(d)) && (colliders || pairs || !for_contacts(d))
+}
+
 /// The shape of a hierarchy as the plan needs it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Shape {
@@ -1204,6 +1218,32 @@ impl GpuLattice {
         steps: u32,
         timestamps: Option<(&wgpu::QuerySet, u32)>,
     ) {
+        self.record_doubling(encoder, kernels, steps, timestamps, None);
+    }
+
+    /// The names of one substep's dispatches as recorded with the world as it is now, in
+    /// order (a kernel's name; smoothing per level, "smooth_chebyshev L0", ...). The
+    /// position in this list is what [`GpuLattice::record_doubling`] takes.
+    pub fn dispatch_names(&self) -> Vec<&'static str> {
+        self.running()
+            .map(|i| Self::dispatch_name(&self.dispatches[i]))
+            .collect()
+    }
+
+    /// Records as [`GpuLattice::record`] does, with the `twice`-th dispatch of each
+    /// substep (its position in [`GpuLattice::dispatch_names`]) encoded twice in a row.
+    /// The GPU time this adds over the plain recording is that dispatch's cost in the
+    /// step, its barrier included, measured without the timestamps between dispatches
+    /// that stall the GPU. A dispatch that changes the state, done twice, changes what
+    /// the steps after it compute: time few steps.
+    pub fn record_doubling(
+        &self,
+        encoder: &mut CommandEncoder,
+        kernels: &LatticeKernels,
+        steps: u32,
+        timestamps: Option<(&wgpu::QuerySet, u32)>,
+        twice: Option<usize>,
+    ) {
         let timestamp_writes = timestamps.map(|(qs, i)| wgpu::ComputePassTimestampWrites {
             query_set: qs,
             beginning_of_pass_write_index: Some(i),
@@ -1217,19 +1257,23 @@ impl GpuLattice {
             if i % self.substeps == 0 && self.colliders > 0 {
                 self.encode_clear(&mut pass, kernels);
             }
-            for i in self.running() {
+            for (k, i) in self.running().enumerate() {
                 self.encode(&mut pass, kernels, i);
+                if twice == Some(k) {
+                    self.encode(&mut pass, kernels, i);
+                }
             }
         }
     }
 
     /// The plan's dispatches that run with the world as it is now (its indices): the
     /// colliders' reaction passes only where there are colliders (`set_colliders`;
-    /// without, they would find nothing to sum).
+    /// without, they would find nothing to sum), the contact passes only where there are
+    /// colliders or particle contacts (without, no node has a contact block).
     fn running(&self) -> impl Iterator<Item = usize> + '_ {
-        let reactions = self.colliders > 0;
-        (0..self.dispatches.len())
-            .filter(move |&i| reactions || !for_reactions(&self.dispatches[i]))
+        let colliders = self.colliders > 0;
+        let pairs = self.params_now.pair[0] != 0;
+        (0..self.dispatches.len()).filter(move |&i| runs(&self.dispatches[i], colliders, pairs))
     }
 
     /// Encodes the clearing of the colliders' force sums, once a step.
@@ -1786,6 +1830,42 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A world records the reaction passes only with colliders, and the contact passes
+    /// (`contacts` and level 0's contact pass) only with colliders or particle
+    /// contacts; every other dispatch of the plan always.
+    #[test]
+    fn idle_passes_are_left_out_where_nothing_can_touch() {
+        let s = Shape {
+            smoother: Smoother::Chebyshev,
+            ..shape()
+        };
+        let p = plan(&s, 2);
+        let count = |k: Kernel| p.iter().filter(|d| d.kernel == k).count();
+        assert!(count(Kernel::Contacts) > 0 && count(Kernel::ContactSmooth) > 0);
+        for (colliders, pairs) in [(false, false), (false, true), (true, false), (true, true)] {
+            let kept: Vec<&Dispatch> = p.iter().filter(|d| runs(d, colliders, pairs)).collect();
+            let reactions = kept.iter().filter(|d| for_reactions(d)).count();
+            let contacts = kept.iter().filter(|d| for_contacts(d)).count();
+            assert_eq!(reactions > 0, colliders, "{colliders} {pairs}");
+            assert_eq!(
+                contacts,
+                if colliders || pairs {
+                    count(Kernel::Contacts) + count(Kernel::ContactSmooth)
+                } else {
+                    0
+                },
+                "{colliders} {pairs}"
+            );
+            let others = p
+                .iter()
+                .filter(|d| !for_reactions(d) && !for_contacts(d))
+                .count();
+            assert_eq!(kept.len(), others + reactions + contacts);
+        }
+        // The reaction passes: `forces` at the substep's end, its partial sums, the total.
+        assert_eq!(p.iter().filter(|d| for_reactions(d)).count(), 3);
     }
 
     /// Where every body has few nodes on the coarsest level, and it is smoothed by
