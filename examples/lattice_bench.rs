@@ -476,23 +476,15 @@ fn speed(
                         sweeps_name(sw),
                         gpu_ms.map_or("n/a".into(), |v| format!("{v:.3}")),
                     );
+                    let label = format!(
+                        "{name}, {sm:?}, rows {row}, fused {fused}, first {first}, sweeps {}",
+                        sweeps_name(sw)
+                    );
                     if cost_kernels {
-                        profiles.push(costs(
-                            g,
-                            &format!("{name}, {sm:?}, rows {row}, fused {fused}, first {first}, sweeps {}", sweeps_name(sw)),
-                            model,
-                            &s,
-                            options,
-                        ));
+                        profiles.push(costs(g, &label, model, &s, options));
                     }
                     if profile_kernels {
-                        profiles.push(profile(
-                            g,
-                            &format!("{name}, {sm:?}, rows {row}, fused {fused}, first {first}, sweeps {}", sweeps_name(sw)),
-                            model,
-                            &s,
-                            options,
-                        ));
+                        profiles.push(profile(g, &label, model, &s, options));
                     }
                 }
             }
