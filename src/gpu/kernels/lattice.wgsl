@@ -367,6 +367,9 @@ fn swept_gap(r1: vec3<f32>, v: vec3<f32>, a: f32) -> f32 {
     return length(r1 + v * t);
 }
 
+// Whether this workgroup's chunk belongs to a body the energy pass skips.
+var<workgroup> chunk_idle: u32;
+
 // Energy changes of the candidate steps along the direction (mode 0: first iterate,
 // rotations refined per candidate; mode 1: line search, rotations held; mode 2: its
 // second pass, for the bodies whose first candidates all failed), one partial sum per
@@ -379,9 +382,16 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
     let k0 = first_candidate(mode);
     var acc: array<f32, 16>;
     let ch = chunk(pc.first + wg.x);
-    var end = ch.x + ch.y;
-    if (mode == 2u && red[body_slot(ch.z, B_PENDING)] < 0.5) {
-        end = ch.x;
+    let end = ch.x + ch.y;
+    if (mode == 2u) {
+        // The second pass is for the pending bodies only: a chunk of another body leaves
+        // at once (its partial sums are not read), however few bodies are pending.
+        if (lid == 0u) {
+            chunk_idle = u32(red[body_slot(ch.z, B_PENDING)] < 0.5);
+        }
+        if (workgroupUniformLoad(&chunk_idle) != 0u) {
+            return;
+        }
     }
     for (var i = ch.x + lid; i < end; i = i + LWG) {
         if (i < params.ne) {
@@ -633,6 +643,15 @@ fn pick_bodies(lid: u32, wid: u32, groups: u32, mode: u32) -> bool {
         let r = body_chunks(table, b);
         // The last body's sums have been read.
         workgroupBarrier();
+        if (mode == 4u) {
+            // The second pass summed only the pending bodies' chunks.
+            if (lid == 0u) {
+                chunk_idle = u32(red[body_slot(b, B_PENDING)] < 0.5);
+            }
+            if (workgroupUniformLoad(&chunk_idle) != 0u) {
+                continue;
+            }
+        }
         // Each sum in its own loop over the chunks (no array indexed at run time). A
         // body of many chunks (a large one: more than four a thread) is read four chunks
         // a thread at a time into four sums, so that the loads are in flight together;
