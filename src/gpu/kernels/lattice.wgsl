@@ -367,7 +367,9 @@ fn swept_gap(r1: vec3<f32>, v: vec3<f32>, a: f32) -> f32 {
     return length(r1 + v * t);
 }
 
-// Whether this workgroup's chunk belongs to a body the energy pass skips.
+// Whether the line search's second pass skips the body at hand (not pending): the body
+// of an `energy` workgroup's chunk, or the body a `pick_pending` workgroup sums next.
+// Written by thread 0, read through `workgroupUniformLoad` (a uniform branch).
 var<workgroup> chunk_idle: u32;
 
 // Energy changes of the candidate steps along the direction (mode 0: first iterate,
