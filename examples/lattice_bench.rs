@@ -55,7 +55,8 @@
 //! device writes them there, else every dispatch in its own timed pass; these stall the
 //! GPU at each dispatch, so they give shares, not costs), `--costs` (each dispatch's
 //! cost in each speed row's step: the step's GPU time with that dispatch recorded twice
-//! less the plain step's).
+//! less the plain step's), `--line-steps` (each speed row's line search after the
+//! warm-up and after the timed steps: how many bodies took each step).
 //!
 //! `--changes` (what changing a world of `--bodies` touching cubes costs: made again
 //! for one more body, one appended into its room, one retired, gravity; and the step's
@@ -214,9 +215,10 @@ fn gpu_ms(g: &Gpu, world: &GpuLattice, steps: u32, twice: Option<usize>) -> Opti
 
 /// Each dispatch's cost in the step, by doubling: the GPU time per step with that one
 /// dispatch recorded twice, less the plain step's timed just before it (the median of 3
-/// rounds; each run 20 steps of the same world). No timestamps
-/// between the dispatches, so nothing stalls; a doubled dispatch that changes the state
-/// (an `advance`, a sweep) also changes the work after it a little.
+/// rounds; each run 20 steps of the same world, each from the state after the warm-up,
+/// so that every run steps the same scene: falling bodies do not fall further run by
+/// run). No timestamps between the dispatches, so nothing stalls; a doubled dispatch
+/// that changes the state (an `advance`, a sweep) also changes the work after it.
 fn costs(
     g: &Gpu,
     name: &str,
@@ -228,19 +230,21 @@ fn costs(
     const STEPS: u32 = 20;
     const ROUNDS: usize = 3;
     let mut out = String::new();
-    let world = warm_world(g, model, s, options);
+    let mut world = warm_world(g, model, s, options);
+    let mut start = State::new(model);
+    world.download(&g.device, &g.queue, &mut start);
     let names = world.dispatch_names();
-    // Each doubled run beside a plain one just before it: the world's state moves on
-    // (a falling body settles, the line search's second pass stops), and the GPU's
-    // clocks with it, so a plain step timed once would not be the one to subtract.
+    // Each doubled run beside a plain one just before it, both from the same state: the
+    // GPU's clocks move on, so a plain step timed once would not be the one to subtract.
     let mut plain = Vec::new();
     let mut extra = vec![Vec::new(); names.len()];
+    let mut run = |twice: Option<usize>| {
+        world.upload(&g.queue, model, &start);
+        gpu_ms(g, &world, STEPS, twice)
+    };
     for _ in 0..ROUNDS {
         for (k, d) in extra.iter_mut().enumerate() {
-            let (Some(base), Some(twice)) = (
-                gpu_ms(g, &world, STEPS, None),
-                gpu_ms(g, &world, STEPS, Some(k)),
-            ) else {
+            let (Some(base), Some(twice)) = (run(None), run(Some(k))) else {
                 return out;
             };
             plain.push(base);
@@ -277,8 +281,12 @@ fn time(
     s: &SolverSettings,
     steps: u32,
     options: LatticeOptions,
+    line_steps: bool,
 ) -> (Option<f64>, f64, usize) {
     let world = warm_world(g, model, s, options);
+    if line_steps {
+        eprintln!("line search after the warm-up: {}", line_summary(g, &world));
+    }
     let mut walls = Vec::new();
     for _ in 0..5 {
         let t = Instant::now();
@@ -289,11 +297,33 @@ fn time(
         walls.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
     }
     walls.sort_by(f64::total_cmp);
-    (
-        gpu_ms(g, &world, steps, None),
-        walls[2],
-        world.dispatch_count(),
-    )
+    let gpu = gpu_ms(g, &world, steps, None);
+    if line_steps {
+        eprintln!(
+            "line search after the timed steps: {}",
+            line_summary(g, &world)
+        );
+    }
+    (gpu, walls[2], world.dispatch_count())
+}
+
+/// How the bodies' last line search went (`--line-steps`): how many bodies took each
+/// step (below the first pass's candidates, the second pass ran), and the first
+/// particle's height (m).
+fn line_summary(g: &Gpu, world: &GpuLattice) -> String {
+    let mut by = std::collections::BTreeMap::new();
+    for a in world.read_line_steps(&g.device, &g.queue) {
+        *by.entry(format!("{a}")).or_insert(0u32) += 1;
+    }
+    let y = bytes_to_y(&read_buffer(&g.device, &g.queue, world.pos_buffer(), 0, 16));
+    format!("bodies by step taken {by:?}; first particle's height {y:.2} m")
+}
+
+fn bytes_to_y(b: &[u8]) -> f32 {
+    if b.len() < 8 {
+        return f32::NAN;
+    }
+    f32::from_le_bytes([b[4], b[5], b[6], b[7]])
 }
 
 /// GPU ms per step of each kernel: timestamps between the dispatches of one pass where
@@ -396,6 +426,7 @@ fn speed(
     bodies: u32,
     profile_kernels: bool,
     cost_kernels: bool,
+    line_steps: bool,
     smoothers: &[Smoother],
     firsts: &[u32],
     fuseds: &[u32],
@@ -467,7 +498,7 @@ fn speed(
                         one_thread_rows_from: row,
                         keep_coarsest_factor: keep,
                     };
-                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, options);
+                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, options, line_steps);
                     println!(
                         "| {name} | {} | {} | {sm:?} | {first} | {fused} | {row} | {} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
@@ -773,6 +804,7 @@ fn main() {
             a.num("--bodies", 1000u32),
             a.flag("--profile"),
             a.flag("--costs"),
+            a.flag("--line-steps"),
             &smoothers,
             &a.list("--first", &[LatticeOptions::default().first_candidates]),
             &a.list("--fused", &[LatticeOptions::default().fused_coarsest]),

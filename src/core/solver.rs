@@ -2317,13 +2317,6 @@ fn reaction_on_collider(
 /// energy, the body stays.
 const LINE_SEARCH_STEPS: usize = 13;
 
-/// The implicit-Euler substep energy of the lattice bodies (J) at positions `y(j)`:
-/// `Σ_free m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2 depth_c(y)²`, each element's energy
-/// ([`super::multigrid::element_energy`]) with the rotation `rot.1[e]` refined by
-/// `rot.0` iterations towards `polar(F(y))` (0: held, the energy whose gradient the
-/// Newton step's forces are; more: the fixed-corotated energy itself). `free` = (held
-/// nodes, inertial targets x̃ in m), `contacts` = (the active collider contacts, the
-/// colliders).
 /// The contact penalty stiffness of lattice particle `j` in a substep of `h2` (s²), N/m:
 /// a thousand times its own stiffness scale `m/h² + (λ + 2μ) s` (inertia plus the P-wave
 /// modulus times the lattice spacing `s`: what its elements hold it with), so that it
@@ -2350,9 +2343,14 @@ fn contact_stiffness(model: &Model, j: usize, h2: f32) -> f32 {
 /// equal to rounding there).
 const FIRST_ITERATE_TIE: f64 = 1e-5;
 
-/// The substep energy of positions `y`, each body's own (J, indexed by body): the
-/// inertia of its free particles, its elements' energy, and the penalty energy of the
-/// active contacts its particles hold.
+/// The implicit-Euler substep energy of the lattice bodies at positions `y(j)`, each
+/// body's own (J, indexed by body): `Σ_free m/(2h²) |y − x̃|² + Σ_e E_e(y) + Σ_c k/2
+/// depth_c(y)²`, the inertia of its free particles, its elements' energy
+/// ([`super::multigrid::element_energy`]) with the rotation `rot.1[e]` refined by
+/// `rot.0` iterations towards `polar(F(y))` (0: held, the energy whose gradient the
+/// Newton step's forces are; more: the fixed-corotated energy itself), and the penalty
+/// energy of the active contacts its particles hold. `free` = (held nodes, inertial
+/// targets x̃ in m), `contacts` = (the active collider contacts, the colliders).
 fn substep_energy(
     model: &Model,
     mg: &super::multigrid::LatticeMultigrid,

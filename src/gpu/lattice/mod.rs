@@ -775,6 +775,8 @@ pub struct GpuLattice {
     kmat: Buffer,
     topo: Buffer,
     mats: Buffer,
+    /// Per body, two regions: the Newton step's trust bound (f32 bits) and the step of
+    /// the fastest collider it touches (f32 bits, m).
     bodyt: Buffer,
     _keep: Vec<Buffer>,
 }
@@ -1598,6 +1600,29 @@ impl GpuLattice {
             self.colliders as u64 * 16,
         );
         forces_of(&bytes)
+    }
+
+    /// Blocking read of each body's last line search (of the last recorded step's last
+    /// Newton iteration): the fraction of its Newton step it took (1, ½, …, 2⁻¹², or 0:
+    /// none lowered its energy). A diagnostic: which bodies make the solver search, and
+    /// run the search's second pass (a step below the first pass's candidates).
+    pub fn read_line_steps(&self, device: &RenderDevice, queue: &RenderQueue) -> Vec<f32> {
+        let bodies = self.params_now.count[0] as usize;
+        if bodies == 0 {
+            return Vec::new();
+        }
+        let bytes = super::world::read_buffer(
+            device,
+            queue,
+            &self.red,
+            self.params_now.chunks[3] as u64 * 4,
+            (bodies * BODY_SLOTS) as u64 * 4,
+        );
+        // Each body's B_ALPHA, slot 0 of its slots in `lattice.wgsl`.
+        bytes
+            .chunks_exact(4 * BODY_SLOTS)
+            .map(|slots| f32::from_le_bytes([slots[0], slots[1], slots[2], slots[3]]))
+            .collect()
     }
 
     /// Blocking read of positions, velocities, level-0 element rotations and grasps into
