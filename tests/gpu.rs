@@ -2040,7 +2040,9 @@ fn lattice_colliders_match_the_cpu() {
 /// its first steps (no collider, nothing it could touch), then with the ground set lands
 /// on it, then falls again from where it rested. The forces must agree while the runs
 /// agree to a micrometre, over at least three steps of pressing on the ground, and the
-/// fall after the ground is gone must stay as close to the CPU's as the rest was.
+/// fall after the ground is gone must stay as close to the CPU's as the rest was. Every
+/// step's line search (read back) takes one of its candidates, the whole Newton step
+/// while the box falls freely.
 #[test]
 fn lattice_collider_reactions_resume_when_colliders_are_set() {
     let Some(g) = gpu() else {
@@ -2060,6 +2062,18 @@ fn lattice_collider_reactions_resume_when_colliders_are_set() {
         };
         let c = run.step(g, &Control { colliders });
         let count = run.gpu.0.dispatch_count();
+        // Each step's line search takes one of its candidates 1, ½, …, 2⁻¹², or 0; the
+        // box falling freely before it first lands takes its whole Newton step.
+        let taken = run.gpu.0.read_line_steps(&g.device, &g.queue);
+        assert_eq!(taken.len(), 1, "one body");
+        assert!(
+            taken[0] == 0.0 || (0..13).any(|k| taken[0] == 0.5f32.powi(k)),
+            "step {step}: the line search took {}",
+            taken[0]
+        );
+        if step < 2 {
+            assert_eq!(taken[0], 1.0, "step {step}: falling freely");
+        }
         if !grounded {
             assert_eq!(
                 count, bare,
