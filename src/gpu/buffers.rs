@@ -691,12 +691,8 @@ pub struct GpuRange {
 /// the contact grid's cell edge (m), the all-particle search's cell edge (m) and the
 /// hash buckets (a power of two, ≥ 2n). A contact cell of two spacings covers the contact
 /// reach `2 (r_i + r_max)` within one ring. The K-nearest search uses the same edge:
-/// on an H100 (K = 32, with the search skipping cells beyond the K-th best), cells of
-/// 1, 1.25, 1.5, 2, 2.5, 3 and 4 spacings took 26.3, 22.3, 20.2, **17.2**, 18.0, 18.9 and
-/// 23.0 ms per search of 1,000,308 points with the candidate list in private memory;
-/// with the list in registers 1.5, 2 and 2.5 spacings took 14.0, 9.7 and 8.5 ms, but 2.5
-/// made the 1,000-body scene's search slower (3.7 → 4.4 ms), so 2 stays
-/// (BENCHMARKS.md, "GPU").
+/// of the edges from 1 to 4 spacings, 2 gave the fastest search over a million points
+/// and over 1,000 bodies together (BENCHMARKS.md, "GPU").
 pub fn grid_params(n: usize, spacing: f32) -> (f32, f32, u32) {
     let table = (2 * n).max(1024).next_power_of_two() as u32;
     let s = spacing.max(1e-6);

@@ -129,23 +129,19 @@ impl TissueResolution {
 /// solved first in every substep carry stiffness through a large body in a few
 /// iterations instead of hundreds.
 ///
-/// It costs a coarse pass per substep: on the CPU about 6 level-0 iterations' time at
-/// the default 20 coarse iterations; on the GPU about 7.5, because the coarse levels'
-/// ~90 small dispatches per substep run at the dispatch-latency floor (0.7 ms on an H100
-/// for a 50,000-particle body). So it pays where a flat solver would need many
-/// iterations: stiff, large bodies held to a tight residual (BENCHMARKS.md, "Hierarchy").
+/// It costs a coarse pass per substep, several level-0 iterations' time: on the GPU the
+/// coarse levels' many small dispatches run at the dispatch-latency floor. So it pays
+/// where a flat solver would need many iterations: stiff, large bodies held to a tight
+/// residual (the measurements are in BENCHMARKS.md, "Hierarchy").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum TissueHierarchy {
     /// On where the measurements say it pays: hyperelastic bodies with E ≥
     /// [`TissueHierarchy::AUTO_MIN_YOUNGS`] of at least
-    /// [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles (a stiff 50,000-particle bar
-    /// reached the same residual 3.7–19x sooner on the CPU and, on an H100, 1.2x sooner
-    /// at residual 1e-3 and 6.3–9.8x at 5e-4 and below with the default 20 coarse
-    /// iterations (2.9–4.4x at 1e-3 with 3–5 of them, and 3.2x / 3.3x at 1e-3 / 5e-4
-    /// with 4, `TissueSettings::coarse_iterations`);
-    /// a 38k liver at 1 MPa 1.9–2.6x on the CPU, and on the GPU flat Jacobi diverged where
-    /// the hierarchy held). Off otherwise: at real-time iteration counts the coarse pass
-    /// costs more than it gains on soft or small bodies.
+    /// [`TissueHierarchy::AUTO_MIN_PARTICLES`] particles (there a stiff bar and a stiff
+    /// liver reach a given residual sooner with it, on the CPU and the GPU, and flat
+    /// Jacobi diverged on the GPU where the hierarchy held; BENCHMARKS.md, "Hierarchy").
+    /// Off otherwise: at real-time iteration counts the coarse pass costs more than it
+    /// gains on soft or small bodies.
     #[default]
     Auto,
     /// Flat: level 0 only.
@@ -521,10 +517,10 @@ pub struct TissueSettings {
     pub contact_neighbours: u32,
     /// Solve particle contacts in every this many iterations (and always in the last of
     /// a substep; default 2, with `contact_relaxation` 2). On the GPU a body near another
-    /// runs one dispatch per contact pass, so 2 halves those dispatches (1,000 touching
-    /// bodies of 512 on an H100: about 1.9 ms per step against 2.26 with 1); alone, 2
-    /// holds contacts less firmly than 1, which the relaxation of 2 more than makes up
-    /// for (BENCHMARKS.md, "The plugin's contact schedule";
+    /// runs one dispatch per contact pass, so 2 halves those dispatches and shortens the
+    /// step of many touching bodies; alone, 2 holds contacts less firmly than 1, which
+    /// the relaxation of 2 more than makes up for (measured in BENCHMARKS.md, "The
+    /// plugin's contact schedule";
     /// [`crate::core::solver::SolverSettings::contact_every`]).
     pub contact_every: u32,
     /// Jacobi relaxation ω_c of the particle contacts (default 2: each particle takes

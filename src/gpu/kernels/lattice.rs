@@ -168,7 +168,7 @@ pub enum Kernel {
     CoarsestSmall,
     /// `solve_coarsest`: the coarsest level solved exactly, a workgroup per body (its
     /// system factorised, `L D Lᵀ`, in workgroup memory), where no body has more than
-    /// [`EXACT_COARSEST`](crate::core::multigrid::EXACT_COARSEST) nodes there.
+    /// [`EXACT_COARSEST`] nodes there.
     CoarsestExact,
     /// `factor_coarsest`: each body's coarsest-level matrix factorised, `L D Lᵀ`, into
     /// the world's factor buffer, once a Newton iteration (where the world keeps it).

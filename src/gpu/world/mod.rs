@@ -392,10 +392,9 @@ fn no_elements(model: &Model) -> Result<(), TissueError> {
 }
 
 /// Below this many clusters a range is solved by `solve_clusters_lanes` (8 threads per
-/// cluster), from it on by `solve_clusters` (a thread per cluster). Measured on an H100
-/// (BENCHMARKS.md, "GPU" and "Hierarchy"): a thread per cluster was faster from 13,824
-/// clusters up (hyperelastic; 37,982 shape matching), 8 lanes on the hierarchy's coarse
-/// levels of 6,534 and 972 clusters.
+/// cluster), from it on by `solve_clusters` (a thread per cluster): a thread per cluster
+/// was measured faster on large ranges, 8 lanes on the hierarchy's small coarse levels
+/// (BENCHMARKS.md, "GPU" and "Hierarchy").
 pub const LANE_CLUSTERS_BELOW: u32 = 8192;
 
 impl GpuWorld {
