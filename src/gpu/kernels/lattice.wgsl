@@ -1961,48 +1961,131 @@ fn exact_pivot(kb: u32, eliminated: bool) -> Pivot {
         v.a21 = chol[p2 + 1u];
         v.d.z = chol[p2 + 2u];
     } else {
-        v.d.y = chol[p1 + 1u] - v.a10 * (v.a10 * v.inv.x);
-        v.inv.y = select(0.0, 1.0 / v.d.y, v.d.y > 0.0);
-        v.a21 = chol[p2 + 1u] - v.a20 * (v.a10 * v.inv.x);
-        v.d.z = chol[p2 + 2u] - v.a20 * (v.a20 * v.inv.x) - v.a21 * (v.a21 * v.inv.y);
+        return pivot_of(v.d.x, v.a10, chol[p1 + 1u], v.a20, chol[p2 + 1u], chol[p2 + 2u]);
     }
     v.inv.z = select(0.0, 1.0 / v.d.z, v.d.z > 0.0);
     return v;
 }
 
+// A pivot block (lower entries a00, a10, a11, a20, a21, a22) eliminated within itself.
+fn pivot_of(a00: f32, a10: f32, a11: f32, a20: f32, a21: f32, a22: f32) -> Pivot {
+    var v: Pivot;
+    v.d.x = a00;
+    v.inv.x = select(0.0, 1.0 / v.d.x, v.d.x > 0.0);
+    v.a10 = a10;
+    v.a20 = a20;
+    v.d.y = a11 - v.a10 * (v.a10 * v.inv.x);
+    v.inv.y = select(0.0, 1.0 / v.d.y, v.d.y > 0.0);
+    v.a21 = a21 - v.a20 * (v.a10 * v.inv.x);
+    v.d.z = a22 - v.a20 * (v.a20 * v.inv.x) - v.a21 * (v.a21 * v.inv.y);
+    v.inv.z = select(0.0, 1.0 / v.d.z, v.d.z > 0.0);
+    return v;
+}
+
+// Row i's entries in the pivot columns k0..k0 + 2 after the pivot's own step (the first
+// left as it is, l_ik d_k unscaled), as `exact_eliminate` stores them.
+fn pivot_row(i: u32, k0: u32, v: Pivot) -> vec3<f32> {
+    let p = packed(i, k0);
+    let x0 = chol[p];
+    let x1 = chol[p + 1u] - x0 * (v.a10 * v.inv.x);
+    let x2 = chol[p + 2u] - x0 * (v.a20 * v.inv.x) - x1 * (v.a21 * v.inv.y);
+    return vec3<f32>(x0, x1, x2);
+}
+
+// Entry a_ij after the step of the pivot node whose columns row i holds as `ci` (as
+// `pivot_row` gives them) and row j as `cj` scaled by the pivot's inverses.
+fn stepped(a: f32, ci: vec3<f32>, cj: vec3<f32>) -> f32 {
+    return a - ci.x * cj.x - ci.y * cj.y - ci.z * cj.z;
+}
+
 // Eliminates `chol` (nn nodes, m = 3 nn rows, and the border row m where `border`) in
-// place, a node (three columns) at a time: every step k applies a_ij -= a_ik (a_jk / d_k)
-// to the rows and columns past k, each entry's three updates in column order, so the
-// result is the column-at-a-time elimination's (core::dense::solve_bordered) to the bit.
-// Every thread eliminates the pivot node's own 3 × 3 block alike (so the result, whether
-// every pivot is positive, is the workgroup's); then the three columns below it, a row a
-// thread; then the trailing triangle, a pair of nodes (3 × 3 entries) a thread.
+// place: every step k applies a_ij -= a_ik (a_jk / d_k) to the rows and columns past k,
+// each entry's three updates a node in column order, so the result is the
+// column-at-a-time elimination's (core::dense::solve_bordered) in its operations and
+// their order. Two nodes (six columns) a phase, between two barriers: every thread
+// takes both pivot blocks alike (the second after the first's step; so the result,
+// whether every pivot is positive, is the workgroup's); then the six columns below
+// them, a row a thread; then the trailing triangle, a pair of nodes (3 × 3 entries) a
+// thread, each entry taking both nodes' steps at once. A last odd node takes a phase
+// of its own.
 fn exact_eliminate(lid: u32, nn: u32, border: bool) -> bool {
     let m = 3u * nn;
     let end = select(m, m + 1u, border);
     var ok = true;
-    for (var kb = 0u; kb < nn; kb = kb + 1u) {
+    var kb = 0u;
+    loop {
+        if (kb >= nn) {
+            break;
+        }
         workgroupBarrier();
         let k0 = 3u * kb;
         let v = exact_pivot(kb, false);
         ok = ok && all(v.d > vec3<f32>(0.0));
-        // The pivot node's columns on the rows past it (row k0 + 3 + q).
-        for (var q = lid; q + k0 + 3u < end; q = q + 256u) {
-            let p = packed(k0 + 3u + q, k0);
-            let x0 = chol[p];
-            let x1 = chol[p + 1u] - x0 * (v.a10 * v.inv.x);
-            chol[p + 1u] = x1;
-            chol[p + 2u] = chol[p + 2u] - x0 * (v.a20 * v.inv.x) - x1 * (v.a21 * v.inv.y);
+        let pair = kb + 1u < nn;
+        // The second pivot node's block after the first's step (every thread alike).
+        var w = v;
+        var s = array<vec3<f32>, 3>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+        var b = array<f32, 6>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        let k1 = k0 + 3u;
+        if (pair) {
+            let r0 = pivot_row(k1, k0, v);
+            let r1 = pivot_row(k1 + 1u, k0, v);
+            let r2 = pivot_row(k1 + 2u, k0, v);
+            s = array<vec3<f32>, 3>(r0 * v.inv, r1 * v.inv, r2 * v.inv);
+            b[0] = stepped(chol[packed(k1, k1)], r0, s[0]);
+            b[1] = stepped(chol[packed(k1 + 1u, k1)], r1, s[0]);
+            b[2] = stepped(chol[packed(k1 + 1u, k1 + 1u)], r1, s[1]);
+            b[3] = stepped(chol[packed(k1 + 2u, k1)], r2, s[0]);
+            b[4] = stepped(chol[packed(k1 + 2u, k1 + 1u)], r2, s[1]);
+            b[5] = stepped(chol[packed(k1 + 2u, k1 + 2u)], r2, s[2]);
+            w = pivot_of(b[0], b[1], b[2], b[3], b[4], b[5]);
+            ok = ok && all(w.d > vec3<f32>(0.0));
+        }
+        // The pivot nodes' columns on the rows past them.
+        let first_row = select(k0 + 3u, k0 + 6u, pair);
+        for (var q = lid; q + first_row < end; q = q + 256u) {
+            let i = first_row + q;
+            let p = packed(i, k0);
+            let x = pivot_row(i, k0, v);
+            chol[p + 1u] = x.y;
+            chol[p + 2u] = x.z;
+            if (pair) {
+                let pq = packed(i, k1);
+                let y0 = stepped(chol[pq], x, s[0]);
+                let y1 = stepped(chol[pq + 1u], x, s[1]) - y0 * (w.a10 * w.inv.x);
+                let y2 = stepped(chol[pq + 2u], x, s[2]) - y0 * (w.a20 * w.inv.x) - y1 * (w.a21 * w.inv.y);
+                chol[pq] = y0;
+                chol[pq + 1u] = y1;
+                chol[pq + 2u] = y2;
+            }
         }
         workgroupBarrier();
+        if (pair && lid < 3u) {
+            // The second pivot node's rows in the first's columns (after the barrier:
+            // every thread has read them above).
+            let p = packed(k1 + lid, k0);
+            let x = pivot_row(k1 + lid, k0, v);
+            chol[p + 1u] = x.y;
+            chol[p + 2u] = x.z;
+        }
         if (lid == 0u) {
             chol[packed(k0 + 1u, k0 + 1u)] = v.d.y;
             chol[packed(k0 + 2u, k0 + 1u)] = v.a21;
             chol[packed(k0 + 2u, k0 + 2u)] = v.d.z;
+            if (pair) {
+                chol[packed(k1, k1)] = b[0];
+                chol[packed(k1 + 1u, k1)] = b[1];
+                chol[packed(k1 + 2u, k1)] = b[3];
+                chol[packed(k1 + 1u, k1 + 1u)] = w.d.y;
+                chol[packed(k1 + 2u, k1 + 1u)] = w.a21;
+                chol[packed(k1 + 2u, k1 + 2u)] = w.d.z;
+            }
         }
-        // Node pairs (a, b), b <= a, of the t nodes past the pivot, and with the border
-        // (local node t, its one row m) after them; pair q at a (a + 1) / 2 + b.
-        let t = nn - kb - 1u;
+        // Node pairs (a, b), b <= a, of the t nodes past the pivot nodes, and with the
+        // border (local node t, its one row m) after them; pair q at a (a + 1) / 2 + b.
+        let step = select(1u, 2u, pair);
+        let t = nn - kb - step;
+        let past = k0 + 3u * step;
         let pairs = select(t * (t + 1u) / 2u, (t + 1u) * (t + 2u) / 2u - 1u, border);
         for (var q = lid; q < pairs; q = q + 256u) {
             var a = u32((sqrt(8.0 * f32(q) + 1.0) - 1.0) * 0.5);
@@ -2012,29 +2095,40 @@ fn exact_eliminate(lid: u32, nn: u32, border: bool) -> bool {
             if (a * (a + 1u) / 2u > q) {
                 a = a - 1u;
             }
-            let b = q - a * (a + 1u) / 2u;
-            let jb = k0 + 3u + 3u * b;
-            let pj0 = packed(jb, k0);
-            let pj1 = packed(jb + 1u, k0);
-            let pj2 = packed(jb + 2u, k0);
-            let cj = array<vec3<f32>, 3>(
-                vec3<f32>(chol[pj0], chol[pj0 + 1u], chol[pj0 + 2u]) * v.inv,
-                vec3<f32>(chol[pj1], chol[pj1 + 1u], chol[pj1 + 2u]) * v.inv,
-                vec3<f32>(chol[pj2], chol[pj2 + 1u], chol[pj2 + 2u]) * v.inv);
+            let bq = q - a * (a + 1u) / 2u;
+            let jb = past + 3u * bq;
+            var cj: array<vec3<f32>, 3>;
+            var dj: array<vec3<f32>, 3>;
+            for (var c = 0u; c < 3u; c = c + 1u) {
+                let pj = packed(jb + c, k0);
+                cj[c] = vec3<f32>(chol[pj], chol[pj + 1u], chol[pj + 2u]) * v.inv;
+                if (pair) {
+                    dj[c] = vec3<f32>(chol[pj + 3u], chol[pj + 4u], chol[pj + 5u]) * w.inv;
+                }
+            }
             let rows = select(3u, 1u, a == t);
             for (var r = 0u; r < rows; r = r + 1u) {
-                let i = k0 + 3u + 3u * a + r;
+                let i = past + 3u * a + r;
                 let pi = packed(i, k0);
                 let ci = vec3<f32>(chol[pi], chol[pi + 1u], chol[pi + 2u]);
+                var di = vec3<f32>(0.0);
+                if (pair) {
+                    di = vec3<f32>(chol[pi + 3u], chol[pi + 4u], chol[pi + 5u]);
+                }
                 for (var c = 0u; c < 3u; c = c + 1u) {
                     let j = jb + c;
                     if (j <= i) {
                         let p = packed(i, j);
-                        chol[p] = chol[p] - ci.x * cj[c].x - ci.y * cj[c].y - ci.z * cj[c].z;
+                        var x = stepped(chol[p], ci, cj[c]);
+                        if (pair) {
+                            x = stepped(x, di, dj[c]);
+                        }
+                        chol[p] = x;
                     }
                 }
             }
         }
+        kb = kb + step;
     }
     workgroupBarrier();
     return ok;
