@@ -319,6 +319,8 @@ fn line_summary(g: &Gpu, world: &GpuLattice) -> String {
     format!("bodies by step taken {by:?}; first particle's height {y:.2} m")
 }
 
+/// The y coordinate (m) of the first position record read into `b` (NaN where `b` is
+/// too short).
 fn bytes_to_y(b: &[u8]) -> f32 {
     if b.len() < 8 {
         return f32::NAN;
