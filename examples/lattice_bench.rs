@@ -322,10 +322,10 @@ fn line_summary(g: &Gpu, world: &GpuLattice) -> String {
 /// The y coordinate (m) of the first position record read into `b` (NaN where `b` is
 /// too short).
 fn bytes_to_y(b: &[u8]) -> f32 {
-    if b.len() < 8 {
-        return f32::NAN;
-    }
-    f32::from_le_bytes([b[4], b[5], b[6], b[7]])
+    bytemuck::pod_collect_to_vec::<u8, f32>(b)
+        .get(1)
+        .copied()
+        .unwrap_or(f32::NAN)
 }
 
 /// GPU ms per step of each kernel: timestamps between the dispatches of one pass where

@@ -1950,19 +1950,19 @@ fn exact_pivot(kb: u32, eliminated: bool) -> Pivot {
     let k0 = 3u * kb;
     let p1 = packed(k0 + 1u, k0);
     let p2 = packed(k0 + 2u, k0);
+    if (!eliminated) {
+        return pivot_of(chol[packed(k0, k0)], chol[p1], chol[p1 + 1u], chol[p2], chol[p2 + 1u],
+                        chol[p2 + 2u]);
+    }
     var v: Pivot;
     v.d.x = chol[packed(k0, k0)];
     v.inv.x = select(0.0, 1.0 / v.d.x, v.d.x > 0.0);
     v.a10 = chol[p1];
     v.a20 = chol[p2];
-    if (eliminated) {
-        v.d.y = chol[p1 + 1u];
-        v.inv.y = select(0.0, 1.0 / v.d.y, v.d.y > 0.0);
-        v.a21 = chol[p2 + 1u];
-        v.d.z = chol[p2 + 2u];
-    } else {
-        return pivot_of(v.d.x, v.a10, chol[p1 + 1u], v.a20, chol[p2 + 1u], chol[p2 + 2u]);
-    }
+    v.d.y = chol[p1 + 1u];
+    v.inv.y = select(0.0, 1.0 / v.d.y, v.d.y > 0.0);
+    v.a21 = chol[p2 + 1u];
+    v.d.z = chol[p2 + 2u];
     v.inv.z = select(0.0, 1.0 / v.d.z, v.d.z > 0.0);
     return v;
 }

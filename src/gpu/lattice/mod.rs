@@ -1619,9 +1619,9 @@ impl GpuLattice {
             (bodies * BODY_SLOTS) as u64 * 4,
         );
         // Each body's B_ALPHA, slot 0 of its slots in `lattice.wgsl`.
-        bytes
-            .chunks_exact(4 * BODY_SLOTS)
-            .map(|slots| f32::from_le_bytes([slots[0], slots[1], slots[2], slots[3]]))
+        bytemuck::pod_collect_to_vec::<u8, [f32; BODY_SLOTS]>(&bytes)
+            .iter()
+            .map(|slots| slots[0])
             .collect()
     }
 
