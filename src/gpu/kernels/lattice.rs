@@ -133,7 +133,9 @@ pub const SLOTS: &[Slot] = &[
 pub enum Kernel {
     /// `predict`: inertial targets, first iterates, grasps.
     Predict,
-    /// `energy`: energy changes of candidate steps (first iterate, line search).
+    /// `energy_first`: energy changes of the first iterate's candidates.
+    EnergyFirst,
+    /// `energy`: energy changes of the line search's candidate steps.
     Energy,
     /// `pick`: sums each body's partial sums and picks its step.
     Pick,
@@ -239,6 +241,13 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::Predict,
         name: "predict",
         uses: &["params", "cols", "pos", "ccol", "nodes"],
+    },
+    Entry {
+        kernel: Kernel::EnergyFirst,
+        name: "energy_first",
+        uses: &[
+            "params", "pc", "pos", "rot", "red", "ccol", "elems", "nodes", "mats",
+        ],
     },
     Entry {
         kernel: Kernel::Energy,

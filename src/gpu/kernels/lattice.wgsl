@@ -228,9 +228,19 @@ fn load_x(e: u32, region: u32) -> array<vec3<f32>, 8> {
 // velocity makes, y − x (mode 0).
 fn direction(j: u32, mode: u32) -> vec3<f32> {
     if (mode == 0u) {
-        return pos[R_Y * params.n + j].xyz - pos[R_X * params.n + j].xyz;
+        return velocity_step(j);
     }
     return vecs[V_DELTA * params.n_total + j].xyz;
+}
+
+// The step the velocity makes at node j, y − x (`direction`'s mode 0).
+fn velocity_step(j: u32) -> vec3<f32> {
+    return pos[R_Y * params.n + j].xyz - pos[R_X * params.n + j].xyz;
+}
+
+// Direction d of node j where it moves in this substep, else none (held now).
+fn free_step(j: u32, d: vec3<f32>) -> vec3<f32> {
+    return select(d, vec3<f32>(0.0), held_now(j));
 }
 
 fn candidate(k: u32, mode: u32) -> f32 {
@@ -260,21 +270,32 @@ fn first_candidate(mode: u32) -> u32 {
     return select(0u, part_a(), mode == 2u);
 }
 
-var<workgroup> wsum: array<array<f32, 16>, 64>;
+// A workgroup's partial sums, sum k of thread t at wsum[k][t] (a warp's threads on
+// consecutive words: no two of them on one bank).
+var<workgroup> wsum: array<array<f32, 64>, 16>;
 
-// Sums `wsum[·][k]` for k < count over the workgroup into partial `wid`.
+// The workgroup's sums wsum[·][0] (after a reduction) as one array.
+fn wsum_row() -> array<f32, 16> {
+    var w: array<f32, 16>;
+    for (var k = 0u; k < 16u; k = k + 1u) {
+        w[k] = wsum[k][0];
+    }
+    return w;
+}
+
+// Sums `wsum[k][·]` for k < count over the workgroup into partial `wid`.
 fn reduce_partials(lid: u32, wid: u32, count: u32) {
     for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
         workgroupBarrier();
         if (lid < stride) {
             for (var k = 0u; k < count; k = k + 1u) {
-                wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
+                wsum[k][lid] = wsum[k][lid] + wsum[k][lid + stride];
             }
         }
     }
     if (lid == 0u) {
         for (var k = 0u; k < count; k = k + 1u) {
-            red[wid * RED_STRIDE + k] = wsum[0][k];
+            red[wid * RED_STRIDE + k] = wsum[k][0];
         }
     }
 }
@@ -372,18 +393,134 @@ fn swept_gap(r1: vec3<f32>, v: vec3<f32>, a: f32) -> f32 {
 // Written by thread 0, read through `workgroupUniformLoad` (a uniform branch).
 var<workgroup> chunk_idle: u32;
 
-// Energy changes of the candidate steps along the direction (mode 0: first iterate,
-// rotations refined per candidate; mode 1: line search, rotations held; mode 2: its
-// second pass, for the bodies whose first candidates all failed), one partial sum per
-// candidate and chunk (workgroup pc.first + wg.x of the energy table: items below `ne`
-// are elements, the rest nodes).
+// The energy table's chunk of workgroup wg (pc.first + wg of its chunks): x its first
+// item, y its item count, z its body. Items below `ne` are elements, the rest nodes.
+fn energy_chunk(wg: u32) -> vec4<u32> {
+    return chunk(pc.first + wg);
+}
+
+// The first iterate's candidates y + s (y − x) (`candidate`'s mode 0), as one vector.
+const FIRST_STEPS: vec4<f32> = vec4<f32>(0.0, -0.5, -0.75, -1.0);
+
+// The first iterate's energy changes: for each of the FIRST_CANDIDATES (4) candidates
+// s = 0, −½, −¾, −1 (FIRST_STEPS) its energy's change from the first, each element's
+// rotation refined per candidate; then the energy's scale at the first candidate (for
+// `pick`'s ties). One partial sum each per chunk of the energy table. A kernel of its
+// own beside the line search's `energy`: its four candidates stay in registers.
+@compute @workgroup_size(64)
+fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
+    var acc = vec4<f32>(0.0);
+    var scale = 0.0;
+    let ch = energy_chunk(wg.x);
+    let end = ch.x + ch.y;
+    for (var i = ch.x + lid; i < end; i = i + LWG) {
+        if (i < params.ne) {
+            let e = i;
+            let y = load_x(e, R_Y);
+            var d: array<vec3<f32>, 8>;
+            for (var k = 0u; k < 8u; k = k + 1u) {
+                let c = corner(e, k);
+                d[k] = free_step(c, velocity_step(c));
+            }
+            let info = elems[3u * e + 2u];
+            let size = bitcast<f32>(info.z);
+            let q0 = rot[e];
+            // The first iterate: each candidate's rotation refined from q0 along
+            // F(y + a d) = F(y) + a F(d). The hourglass coordinates are linear along
+            // the step too, so they are summed once and turned into each candidate's
+            // rotation.
+            let f0 = element_gradient(y, size);
+            let f1 = element_gradient(d, size);
+            // The FIRST_CANDIDATES (4) candidates s = 0, −½, −¾, −1 (`candidate`)
+            // written out, so that their rotations and energies stay in registers.
+            let fa = f0 + f1 * 0.0;
+            let fb = f0 + f1 * -0.5;
+            let fc = f0 + f1 * -0.75;
+            let fd = f0 + f1 * -1.0;
+            let ra = quat_mat(extract_rotation(fa, q0, params.rot_iters));
+            let rb = quat_mat(extract_rotation(fb, q0, params.rot_iters));
+            let rc = quat_mat(extract_rotation(fc, q0, params.rot_iters));
+            let rd = quat_mat(extract_rotation(fd, q0, params.rot_iters));
+            var ea = elastic_energy(e, fa, ra);
+            var eb = elastic_energy(e, fb, rb);
+            var ec = elastic_energy(e, fc, rc);
+            var ed = elastic_energy(e, fd, rd);
+            var dy: array<vec3<f32>, 8>;
+            var dd: array<vec3<f32>, 8>;
+            for (var q = 0u; q < 8u; q = q + 1u) {
+                dy[q] = y[q] - y[0];
+                dd[q] = d[q] - d[0];
+            }
+            // Hourglass: ½ (V/h²) qᵀ Q q with q = R_aᵀ q(y + a d) in each candidate's
+            // own rotation.
+            let op = material_op(info.y);
+            let hy = hourglass_coords(dy);
+            let hd = hourglass_coords(dd);
+            let half = 0.5 * bitcast<f32>(info.w) / (size * size);
+            let qa = hg_turn(transpose(ra), hg_add(hy, hd, 0.0));
+            let qb = hg_turn(transpose(rb), hg_add(hy, hd, -0.5));
+            let qc = hg_turn(transpose(rc), hg_add(hy, hd, -0.75));
+            let qd = hg_turn(transpose(rd), hg_add(hy, hd, -1.0));
+            ea = ea + half * hg_dot(qa, hourglass_response(op, qa));
+            eb = eb + half * hg_dot(qb, hourglass_response(op, qb));
+            ec = ec + half * hg_dot(qc, hourglass_response(op, qc));
+            ed = ed + half * hg_dot(qd, hourglass_response(op, qd));
+            // Each candidate's change from the first (0, or NaN where the energy is
+            // not finite).
+            acc = acc + vec4<f32>(ea - ea, eb - ea, ec - ea, ed - ea);
+            scale = scale + abs(ea);
+        } else {
+            let j = i - params.ne;
+            if (!held_now(j)) {
+                let n = params.n;
+                let d = velocity_step(j);
+                let u = pos[R_Y * n + j].xyz - pos[R_T * n + j].xyz;
+                let w = 0.5 * nodes[j].x / params.h2;
+                acc = acc + w * FIRST_STEPS * (2.0 * dot(d, u) + FIRST_STEPS * dot(d, d));
+                scale = scale + w * dot(u, u);
+                // Particle contacts this node holds: ½ k depth² with both nodes moving
+                // along the step, each candidate pair's overlap weighed at its closest
+                // along the way to each candidate (core::solver's pair_overlap_energy).
+                let pr = pair_range(j);
+                if (pr.x < pr.y) {
+                    let sc = contact_scale(j);
+                    let y = pos[R_Y * n + j].xyz;
+                    for (var s = pr.x; s < pr.y; s = s + 1u) {
+                        let i = pair_at(s);
+                        let yi = pos[R_Y * n + i].xyz;
+                        let reach = sc.x + contact_scale(i).x;
+                        let di = free_step(i, velocity_step(i));
+                        let r1 = y - yi;
+                        let v = d - di;
+                        let o0 = max(reach - swept_gap(r1, v, 0.0), 0.0);
+                        let oa = max(vec4<f32>(reach - swept_gap(r1, v, FIRST_STEPS.x),
+                                               reach - swept_gap(r1, v, FIRST_STEPS.y),
+                                               reach - swept_gap(r1, v, FIRST_STEPS.z),
+                                               reach - swept_gap(r1, v, FIRST_STEPS.w)),
+                                     vec4<f32>(0.0));
+                        acc = acc + 0.5 * sc.y * (oa * oa - o0 * o0);
+                    }
+                }
+            }
+        }
+    }
+    for (var k = 0u; k < 4u; k = k + 1u) {
+        wsum[k][lid] = acc[k];
+    }
+    wsum[FIRST_CANDIDATES][lid] = scale;
+    reduce_partials(lid, wg.x, FIRST_CANDIDATES + 1u);
+}
+
+// The line search's energy changes along the V-cycle's correction (rotations held): mode
+// 1 its first `part_a()` candidates, mode 2 the rest, for the bodies whose first
+// candidates all failed. One partial sum per candidate and chunk of the energy table.
 @compute @workgroup_size(64)
 fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     let mode = pc.mode;
     let kc = candidates(mode);
     let k0 = first_candidate(mode);
     var acc: array<f32, 16>;
-    let ch = chunk(pc.first + wg.x);
+    let ch = energy_chunk(wg.x);
     let end = ch.x + ch.y;
     if (mode == 2u) {
         // The second pass is for the pending bodies only: a chunk of another body leaves
@@ -401,107 +538,54 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
             let y = load_x(e, R_Y);
             var d: array<vec3<f32>, 8>;
             for (var k = 0u; k < 8u; k = k + 1u) {
-                d[k] = direction(corner(e, k), mode);
-                if (held_now(corner(e, k))) {
-                    d[k] = vec3<f32>(0.0);
-                }
+                let c = corner(e, k);
+                d[k] = free_step(c, vecs[V_DELTA * params.n_total + c].xyz);
             }
             let info = elems[3u * e + 2u];
             let size = bitcast<f32>(info.z);
             let q0 = rot[e];
-            if (mode != 0u) {
-                // Rotation held: the gradient and the hourglass amplitudes are linear
-                // along the step, F(y + a d) = F(y) + a F(d) (likewise c), so each
-                // candidate's energy needs no corner loop.
-                let r = quat_mat(q0);
-                let rt = transpose(r);
-                let f0 = element_gradient(y, size);
-                let f1 = element_gradient(d, size);
-                // Along the step the energy is a polynomial in a: the hourglass term
-                // ½ Σ k_m V/h² c_m² and μ V |sym(Rᵀ F) − I|² are quadratic (F and c_m
-                // linear in a), det F cubic. Each candidate's change from a = 0 is summed
-                // from the coefficients (lin a + quad a², and the volume term apart).
-                let mb = info.y * MAT_STRIDE;
-                let vol = bitcast<f32>(info.w);
-                let scale = vol / (size * size);
-                // Hourglass: ½ (V/h²) qᵀ Q q with q = Rᵀ q(y + a d), linear in a.
-                var ly: array<vec3<f32>, 8>;
-                var ld: array<vec3<f32>, 8>;
-                for (var q = 0u; q < 8u; q = q + 1u) {
-                    ly[q] = y[q] - y[0];
-                    ld[q] = d[q] - d[0];
-                }
-                let qy = hg_turn(rt, hourglass_coords(ly));
-                let qd = hg_turn(rt, hourglass_coords(ld));
-                let rd = hourglass_response(material_op(info.y), qd);
-                let h1 = scale * hg_dot(qy, rd);
-                let h2 = 0.5 * scale * hg_dot(qd, rd);
-                let lame = mats[mb];
-                let rtf0 = rt * f0;
-                let rtf1 = rt * f1;
-                let s0 = (rtf0 + transpose(rtf0)) * 0.5 - identity3();
-                let s1 = (rtf1 + transpose(rtf1)) * 0.5;
-                let e01 = dot(s0[0], s1[0]) + dot(s0[1], s1[1]) + dot(s0[2], s1[2]);
-                let e11 = dot(s1[0], s1[0]) + dot(s1[1], s1[1]) + dot(s1[2], s1[2]);
-                let j0 = determinant(f0);
-                let lin = vol * lame.x * 2.0 * e01 + h1;
-                let quad = vol * lame.x * e11 + h2;
-                for (var k = 0u; k < kc; k = k + 1u) {
-                    let a = candidate(k0 + k, mode);
-                    // ½ λ V ((J_a − 1)² − (J_0 − 1)²) as a product, without cancellation.
-                    let ja = determinant(f0 + f1 * a);
-                    let vol_term = 0.5 * vol * lame.y * ((ja - j0) * (ja + j0 - 2.0));
-                    acc[k] = acc[k] + a * (lin + a * quad) + vol_term;
-                }
-            } else {
-                // The first iterate: each candidate's rotation refined from q0 along
-                // F(y + a d) = F(y) + a F(d). The hourglass coordinates are linear along
-                // the step too, so they are summed once and turned into each candidate's
-                // rotation.
-                let f0 = element_gradient(y, size);
-                let f1 = element_gradient(d, size);
-                // The FIRST_CANDIDATES (4) candidates s = 0, −½, −¾, −1 (`candidate`)
-                // written out, so that their rotations and energies stay in registers.
-                let fa = f0 + f1 * 0.0;
-                let fb = f0 + f1 * -0.5;
-                let fc = f0 + f1 * -0.75;
-                let fd = f0 + f1 * -1.0;
-                let ra = quat_mat(extract_rotation(fa, q0, params.rot_iters));
-                let rb = quat_mat(extract_rotation(fb, q0, params.rot_iters));
-                let rc = quat_mat(extract_rotation(fc, q0, params.rot_iters));
-                let rd = quat_mat(extract_rotation(fd, q0, params.rot_iters));
-                var ea = elastic_energy(e, fa, ra);
-                var eb = elastic_energy(e, fb, rb);
-                var ec = elastic_energy(e, fc, rc);
-                var ed = elastic_energy(e, fd, rd);
-                var dy: array<vec3<f32>, 8>;
-                var dd: array<vec3<f32>, 8>;
-                for (var q = 0u; q < 8u; q = q + 1u) {
-                    dy[q] = y[q] - y[0];
-                    dd[q] = d[q] - d[0];
-                }
-                // Hourglass: ½ (V/h²) qᵀ Q q with q = R_aᵀ q(y + a d) in each candidate's
-                // own rotation.
-                let op = material_op(info.y);
-                let hy = hourglass_coords(dy);
-                let hd = hourglass_coords(dd);
-                let half = 0.5 * bitcast<f32>(info.w) / (size * size);
-                let qa = hg_turn(transpose(ra), hg_add(hy, hd, 0.0));
-                let qb = hg_turn(transpose(rb), hg_add(hy, hd, -0.5));
-                let qc = hg_turn(transpose(rc), hg_add(hy, hd, -0.75));
-                let qd = hg_turn(transpose(rd), hg_add(hy, hd, -1.0));
-                ea = ea + half * hg_dot(qa, hourglass_response(op, qa));
-                eb = eb + half * hg_dot(qb, hourglass_response(op, qb));
-                ec = ec + half * hg_dot(qc, hourglass_response(op, qc));
-                ed = ed + half * hg_dot(qd, hourglass_response(op, qd));
-                // Each candidate's change from the first (0, or NaN where the energy is
-                // not finite).
-                acc[0] = acc[0] + (ea - ea);
-                acc[1] = acc[1] + (eb - ea);
-                acc[2] = acc[2] + (ec - ea);
-                acc[3] = acc[3] + (ed - ea);
-                // The energy's scale at the first candidate, for `pick`'s ties.
-                acc[FIRST_CANDIDATES] = acc[FIRST_CANDIDATES] + abs(ea);
+            // Rotation held: the gradient and the hourglass amplitudes are linear
+            // along the step, F(y + a d) = F(y) + a F(d) (likewise c), so each
+            // candidate's energy needs no corner loop.
+            let r = quat_mat(q0);
+            let rt = transpose(r);
+            let f0 = element_gradient(y, size);
+            let f1 = element_gradient(d, size);
+            // Along the step the energy is a polynomial in a: the hourglass term
+            // ½ Σ k_m V/h² c_m² and μ V |sym(Rᵀ F) − I|² are quadratic (F and c_m
+            // linear in a), det F cubic. Each candidate's change from a = 0 is summed
+            // from the coefficients (lin a + quad a², and the volume term apart).
+            let mb = info.y * MAT_STRIDE;
+            let vol = bitcast<f32>(info.w);
+            let scale = vol / (size * size);
+            // Hourglass: ½ (V/h²) qᵀ Q q with q = Rᵀ q(y + a d), linear in a.
+            var ly: array<vec3<f32>, 8>;
+            var ld: array<vec3<f32>, 8>;
+            for (var q = 0u; q < 8u; q = q + 1u) {
+                ly[q] = y[q] - y[0];
+                ld[q] = d[q] - d[0];
+            }
+            let qy = hg_turn(rt, hourglass_coords(ly));
+            let qd = hg_turn(rt, hourglass_coords(ld));
+            let rd = hourglass_response(material_op(info.y), qd);
+            let h1 = scale * hg_dot(qy, rd);
+            let h2 = 0.5 * scale * hg_dot(qd, rd);
+            let lame = mats[mb];
+            let rtf0 = rt * f0;
+            let rtf1 = rt * f1;
+            let s0 = (rtf0 + transpose(rtf0)) * 0.5 - identity3();
+            let s1 = (rtf1 + transpose(rtf1)) * 0.5;
+            let e01 = dot(s0[0], s1[0]) + dot(s0[1], s1[1]) + dot(s0[2], s1[2]);
+            let e11 = dot(s1[0], s1[0]) + dot(s1[1], s1[1]) + dot(s1[2], s1[2]);
+            let j0 = determinant(f0);
+            let lin = vol * lame.x * 2.0 * e01 + h1;
+            let quad = vol * lame.x * e11 + h2;
+            for (var k = 0u; k < kc; k = k + 1u) {
+                let a = candidate(k0 + k, mode);
+                // ½ λ V ((J_a − 1)² − (J_0 − 1)²) as a product, without cancellation.
+                let ja = determinant(f0 + f1 * a);
+                let vol_term = 0.5 * vol * lame.y * ((ja - j0) * (ja + j0 - 2.0));
+                acc[k] = acc[k] + a * (lin + a * quad) + vol_term;
             }
         } else {
             let j = i - params.ne;
@@ -514,12 +598,9 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                     let a = candidate(k0 + k, mode);
                     acc[k] = acc[k] + w * a * (2.0 * dot(d, u) + a * dot(d, d));
                 }
-                if (mode == 0u) {
-                    acc[FIRST_CANDIDATES] = acc[FIRST_CANDIDATES] + w * dot(u, u);
-                }
-                // Penalty contacts (line search only): ½ k depth² along the step.
+                // Penalty contacts: ½ k depth² along the step.
                 let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
-                if (mode != 0u && mask != 0u) {
+                if (mask != 0u) {
                     let sc = contact_scale(j);
                     let y = pos[R_Y * n + j].xyz;
                     for (var c = 0u; c < params.misc.x; c = c + 1u) {
@@ -534,10 +615,8 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                     }
                 }
                 // Particle contacts this node holds: ½ k depth² with both nodes moving
-                // along the step. The line search holds the pairs in contact at its start
-                // (as the Newton iteration's forces); the first iterate weighs every
-                // candidate pair's overlap at its closest along the way to each candidate
-                // (core::solver's pair_overlap_energy).
+                // along the step, the pairs in contact at the line search's start (as the
+                // Newton iteration's forces).
                 let pr = pair_range(j);
                 if (pr.x < pr.y) {
                     let sc = contact_scale(j);
@@ -550,17 +629,6 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
                         var di = direction(i, mode);
                         if (held_now(i)) {
                             di = vec3<f32>(0.0);
-                        }
-                        if (mode == 0u) {
-                            let r1 = y - yi;
-                            let v = d - di;
-                            let o0 = max(reach - swept_gap(r1, v, 0.0), 0.0);
-                            for (var k = 0u; k < kc; k = k + 1u) {
-                                let a = candidate(k0 + k, mode);
-                                let oa = max(reach - swept_gap(r1, v, a), 0.0);
-                                acc[k] = acc[k] + 0.5 * sc.y * (oa * oa - o0 * o0);
-                            }
-                            continue;
                         }
                         if (len0 >= reach || len0 <= 1e-12) {
                             continue;
@@ -576,11 +644,10 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
             }
         }
     }
-    for (var k = 0u; k < 16u; k = k + 1u) {
-        wsum[lid][k] = acc[k];
+    for (var k = 0u; k < kc; k = k + 1u) {
+        wsum[k][lid] = acc[k];
     }
-    // The first iterate's sums carry the energy's scale after its candidates.
-    reduce_partials(lid, wg.x, select(kc, kc + 1u, mode == 0u));
+    reduce_partials(lid, wg.x, kc);
 }
 
 // Per body (workgroups striding over the bodies): sums the body's chunks' partial sums
@@ -675,13 +742,13 @@ fn pick_bodies(lid: u32, wid: u32, groups: u32, mode: u32) -> bool {
             for (; w < r.y; w = w + LWG) {
                 a0 = a0 + red[w * RED_STRIDE + k];
             }
-            wsum[lid][k] = (a0 + a1) + (a2 + a3);
+            wsum[k][lid] = (a0 + a1) + (a2 + a3);
         }
         for (var stride = LWG / 2u; stride > 0u; stride = stride / 2u) {
             workgroupBarrier();
             if (lid < stride) {
                 for (var k = 0u; k < used; k = k + 1u) {
-                    wsum[lid][k] = wsum[lid][k] + wsum[lid + stride][k];
+                    wsum[k][lid] = wsum[k][lid] + wsum[k][lid + stride];
                 }
             }
         }
@@ -692,7 +759,7 @@ fn pick_bodies(lid: u32, wid: u32, groups: u32, mode: u32) -> bool {
     return pending;
 }
 
-// `pick`'s choice for body b from the sums in wsum[0]: whether the body is left pending
+// `pick`'s choice for body b from the sums in wsum[·][0]: whether the body is left pending
 // (mode 1: none of the line search's first candidates taken).
 fn pick_body(b: u32, mode: u32) -> bool {
     if (mode == 0u) {
@@ -700,9 +767,9 @@ fn pick_body(b: u32, mode: u32) -> bool {
         // its scale; closer, the energies tie to rounding and s = 1 stays
         // (core::solver's first iterate).
         var best = 0u;
-        let tie = FIRST_TIE * wsum[0][FIRST_CANDIDATES];
+        let tie = FIRST_TIE * wsum[FIRST_CANDIDATES][0];
         for (var k = 1u; k < FIRST_CANDIDATES; k = k + 1u) {
-            if (wsum[0][k] < wsum[0][best] - tie) {
+            if (wsum[k][0] < wsum[best][0] - tie) {
                 best = k;
             }
         }
@@ -712,7 +779,7 @@ fn pick_body(b: u32, mode: u32) -> bool {
         var a = 0.0;
         var found = false;
         for (var k = 0u; k < part_a(); k = k + 1u) {
-            if (wsum[0][k] <= 0.0) {
+            if (wsum[k][0] <= 0.0) {
                 a = candidate(k, 1u);
                 found = true;
                 break;
@@ -725,7 +792,7 @@ fn pick_body(b: u32, mode: u32) -> bool {
         if (red[body_slot(b, B_PENDING)] > 0.5) {
             var a = 0.0;
             for (var k = 0u; k < LINE_CANDIDATES - part_a(); k = k + 1u) {
-                if (wsum[0][k] <= 0.0) {
+                if (wsum[k][0] <= 0.0) {
                     a = candidate(part_a() + k, 1u);
                     break;
                 }
@@ -739,15 +806,15 @@ fn pick_body(b: u32, mode: u32) -> bool {
     } else if (mode == 6u) {
         var a = 0.0;
         if (wsum[0][0] > 0.0) {
-            a = wsum[0][1] / wsum[0][0];
+            a = wsum[1][0] / wsum[0][0];
         }
         red[body_slot(b, B_CG_ALPHA)] = select(0.0, a, is_finite_f(a));
-        red[body_slot(b, B_CG_RZ)] = wsum[0][2];
+        red[body_slot(b, B_CG_RZ)] = wsum[2][0];
     } else if (mode == 7u) {
         // The translation step (Σ m/h² I + S)⁻¹ Σ r, none for a body with a held node.
         var t = vec3<f32>(0.0);
-        if (wsum[0][9] < 0.5) {
-            let w = wsum[0];
+        if (wsum[9][0] < 0.5) {
+            let w = wsum_row();
             let a = mat3x3<f32>(vec3<f32>(w[3], w[6], w[7]), vec3<f32>(w[6], w[4], w[8]),
                                 vec3<f32>(w[7], w[8], w[5]));
             t = spd_inverse(a) * vec3<f32>(w[0], w[1], w[2]);
@@ -760,7 +827,7 @@ fn pick_body(b: u32, mode: u32) -> bool {
         red[body_slot(b, B_SHIFT + 2u)] = t.z;
     } else if (mode == 8u) {
         // The two-direction step's weights (core::multigrid::two_direction_weights).
-        let w = wsum[0];
+        let w = wsum_row();
         let det = w[0] * w[2] - w[1] * w[1];
         var a = 0.0;
         var bw = 0.0;
@@ -777,7 +844,7 @@ fn pick_body(b: u32, mode: u32) -> bool {
         red[body_slot(b, B_CG_ALPHA)] = a;
         red[body_slot(b, B_CG_BETA)] = bw;
     } else {
-        red[body_slot(b, B_MG_ALPHA + pc.level)] = correction_step(vec2<f32>(wsum[0][0], wsum[0][1]));
+        red[body_slot(b, B_MG_ALPHA + pc.level)] = correction_step(vec2<f32>(wsum[0][0], wsum[1][0]));
     }
     return false;
 }
@@ -2318,8 +2385,8 @@ fn alpha_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
         num = num + t.x;
         den = den + t.y;
     }
-    wsum[lid][0] = num;
-    wsum[lid][1] = den;
+    wsum[0][lid] = num;
+    wsum[1][lid] = den;
     reduce_partials(lid, wg.x, 2u);
 }
 
@@ -2348,16 +2415,16 @@ fn translate_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup
             a = a + translation_block(j);
         }
     }
-    wsum[lid][0] = r.x;
-    wsum[lid][1] = r.y;
-    wsum[lid][2] = r.z;
-    wsum[lid][3] = a[0].x;
-    wsum[lid][4] = a[1].y;
-    wsum[lid][5] = a[2].z;
-    wsum[lid][6] = 0.5 * (a[0].y + a[1].x);
-    wsum[lid][7] = 0.5 * (a[0].z + a[2].x);
-    wsum[lid][8] = 0.5 * (a[1].z + a[2].y);
-    wsum[lid][9] = fixed;
+    wsum[0][lid] = r.x;
+    wsum[1][lid] = r.y;
+    wsum[2][lid] = r.z;
+    wsum[3][lid] = a[0].x;
+    wsum[4][lid] = a[1].y;
+    wsum[5][lid] = a[2].z;
+    wsum[6][lid] = 0.5 * (a[0].y + a[1].x);
+    wsum[7][lid] = 0.5 * (a[0].z + a[2].x);
+    wsum[8][lid] = 0.5 * (a[1].z + a[2].y);
+    wsum[9][lid] = fixed;
     reduce_partials(lid, wg.x, 10u);
 }
 
@@ -2802,7 +2869,7 @@ fn cg_dots(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg:
     for (var j = ch.x + lid; j < ch.x + ch.y; j = j + LWG) {
         zq = zq + dot(vecs[V_DELTA * params.n_total + j].xyz, vecs[cg_at(CG_Q) + j].xyz);
     }
-    wsum[lid][0] = zq;
+    wsum[0][lid] = zq;
     reduce_partials(lid, wg.x, 1u);
 }
 
@@ -2883,7 +2950,7 @@ fn cg_two_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
         }
     }
     for (var k = 0u; k < 5u; k = k + 1u) {
-        wsum[lid][k] = t[k];
+        wsum[k][lid] = t[k];
     }
     reduce_partials(lid, wg.x, 5u);
 }
@@ -2905,9 +2972,9 @@ fn cg_matvec(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
         let r = vecs[V_RHS * params.n_total + j].xyz;
         t = t + vec3<f32>(dot(p, q), dot(r, p), dot(r, vecs[V_DELTA * params.n_total + j].xyz));
     }
-    wsum[lid][0] = t.x;
-    wsum[lid][1] = t.y;
-    wsum[lid][2] = t.z;
+    wsum[0][lid] = t.x;
+    wsum[1][lid] = t.y;
+    wsum[2][lid] = t.z;
     reduce_partials(lid, wg.x, 3u);
 }
 

@@ -323,7 +323,7 @@ pub fn plan(shape: &Shape, newton: u32) -> Vec<Dispatch> {
     push(Kernel::Predict, 0, n, 0, 0, groups(n));
     for it in 0..newton {
         if it == 0 {
-            push(Kernel::Energy, e0, ec, 0, 0, ec);
+            push(Kernel::EnergyFirst, e0, ec, 0, 0, ec);
             push(Kernel::Pick, 0, ec, 0, 0, picks);
             push(Kernel::Advance, 0, n, 0, 0, groups(n));
         }
@@ -2491,7 +2491,8 @@ mod tests {
         assert_eq!(count(Kernel::Smooth), 2 * (8 * 4 + 7 * 4 + 8 * 30));
         // One energy pass for the first iterate, two per line search (the second and its
         // `pick` indirect: they run only when the first candidates fail).
-        assert_eq!(count(Kernel::Energy), 5);
+        assert_eq!(count(Kernel::EnergyFirst), 1);
+        assert_eq!(count(Kernel::Energy), 4);
         let indirect: Vec<(Kernel, u32, Option<u32>)> = p
             .iter()
             .filter(|d| d.indirect.is_some())
@@ -2508,7 +2509,7 @@ mod tests {
                 assert_eq!(d.kernel == Kernel::PickPending, d.pass.mode == 4);
                 assert_eq!(d.groups, s.bodies);
                 let table = match before.kernel {
-                    Kernel::Energy => 0,
+                    Kernel::Energy | Kernel::EnergyFirst => 0,
                     Kernel::AlphaTerms => 1 + before.pass.level as usize,
                     Kernel::TranslateTerms => {
                         assert_eq!(d.pass.mode, 7);
