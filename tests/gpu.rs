@@ -2265,7 +2265,7 @@ fn lattice_bodies_in_contact_match_the_cpu() {
 /// box resting on the ground, lifts it by 2 cm and opens again. The grasped nodes, the
 /// lift, the release and the forces on the ground and the grasper match the CPU (to
 /// rounding before contact decisions can differ, then as well as the CPU matches itself
-/// started 0.1 µm away, at most twice that difference's largest so far).
+/// started 0.1 µm away, at most three times that difference's largest so far).
 #[test]
 fn lattice_graspers_match_the_cpu() {
     use bevy_tissue::core::colliders::GraspMode;
@@ -2275,11 +2275,13 @@ fn lattice_graspers_match_the_cpu() {
     let mut run = Lockstep::new(g, lattice_box(Vec3::splat(0.02), 0.025));
     let top = run.start.iter().fold(f32::MIN, |a, p| a.max(p.y));
     let mut lifted = 0.0f32;
-    // The largest difference of the perturbed CPUs so far: after the release the box
-    // falls on the ground and the runs part as chaotically as the perturbed CPUs do
-    // (GPU − CPU within 1.7 times their difference at every step to the release, mostly
-    // equal to it), but their difference at one step can dip (to half the GPU's three
-    // steps after the release).
+    // The largest difference of the perturbed CPUs so far: while the box is held and
+    // after its release the runs part as chaotically as the perturbed CPUs do, and the
+    // GPU's rounding is a perturbation of its own (the order of its operations, fused
+    // multiply-adds where the shader compiler makes them): GPU − CPU stays 10–100 times
+    // below the perturbed CPUs' difference until the hold, then grows to it and, two steps
+    // after the release, to 1.3–2.3 times it as the compiler's choices vary. The bound is
+    // three times their largest difference so far (their difference at one step can dip).
     let mut own_so_far = 0.0f32;
     for step in 0..50u32 {
         let (mode, lift) = match step {
@@ -2314,7 +2316,7 @@ fn lattice_graspers_match_the_cpu() {
             }
         }
         assert!(
-            c.diff <= (2.0 * own_so_far).max(1e-4 * c.moved) + 1e-6,
+            c.diff <= (3.0 * own_so_far).max(1e-4 * c.moved) + 1e-6,
             "step {step}: GPU − CPU {} m (CPU moved {} m; CPU − nudged CPU {} m, at most {} m so far)",
             c.diff,
             c.moved,

@@ -191,11 +191,15 @@ fn pair_at(s: u32) -> u32 {
 
 // Deformation gradient at the centre of a cube of edge `size` (core::element::element_gradient).
 fn element_gradient(x: array<vec3<f32>, 8>, size: f32) -> mat3x3<f32> {
-    var f = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    let s = 1.0 / (4.0 * size);
     let o = x[0];
-    for (var j = 1u; j < 8u; j = j + 1u) {
-        f = f + outer(x[j] - o, corner_sign(j) / (4.0 * size));
-    }
+    var f = outer(x[1] - o, vec3<f32>(s, -s, -s));
+    f = f + outer(x[2] - o, vec3<f32>(-s, s, -s));
+    f = f + outer(x[3] - o, vec3<f32>(s, s, -s));
+    f = f + outer(x[4] - o, vec3<f32>(-s, -s, s));
+    f = f + outer(x[5] - o, vec3<f32>(s, -s, s));
+    f = f + outer(x[6] - o, vec3<f32>(-s, s, s));
+    f = f + outer(x[7] - o, vec3<f32>(s, s, s));
     return f;
 }
 
@@ -217,11 +221,41 @@ fn elastic_energy(e: u32, f: mat3x3<f32>, r: mat3x3<f32>) -> f32 {
 }
 
 fn load_x(e: u32, region: u32) -> array<vec3<f32>, 8> {
-    var x: array<vec3<f32>, 8>;
-    for (var k = 0u; k < 8u; k = k + 1u) {
-        x[k] = pos[region * params.n + corner(e, k)].xyz;
-    }
-    return x;
+    let o = region * params.n;
+    let c0 = elems[3u * e];
+    let c1 = elems[3u * e + 1u];
+    return array<vec3<f32>, 8>(pos[o + c0.x].xyz, pos[o + c0.y].xyz, pos[o + c0.z].xyz,
+                               pos[o + c0.w].xyz, pos[o + c1.x].xyz, pos[o + c1.y].xyz,
+                               pos[o + c1.z].xyz, pos[o + c1.w].xyz);
+}
+
+// Corner values relative to corner 0.
+fn relative8(x: array<vec3<f32>, 8>) -> array<vec3<f32>, 8> {
+    let o = x[0];
+    return array<vec3<f32>, 8>(o - o, x[1] - o, x[2] - o, x[3] - o, x[4] - o, x[5] - o,
+                               x[6] - o, x[7] - o);
+}
+
+// The velocity steps of element e's corners (none at a held corner).
+fn corner_velocity_steps(e: u32) -> array<vec3<f32>, 8> {
+    let c0 = elems[3u * e];
+    let c1 = elems[3u * e + 1u];
+    return array<vec3<f32>, 8>(free_step(c0.x, velocity_step(c0.x)), free_step(c0.y, velocity_step(c0.y)),
+                               free_step(c0.z, velocity_step(c0.z)), free_step(c0.w, velocity_step(c0.w)),
+                               free_step(c1.x, velocity_step(c1.x)), free_step(c1.y, velocity_step(c1.y)),
+                               free_step(c1.z, velocity_step(c1.z)), free_step(c1.w, velocity_step(c1.w)));
+}
+
+fn line_step(j: u32) -> vec3<f32> {
+    return free_step(j, vecs[V_DELTA * params.n_total + j].xyz);
+}
+
+// The V-cycle's correction at element e's corners (none at a held corner).
+fn corner_line_steps(e: u32) -> array<vec3<f32>, 8> {
+    let c0 = elems[3u * e];
+    let c1 = elems[3u * e + 1u];
+    return array<vec3<f32>, 8>(line_step(c0.x), line_step(c0.y), line_step(c0.z), line_step(c0.w),
+                               line_step(c1.x), line_step(c1.y), line_step(c1.z), line_step(c1.w));
 }
 
 // Search direction of node j: the V-cycle's correction (mode 1) or the step the
@@ -417,11 +451,7 @@ fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
         if (i < params.ne) {
             let e = i;
             let y = load_x(e, R_Y);
-            var d: array<vec3<f32>, 8>;
-            for (var k = 0u; k < 8u; k = k + 1u) {
-                let c = corner(e, k);
-                d[k] = free_step(c, velocity_step(c));
-            }
+            let d = corner_velocity_steps(e);
             let info = elems[3u * e + 2u];
             let size = bitcast<f32>(info.z);
             let q0 = rot[e];
@@ -445,12 +475,8 @@ fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
             var eb = elastic_energy(e, fb, rb);
             var ec = elastic_energy(e, fc, rc);
             var ed = elastic_energy(e, fd, rd);
-            var dy: array<vec3<f32>, 8>;
-            var dd: array<vec3<f32>, 8>;
-            for (var q = 0u; q < 8u; q = q + 1u) {
-                dy[q] = y[q] - y[0];
-                dd[q] = d[q] - d[0];
-            }
+            let dy = relative8(y);
+            let dd = relative8(d);
             // Hourglass: ½ (V/h²) qᵀ Q q with q = R_aᵀ q(y + a d) in each candidate's
             // own rotation.
             let op = material_op(info.y);
@@ -504,22 +530,106 @@ fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
             }
         }
     }
-    for (var k = 0u; k < 4u; k = k + 1u) {
-        wsum[k][lid] = acc[k];
-    }
+    wsum[0][lid] = acc.x;
+    wsum[1][lid] = acc.y;
+    wsum[2][lid] = acc.z;
+    wsum[3][lid] = acc.w;
     wsum[FIRST_CANDIDATES][lid] = scale;
     reduce_partials(lid, wg.x, FIRST_CANDIDATES + 1u);
+}
+
+// The line search's candidates 4 blk .. 4 blk + 3 of pass `mode` (`candidate`), as one
+// vector (past the pass's last candidate: more halvings, computed and not summed).
+fn line_block(blk: u32, mode: u32) -> vec4<f32> {
+    let k = first_candidate(mode) + 4u * blk;
+    return vec4<f32>(candidate(k, 1u), candidate(k + 1u, 1u), candidate(k + 2u, 1u),
+                     candidate(k + 3u, 1u));
+}
+
+// An element's energy changes at the step's candidates `av` added to `acc`, from its
+// coefficients along the step (rotation held): a (lin + a quad) + ½ λ V ((J_a − 1)² −
+// (J_0 − 1)²), J_a = det(F(y) + a F(d)), as a product without cancellation (`vl` is
+// ½ λ V).
+fn element_line(acc: vec4<f32>, av: vec4<f32>, lin: f32, quad: f32, f0: mat3x3<f32>,
+                f1: mat3x3<f32>, j0: f32, vl: f32) -> vec4<f32> {
+    let ja = vec4<f32>(determinant(f0 + f1 * av.x), determinant(f0 + f1 * av.y),
+                       determinant(f0 + f1 * av.z), determinant(f0 + f1 * av.w));
+    let vol_term = vl * ((ja - j0) * (ja + j0 - 2.0));
+    return acc + av * (lin + av * quad) + vol_term;
+}
+
+// Free node j's energy changes at the step's candidates `av` added to `acc`: its inertia,
+// its penalty contacts with the colliders it touches (½ k depth² along the step) and the
+// particle contacts it holds (½ k depth² with both nodes moving along the step, the
+// pairs in contact at the line search's start, as the Newton iteration's forces).
+fn node_line(acc: vec4<f32>, j: u32, av: vec4<f32>) -> vec4<f32> {
+    let n = params.n;
+    let d = vecs[V_DELTA * params.n_total + j].xyz;
+    let y = pos[R_Y * n + j].xyz;
+    let u = y - pos[R_T * n + j].xyz;
+    let w = 0.5 * nodes[j].x / params.h2;
+    var out = acc + w * av * (2.0 * dot(d, u) + av * dot(d, d));
+    let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
+    if (mask != 0u) {
+        let sc = contact_scale(j);
+        for (var c = 0u; c < params.misc.x; c = c + 1u) {
+            if ((mask & (1u << c)) == 0u) {
+                continue;
+            }
+            let col = cols[c];
+            let d0 = sc.x - collider_sdf(col, y).w;
+            let da = sc.x - vec4<f32>(collider_sdf(col, y + d * av.x).w, collider_sdf(col, y + d * av.y).w,
+                                      collider_sdf(col, y + d * av.z).w, collider_sdf(col, y + d * av.w).w);
+            out = out + 0.5 * sc.y * (da * da - d0 * d0);
+        }
+    }
+    let pr = pair_range(j);
+    if (pr.x < pr.y) {
+        let sc = contact_scale(j);
+        for (var s = pr.x; s < pr.y; s = s + 1u) {
+            let i = pair_at(s);
+            let yi = pos[R_Y * n + i].xyz;
+            let reach = sc.x + contact_scale(i).x;
+            let len0 = length(y - yi);
+            if (len0 >= reach || len0 <= 1e-12) {
+                continue;
+            }
+            let di = line_step(i);
+            let d0 = reach - len0;
+            let da = reach - vec4<f32>(length(y + d * av.x - yi - di * av.x), length(y + d * av.y - yi - di * av.y),
+                                       length(y + d * av.z - yi - di * av.z), length(y + d * av.w - yi - di * av.w));
+            out = out + 0.5 * sc.y * (da * da - d0 * d0);
+        }
+    }
+    return out;
+}
+
+// Sums 4 blk .. 4 blk + 3 of a workgroup's line-search sums (those below kc) into wsum.
+fn store_block(blk: u32, v: vec4<f32>, kc: u32, lid: u32) {
+    for (var c = 0u; c < 4u; c = c + 1u) {
+        if (4u * blk + c < kc) {
+            wsum[4u * blk + c][lid] = v[c];
+        }
+    }
 }
 
 // The line search's energy changes along the V-cycle's correction (rotations held): mode
 // 1 its first `part_a()` candidates, mode 2 the rest, for the bodies whose first
 // candidates all failed. One partial sum per candidate and chunk of the energy table.
+// The candidates go four at a time, each four in a vector (no array indexed in a loop).
 @compute @workgroup_size(64)
 fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     let mode = pc.mode;
     let kc = candidates(mode);
-    let k0 = first_candidate(mode);
-    var acc: array<f32, 16>;
+    let blocks = (kc + 3u) / 4u;
+    let a0 = line_block(0u, mode);
+    let a1 = line_block(1u, mode);
+    let a2 = line_block(2u, mode);
+    let a3 = line_block(3u, mode);
+    var acc0 = vec4<f32>(0.0);
+    var acc1 = vec4<f32>(0.0);
+    var acc2 = vec4<f32>(0.0);
+    var acc3 = vec4<f32>(0.0);
     let ch = energy_chunk(wg.x);
     let end = ch.x + ch.y;
     if (mode == 2u) {
@@ -536,18 +646,13 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
         if (i < params.ne) {
             let e = i;
             let y = load_x(e, R_Y);
-            var d: array<vec3<f32>, 8>;
-            for (var k = 0u; k < 8u; k = k + 1u) {
-                let c = corner(e, k);
-                d[k] = free_step(c, vecs[V_DELTA * params.n_total + c].xyz);
-            }
+            let d = corner_line_steps(e);
             let info = elems[3u * e + 2u];
             let size = bitcast<f32>(info.z);
-            let q0 = rot[e];
             // Rotation held: the gradient and the hourglass amplitudes are linear
             // along the step, F(y + a d) = F(y) + a F(d) (likewise c), so each
             // candidate's energy needs no corner loop.
-            let r = quat_mat(q0);
+            let r = quat_mat(rot[e]);
             let rt = transpose(r);
             let f0 = element_gradient(y, size);
             let f1 = element_gradient(d, size);
@@ -555,22 +660,15 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
             // ½ Σ k_m V/h² c_m² and μ V |sym(Rᵀ F) − I|² are quadratic (F and c_m
             // linear in a), det F cubic. Each candidate's change from a = 0 is summed
             // from the coefficients (lin a + quad a², and the volume term apart).
-            let mb = info.y * MAT_STRIDE;
             let vol = bitcast<f32>(info.w);
             let scale = vol / (size * size);
             // Hourglass: ½ (V/h²) qᵀ Q q with q = Rᵀ q(y + a d), linear in a.
-            var ly: array<vec3<f32>, 8>;
-            var ld: array<vec3<f32>, 8>;
-            for (var q = 0u; q < 8u; q = q + 1u) {
-                ly[q] = y[q] - y[0];
-                ld[q] = d[q] - d[0];
-            }
-            let qy = hg_turn(rt, hourglass_coords(ly));
-            let qd = hg_turn(rt, hourglass_coords(ld));
+            let qy = hg_turn(rt, hourglass_coords(relative8(y)));
+            let qd = hg_turn(rt, hourglass_coords(relative8(d)));
             let rd = hourglass_response(material_op(info.y), qd);
             let h1 = scale * hg_dot(qy, rd);
             let h2 = 0.5 * scale * hg_dot(qd, rd);
-            let lame = mats[mb];
+            let lame = mats[info.y * MAT_STRIDE];
             let rtf0 = rt * f0;
             let rtf1 = rt * f1;
             let s0 = (rtf0 + transpose(rtf0)) * 0.5 - identity3();
@@ -580,73 +678,37 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
             let j0 = determinant(f0);
             let lin = vol * lame.x * 2.0 * e01 + h1;
             let quad = vol * lame.x * e11 + h2;
-            for (var k = 0u; k < kc; k = k + 1u) {
-                let a = candidate(k0 + k, mode);
-                // ½ λ V ((J_a − 1)² − (J_0 − 1)²) as a product, without cancellation.
-                let ja = determinant(f0 + f1 * a);
-                let vol_term = 0.5 * vol * lame.y * ((ja - j0) * (ja + j0 - 2.0));
-                acc[k] = acc[k] + a * (lin + a * quad) + vol_term;
+            let vl = 0.5 * vol * lame.y;
+            acc0 = element_line(acc0, a0, lin, quad, f0, f1, j0, vl);
+            if (blocks > 1u) {
+                acc1 = element_line(acc1, a1, lin, quad, f0, f1, j0, vl);
+            }
+            if (blocks > 2u) {
+                acc2 = element_line(acc2, a2, lin, quad, f0, f1, j0, vl);
+            }
+            if (blocks > 3u) {
+                acc3 = element_line(acc3, a3, lin, quad, f0, f1, j0, vl);
             }
         } else {
             let j = i - params.ne;
             if (!held_now(j)) {
-                let n = params.n;
-                let d = direction(j, mode);
-                let u = pos[R_Y * n + j].xyz - pos[R_T * n + j].xyz;
-                let w = 0.5 * nodes[j].x / params.h2;
-                for (var k = 0u; k < kc; k = k + 1u) {
-                    let a = candidate(k0 + k, mode);
-                    acc[k] = acc[k] + w * a * (2.0 * dot(d, u) + a * dot(d, d));
+                acc0 = node_line(acc0, j, a0);
+                if (blocks > 1u) {
+                    acc1 = node_line(acc1, j, a1);
                 }
-                // Penalty contacts: ½ k depth² along the step.
-                let mask = bitcast<u32>(ccol[C_TOUCH * n + j].y);
-                if (mask != 0u) {
-                    let sc = contact_scale(j);
-                    let y = pos[R_Y * n + j].xyz;
-                    for (var c = 0u; c < params.misc.x; c = c + 1u) {
-                        if ((mask & (1u << c)) == 0u) {
-                            continue;
-                        }
-                        let d0 = sc.x - collider_sdf(cols[c], y).w;
-                        for (var k = 0u; k < kc; k = k + 1u) {
-                            let da = sc.x - collider_sdf(cols[c], y + d * candidate(k0 + k, mode)).w;
-                            acc[k] = acc[k] + 0.5 * sc.y * (da * da - d0 * d0);
-                        }
-                    }
+                if (blocks > 2u) {
+                    acc2 = node_line(acc2, j, a2);
                 }
-                // Particle contacts this node holds: ½ k depth² with both nodes moving
-                // along the step, the pairs in contact at the line search's start (as the
-                // Newton iteration's forces).
-                let pr = pair_range(j);
-                if (pr.x < pr.y) {
-                    let sc = contact_scale(j);
-                    let y = pos[R_Y * n + j].xyz;
-                    for (var s = pr.x; s < pr.y; s = s + 1u) {
-                        let i = pair_at(s);
-                        let yi = pos[R_Y * n + i].xyz;
-                        let reach = sc.x + contact_scale(i).x;
-                        let len0 = length(y - yi);
-                        var di = direction(i, mode);
-                        if (held_now(i)) {
-                            di = vec3<f32>(0.0);
-                        }
-                        if (len0 >= reach || len0 <= 1e-12) {
-                            continue;
-                        }
-                        let d0 = reach - len0;
-                        for (var k = 0u; k < kc; k = k + 1u) {
-                            let a = candidate(k0 + k, mode);
-                            let da = reach - length(y + d * a - yi - di * a);
-                            acc[k] = acc[k] + 0.5 * sc.y * (da * da - d0 * d0);
-                        }
-                    }
+                if (blocks > 3u) {
+                    acc3 = node_line(acc3, j, a3);
                 }
             }
         }
     }
-    for (var k = 0u; k < kc; k = k + 1u) {
-        wsum[k][lid] = acc[k];
-    }
+    store_block(0u, acc0, kc, lid);
+    store_block(1u, acc1, kc, lid);
+    store_block(2u, acc2, kc, lid);
+    store_block(3u, acc3, kc, lid);
     reduce_partials(lid, wg.x, kc);
 }
 
@@ -907,22 +969,12 @@ fn forces(@builtin(global_invocation_id) gid: vec3<u32>) {
     let s = (rtf + transpose(rtf)) * 0.5 - identity3();
     let p = r * s * (2.0 * lame.x) + cofactor(f) * (lame.y * (determinant(f) - 1.0));
     let pv = p * volume;
-    var out: array<vec3<f32>, 8>;
-    for (var j = 0u; j < 8u; j = j + 1u) {
-        out[j] = -(pv * (corner_sign(j) / (4.0 * size)));
-    }
     // Hourglass: −R Σ_α h_α(j) (Q q)_α (V/h²) with q = Rᵀ q(x).
     let scale = volume / (size * size);
-    var lx: array<vec3<f32>, 8>;
-    for (var q2 = 0u; q2 < 8u; q2 = q2 + 1u) {
-        lx[q2] = x[q2] - x[0];
-    }
-    let rq = hourglass_response(material_op(b), hg_turn(transpose(r), hourglass_coords(lx)));
+    let rq = hourglass_response(material_op(b), hg_turn(transpose(r), hourglass_coords(relative8(x))));
     for (var j = 0u; j < 8u; j = j + 1u) {
-        out[j] = out[j] - r * (hourglass_row(j, rq) * scale);
-    }
-    for (var j = 0u; j < 8u; j = j + 1u) {
-        ef[8u * e + j] = vec4<f32>(out[j], 0.0);
+        let out = -(pv * (corner_sign(j) / (4.0 * size))) - r * (hourglass_row(j, rq) * scale);
+        ef[8u * e + j] = vec4<f32>(out, 0.0);
     }
 }
 
@@ -1943,13 +1995,24 @@ fn packed(r: u32, c: u32) -> u32 {
 
 // Adds block `blk` at local nodes (i, k), k <= i (its lower part where i = k).
 fn chol_add(i: u32, k: u32, blk: mat3x3<f32>) {
-    for (var r = 0u; r < 3u; r = r + 1u) {
-        for (var c = 0u; c < 3u; c = c + 1u) {
-            if (3u * k + c <= 3u * i + r) {
-                let p = packed(3u * i + r, 3u * k + c);
-                chol[p] = chol[p] + blk[c][r];
-            }
-        }
+    // Row by row, each column of the block a value of its own (no matrix indexed in a
+    // loop: those live in slow memory).
+    chol_add_row(3u * i, 3u * k, vec3<f32>(blk[0].x, blk[1].x, blk[2].x));
+    chol_add_row(3u * i + 1u, 3u * k, vec3<f32>(blk[0].y, blk[1].y, blk[2].y));
+    chol_add_row(3u * i + 2u, 3u * k, vec3<f32>(blk[0].z, blk[1].z, blk[2].z));
+}
+
+// Adds v to row `row` of `chol` at columns col .. col + 3 on or below the diagonal.
+fn chol_add_row(row: u32, col: u32, v: vec3<f32>) {
+    let p = packed(row, col);
+    if (col <= row) {
+        chol[p] = chol[p] + v.x;
+    }
+    if (col + 1u <= row) {
+        chol[p + 1u] = chol[p + 1u] + v.y;
+    }
+    if (col + 2u <= row) {
+        chol[p + 2u] = chol[p + 2u] + v.z;
     }
 }
 
@@ -2065,6 +2128,20 @@ fn stepped(a: f32, ci: vec3<f32>, cj: vec3<f32>) -> f32 {
     return a - ci.x * cj.x - ci.y * cj.y - ci.z * cj.z;
 }
 
+// Entry (i, j) of `chol` (where j <= i) after the pivot nodes' steps: the first's
+// (ci, cj), then the second's (di, dj) where there is a `pair`.
+fn trailing_step(i: u32, j: u32, ci: vec3<f32>, di: vec3<f32>, cj: vec3<f32>, dj: vec3<f32>,
+                 pair: bool) {
+    if (j <= i) {
+        let p = packed(i, j);
+        var x = stepped(chol[p], ci, cj);
+        if (pair) {
+            x = stepped(x, di, dj);
+        }
+        chol[p] = x;
+    }
+}
+
 // Eliminates `chol` (nn nodes, m = 3 nn rows, and the border row m where `border`) in
 // place: every step k applies a_ij -= a_ik (a_jk / d_k) to the rows and columns past k,
 // each entry's three updates a node in column order, so the result is the
@@ -2164,14 +2241,21 @@ fn exact_eliminate(lid: u32, nn: u32, border: bool) -> bool {
             }
             let bq = q - a * (a + 1u) / 2u;
             let jb = past + 3u * bq;
-            var cj: array<vec3<f32>, 3>;
-            var dj: array<vec3<f32>, 3>;
-            for (var c = 0u; c < 3u; c = c + 1u) {
-                let pj = packed(jb + c, k0);
-                cj[c] = vec3<f32>(chol[pj], chol[pj + 1u], chol[pj + 2u]) * v.inv;
-                if (pair) {
-                    dj[c] = vec3<f32>(chol[pj + 3u], chol[pj + 4u], chol[pj + 5u]) * w.inv;
-                }
+            // The three columns' scaled pivot rows, each a value of its own (no array
+            // indexed in a loop: those live in slow memory).
+            let pj = packed(jb, k0);
+            let pj1 = packed(jb + 1u, k0);
+            let pj2 = packed(jb + 2u, k0);
+            let cj0 = vec3<f32>(chol[pj], chol[pj + 1u], chol[pj + 2u]) * v.inv;
+            let cj1 = vec3<f32>(chol[pj1], chol[pj1 + 1u], chol[pj1 + 2u]) * v.inv;
+            let cj2 = vec3<f32>(chol[pj2], chol[pj2 + 1u], chol[pj2 + 2u]) * v.inv;
+            var dj0 = vec3<f32>(0.0);
+            var dj1 = vec3<f32>(0.0);
+            var dj2 = vec3<f32>(0.0);
+            if (pair) {
+                dj0 = vec3<f32>(chol[pj + 3u], chol[pj + 4u], chol[pj + 5u]) * w.inv;
+                dj1 = vec3<f32>(chol[pj1 + 3u], chol[pj1 + 4u], chol[pj1 + 5u]) * w.inv;
+                dj2 = vec3<f32>(chol[pj2 + 3u], chol[pj2 + 4u], chol[pj2 + 5u]) * w.inv;
             }
             let rows = select(3u, 1u, a == t);
             for (var r = 0u; r < rows; r = r + 1u) {
@@ -2182,17 +2266,9 @@ fn exact_eliminate(lid: u32, nn: u32, border: bool) -> bool {
                 if (pair) {
                     di = vec3<f32>(chol[pi + 3u], chol[pi + 4u], chol[pi + 5u]);
                 }
-                for (var c = 0u; c < 3u; c = c + 1u) {
-                    let j = jb + c;
-                    if (j <= i) {
-                        let p = packed(i, j);
-                        var x = stepped(chol[p], ci, cj[c]);
-                        if (pair) {
-                            x = stepped(x, di, dj[c]);
-                        }
-                        chol[p] = x;
-                    }
-                }
+                trailing_step(i, jb, ci, di, cj0, dj0, pair);
+                trailing_step(i, jb + 1u, ci, di, cj1, dj1, pair);
+                trailing_step(i, jb + 2u, ci, di, cj2, dj2, pair);
             }
         }
         kb = kb + step;
@@ -2911,7 +2987,12 @@ fn recycled(j: u32) -> vec3<f32> {
 // r), which together are the rows' sums without evaluating a row.
 @compute @workgroup_size(64)
 fn cg_two_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
-    var t = array<f32, 5>(0.0, 0.0, 0.0, 0.0, 0.0);
+    // The five sums, each a value of its own (no array indexed in a loop).
+    var t0 = 0.0;
+    var t1 = 0.0;
+    var t2 = 0.0;
+    var t3 = 0.0;
+    var t4 = 0.0;
     let ch = chunk(pc.first + wg.x);
     let zo = V_DELTA * params.n_total;
     for (var i = ch.x + lid; i < ch.x + ch.y; i = i + LWG) {
@@ -2929,9 +3010,9 @@ fn cg_two_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
                                   recycled(c1.x), recycled(c1.y), recycled(c1.z), recycled(c1.w));
             let uz = cube_response(op, mz);
             let up = cube_response(op, mp);
-            t[0] = t[0] + k.y * cube_product(uz, mz);
-            t[1] = t[1] + k.y * cube_product(uz, mp);
-            t[2] = t[2] + k.y * cube_product(up, mp);
+            t0 = t0 + k.y * cube_product(uz, mz);
+            t1 = t1 + k.y * cube_product(uz, mp);
+            t2 = t2 + k.y * cube_product(up, mp);
         } else {
             let j = i - params.ne;
             if (!held_now(j)) {
@@ -2941,17 +3022,19 @@ fn cg_two_terms(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
                 let m = nodes[j].x / params.h2;
                 let s = extra_block(j);
                 let az = z * m + s * z;
-                t[0] = t[0] + dot(z, az);
-                t[1] = t[1] + dot(p, az);
-                t[2] = t[2] + dot(p, p * m + s * p);
-                t[3] = t[3] + dot(r, z);
-                t[4] = t[4] + dot(r, p);
+                t0 = t0 + dot(z, az);
+                t1 = t1 + dot(p, az);
+                t2 = t2 + dot(p, p * m + s * p);
+                t3 = t3 + dot(r, z);
+                t4 = t4 + dot(r, p);
             }
         }
     }
-    for (var k = 0u; k < 5u; k = k + 1u) {
-        wsum[k][lid] = t[k];
-    }
+    wsum[0][lid] = t0;
+    wsum[1][lid] = t1;
+    wsum[2][lid] = t2;
+    wsum[3][lid] = t3;
+    wsum[4][lid] = t4;
     reduce_partials(lid, wg.x, 5u);
 }
 
