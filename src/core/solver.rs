@@ -138,13 +138,11 @@ pub struct SolverSettings {
     /// schedule: the coarsest level first, each level's corrections prolongated to the
     /// finer level, level 0 last with `iterations`). Only bodies built with a hierarchy
     /// ([`super::model::BodyDesc::hierarchy`]) have coarse levels; 0 skips them. The
-    /// default 20 was measured to reach tight residuals much sooner than 10 or 5 on a
-    /// stiff 50,000-particle bar (BENCHMARKS.md, "Hierarchy": 6–20x faster than flat to
-    /// 5e-4 and below). For loose solves use fewer: to a residual of 1e-3 the GPU's
-    /// coarse pass is cheaper with 3–5 (2.9–4.4x faster than flat) than with 20 (1.0–1.2x),
-    /// as a small level's dispatch costs about as much as a large one's; 4 was 3x faster
-    /// than flat both at 1e-3 and at 5e-4 on the H100 (3.2x, 3.3x) and on the CPU (5.4x,
-    /// 4.6x).
+    /// default 20 reaches tight residuals (5e-4 and below) much sooner than 10 or 5 on a
+    /// stiff bar. For loose solves (a residual near 1e-3) use fewer, 3–5: a small level's
+    /// dispatch costs about as much as a large one's, so on the GPU the coarse pass is
+    /// then cheaper; 4 does well at both. BENCHMARKS.md ("Hierarchy") has the
+    /// measurements.
     pub coarse_iterations: u32,
     /// The constraints of the coarse levels.
     pub coarse_constraint: CoarseConstraint,

@@ -189,7 +189,9 @@ fn pair_at(s: u32) -> u32 {
     return bitcast<u32>(v[s % 4u]);
 }
 
-// Deformation gradient at the centre of a cube of edge `size` (core::element::element_gradient).
+// Deformation gradient at the centre of a cube of edge `size` (core::element::element_gradient),
+// its seven corner terms written out (a small array indexed in a loop is kept in slow
+// per-thread memory, not registers).
 fn element_gradient(x: array<vec3<f32>, 8>, size: f32) -> mat3x3<f32> {
     let s = 1.0 / (4.0 * size);
     let o = x[0];
@@ -246,6 +248,7 @@ fn corner_velocity_steps(e: u32) -> array<vec3<f32>, 8> {
                                free_step(c1.z, velocity_step(c1.z)), free_step(c1.w, velocity_step(c1.w)));
 }
 
+// The V-cycle's correction at node j (`direction`'s mode 1), none where it is held now.
 fn line_step(j: u32) -> vec3<f32> {
     return free_step(j, vecs[V_DELTA * params.n_total + j].xyz);
 }
