@@ -607,7 +607,7 @@ fn node_line(acc: vec4<f32>, j: u32, av: vec4<f32>) -> vec4<f32> {
     return out;
 }
 
-// Sums 4 blk .. 4 blk + 3 of a workgroup's line-search sums (those below kc) into wsum.
+// Stores this thread's line-search sums 4 blk .. 4 blk + 3 (those below kc) in wsum.
 fn store_block(blk: u32, v: vec4<f32>, kc: u32, lid: u32) {
     for (var c = 0u; c < 4u; c = c + 1u) {
         if (4u * blk + c < kc) {
