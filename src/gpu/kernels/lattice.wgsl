@@ -280,10 +280,12 @@ fn free_step(j: u32, d: vec3<f32>) -> vec3<f32> {
     return select(d, vec3<f32>(0.0), held_now(j));
 }
 
+// The first iterate's candidates y + s (y − x), s = 0, −½, −¾, −1, as one vector.
+const FIRST_STEPS: vec4<f32> = vec4<f32>(0.0, -0.5, -0.75, -1.0);
+
 fn candidate(k: u32, mode: u32) -> f32 {
     if (mode == 0u) {
-        var s = array<f32, 4>(0.0, -0.5, -0.75, -1.0);
-        return s[k];
+        return FIRST_STEPS[k];
     }
     return exp2(-f32(k));
 }
@@ -430,25 +432,17 @@ fn swept_gap(r1: vec3<f32>, v: vec3<f32>, a: f32) -> f32 {
 // Written by thread 0, read through `workgroupUniformLoad` (a uniform branch).
 var<workgroup> chunk_idle: u32;
 
-// The energy table's chunk of workgroup wg (pc.first + wg of its chunks): x its first
-// item, y its item count, z its body. Items below `ne` are elements, the rest nodes.
-fn energy_chunk(wg: u32) -> vec4<u32> {
-    return chunk(pc.first + wg);
-}
-
-// The first iterate's candidates y + s (y − x) (`candidate`'s mode 0), as one vector.
-const FIRST_STEPS: vec4<f32> = vec4<f32>(0.0, -0.5, -0.75, -1.0);
-
 // The first iterate's energy changes: for each of the FIRST_CANDIDATES (4) candidates
 // s = 0, −½, −¾, −1 (FIRST_STEPS) its energy's change from the first, each element's
 // rotation refined per candidate; then the energy's scale at the first candidate (for
-// `pick`'s ties). One partial sum each per chunk of the energy table. A kernel of its
-// own beside the line search's `energy`: its four candidates stay in registers.
+// `pick`'s ties). One partial sum each per chunk of the energy table (items below `ne`
+// elements, the rest nodes). A kernel of its own beside the line search's `energy`: its
+// four candidates stay in registers.
 @compute @workgroup_size(64)
 fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: vec3<u32>) {
     var acc = vec4<f32>(0.0);
     var scale = 0.0;
-    let ch = energy_chunk(wg.x);
+    let ch = chunk(pc.first + wg.x);
     let end = ch.x + ch.y;
     for (var i = ch.x + lid; i < end; i = i + LWG) {
         if (i < params.ne) {
@@ -464,12 +458,12 @@ fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
             // rotation.
             let f0 = element_gradient(y, size);
             let f1 = element_gradient(d, size);
-            // The FIRST_CANDIDATES (4) candidates s = 0, −½, −¾, −1 (`candidate`)
+            // The FIRST_CANDIDATES (4) candidates s = 0, −½, −¾, −1 (FIRST_STEPS)
             // written out, so that their rotations and energies stay in registers.
-            let fa = f0 + f1 * 0.0;
-            let fb = f0 + f1 * -0.5;
-            let fc = f0 + f1 * -0.75;
-            let fd = f0 + f1 * -1.0;
+            let fa = f0 + f1 * FIRST_STEPS.x;
+            let fb = f0 + f1 * FIRST_STEPS.y;
+            let fc = f0 + f1 * FIRST_STEPS.z;
+            let fd = f0 + f1 * FIRST_STEPS.w;
             let ra = quat_mat(extract_rotation(fa, q0, params.rot_iters));
             let rb = quat_mat(extract_rotation(fb, q0, params.rot_iters));
             let rc = quat_mat(extract_rotation(fc, q0, params.rot_iters));
@@ -486,10 +480,10 @@ fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
             let hy = hourglass_coords(dy);
             let hd = hourglass_coords(dd);
             let half = 0.5 * bitcast<f32>(info.w) / (size * size);
-            let qa = hg_turn(transpose(ra), hg_add(hy, hd, 0.0));
-            let qb = hg_turn(transpose(rb), hg_add(hy, hd, -0.5));
-            let qc = hg_turn(transpose(rc), hg_add(hy, hd, -0.75));
-            let qd = hg_turn(transpose(rd), hg_add(hy, hd, -1.0));
+            let qa = hg_turn(transpose(ra), hg_add(hy, hd, FIRST_STEPS.x));
+            let qb = hg_turn(transpose(rb), hg_add(hy, hd, FIRST_STEPS.y));
+            let qc = hg_turn(transpose(rc), hg_add(hy, hd, FIRST_STEPS.z));
+            let qd = hg_turn(transpose(rd), hg_add(hy, hd, FIRST_STEPS.w));
             ea = ea + half * hg_dot(qa, hourglass_response(op, qa));
             eb = eb + half * hg_dot(qb, hourglass_response(op, qb));
             ec = ec + half * hg_dot(qc, hourglass_response(op, qc));
@@ -633,7 +627,7 @@ fn energy(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wg: 
     var acc1 = vec4<f32>(0.0);
     var acc2 = vec4<f32>(0.0);
     var acc3 = vec4<f32>(0.0);
-    let ch = energy_chunk(wg.x);
+    let ch = chunk(pc.first + wg.x);
     let end = ch.x + ch.y;
     if (mode == 2u) {
         // The second pass is for the pending bodies only: a chunk of another body leaves
