@@ -11,14 +11,14 @@ fn sym_from(l0: vec4<f32>, l1: vec4<f32>) -> mat3x3<f32> {
     );
 }
 
+fn vec_finite(v: vec3<f32>) -> bool {
+    return all(v == v) && all(abs(v) <= vec3<f32>(3.4028235e38));
+}
+
+// Every entry finite (columns written out: a matrix indexed in a loop may be kept in
+// per-thread memory rather than registers).
 fn mat_finite(m: mat3x3<f32>) -> bool {
-    var ok = true;
-    for (var c = 0; c < 3; c = c + 1) {
-        for (var r = 0; r < 3; r = r + 1) {
-            ok = ok && is_finite_f(m[c][r]);
-        }
-    }
-    return ok;
+    return vec_finite(m[0]) && vec_finite(m[1]) && vec_finite(m[2]);
 }
 
 // Hyperelastic: Δx = M X + t.
@@ -178,13 +178,12 @@ fn solve_cluster(c: u32, mo: Moments) {
             let q = cr.basis;
             let rp = transpose(q) * rhs * q;
             let wv = cr.values_vol.xyz;
-            var dl = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
-            for (var a = 0; a < 3; a = a + 1) {
-                for (var b = 0; b < 3; b = b + 1) {
-                    let denom = 0.5 * (wv[a] + wv[b]) + alpha_d;
-                    dl[b][a] = scale * rp[b][a] / denom;
-                }
-            }
+            // Entry (a, b): scale rp_ab / (½ (w_a + w_b) + α), a column at a time.
+            var dl = mat3x3<f32>(
+                scale * rp[0] / (0.5 * (wv + vec3<f32>(wv.x)) + alpha_d),
+                scale * rp[1] / (0.5 * (wv + vec3<f32>(wv.y)) + alpha_d),
+                scale * rp[2] / (0.5 * (wv + vec3<f32>(wv.z)) + alpha_d),
+            );
             dl = q * dl * transpose(q);
             dl = (dl + transpose(dl)) * 0.5;
             if (mat_finite(dl)) {
