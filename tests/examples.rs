@@ -200,10 +200,17 @@ fn speed_accuracy_quick_fills_every_cell() {
     let mut cells = std::collections::BTreeMap::<String, Option<f64>>::new();
     for line in csv.lines().skip(1) {
         let f: Vec<&str> = line.split(',').collect();
-        assert_eq!(f.len(), 10, "row {line}");
+        assert_eq!(f.len(), 11, "row {line}");
         let ms: f64 = f[8].parse().unwrap();
         assert!(ms.is_finite() && ms > 0.0, "{line}");
-        let error = (f[9] != "diverged").then(|| f[9].parse::<f64>().unwrap());
+        // The GPU's wall clock: on the GPU rows only.
+        if f[3].starts_with("GPU") {
+            let wall: f64 = f[9].parse().unwrap();
+            assert!(wall.is_finite() && wall > 0.0, "{line}");
+        } else {
+            assert!(f[9].is_empty(), "{line}");
+        }
+        let error = (f[10] != "diverged").then(|| f[10].parse::<f64>().unwrap());
         if let Some(e) = error {
             assert!(e.is_finite() && e >= 0.0, "{line}");
         }
