@@ -42,7 +42,7 @@
 //! ms per step is the wall clock of the steps on the CPU. On the GPU it is the GPU's own
 //! time of the steps, from timestamps written before and after each batch of steps (the
 //! wall clock from submission to completion where the adapter has no timestamp
-//! queries); the GPU is kept busy for 0.2 s before each run, so that its clocks are up
+//! queries); the GPU is kept busy for 0.5 s before each run, so that its clocks are up
 //! from idle. The CSV has the GPU's wall clock as well: at ~1,000 particles it sits at
 //! the submission's latency floor.
 //!
@@ -458,11 +458,11 @@ struct Gpu {
 }
 
 impl Gpu {
-    /// Steps the warm-up world for 0.2 s, so that the GPU's clocks are up from idle when
+    /// Steps the warm-up world for 0.5 s, so that the GPU's clocks are up from idle when
     /// a run starts (between runs the host builds models and measures errors).
     fn warm_up(&self) {
         let t = Instant::now();
-        while t.elapsed().as_secs_f64() < 0.2 {
+        while t.elapsed().as_secs_f64() < 0.5 {
             let mut enc = self.g.device.create_command_encoder(&Default::default());
             self.warm.record(&mut enc, &self.lattice, 10, None);
             self.g.queue.submit([enc.finish()]);
