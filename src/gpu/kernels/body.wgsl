@@ -65,9 +65,9 @@ fn local_const(body: Body, t: u32) -> LocalConst {
 // The first indices of a particle's two lists: its cluster's first two rounds of four
 // members and the first four clusters that contain it (zero where a list is shorter).
 // The same in every iteration: `run_substep` loads them once and keeps them over all its
-// iterations (H100, 1,000 bodies apart: 1.51 → 1.46 ms per step); `body_iteration` loads
-// them at the head of each pass (loading them, with the rest of `LocalConst`, before the
-// contact pass measured slower: 1,000 touching bodies 2.26 → 2.56 ms; BENCHMARKS.md).
+// iterations (measured faster with 1,000 bodies apart); `body_iteration` loads them at
+// the head of each pass (loading them, with the rest of `LocalConst`, before the
+// contact pass measured slower with 1,000 touching bodies; BENCHMARKS.md).
 struct ListHead {
     jn: vec4<u32>,
     jm: vec4<u32>,

@@ -30,10 +30,9 @@ fn store_affine(c: u32, m: mat3x3<f32>, t: vec3<f32>) {
 }
 
 // One thread per cluster: its moments summed over the members in list order (the CPU
-// twin's order), then its solve. Measured on an H100 (BENCHMARKS.md, "GPU"): threads
-// sharing a cluster (8, 4 or 2 lanes summing every LANES-th member, one lane solving)
-// were slower at 37,982 and at 1M clusters (1M: 7.6 ms per step with 8 lanes, 4.2 ms
-// with one), as the solve then runs on one lane in LANES. Small ranges use
+// twin's order), then its solve. Threads sharing a cluster (8, 4 or 2 lanes summing
+// every LANES-th member, one lane solving) measured slower on large ranges
+// (BENCHMARKS.md, "GPU"), as the solve then runs on one lane in LANES. Small ranges use
 // solve_clusters_lanes below (world.rs, LANE_CLUSTERS_BELOW).
 @compute @workgroup_size(128)
 fn solve_clusters(
@@ -61,9 +60,8 @@ fn solve_clusters(
 // The same for small ranges (the hierarchy's coarse levels, small worlds): LANES threads
 // share a cluster, each sums every LANES-th member, the partial sums are combined in lane
 // order (deterministic) and lane 0 solves. Eight times the threads hide the latency of
-// the member reads where a thread per cluster would leave the GPU mostly idle: on an
-// H100 the bar's coarse pass (6,534 and 972 clusters) took 1.06 ms with a thread per
-// cluster against 0.70 ms with 8 lanes (BENCHMARKS.md, "Hierarchy").
+// the member reads where a thread per cluster would leave the GPU mostly idle (measured
+// on the hierarchy's coarse passes: BENCHMARKS.md, "Hierarchy").
 const LANES: u32 = 8u;
 var<workgroup> part: array<array<vec4<f32>, 4>, 128>;
 
@@ -89,8 +87,8 @@ fn solve_clusters_lanes(
         com = crest[c].com_mass.xyz;
         origin = x[params.p_base + lists[start]].xyz;
         // Four of the lane's members at a time (their loads in flight together), added
-        // in the lane's order. On an H100 the bar's coarse pass went from about 0.81 to
-        // 0.76 ms: on a small level the solve after the sums is most of a dispatch.
+        // in the lane's order (a small gain on the coarse passes: on a small level the
+        // solve after the sums is most of a dispatch).
         var s = start + lane;
         loop {
             if (s + 3u * LANES >= end) {

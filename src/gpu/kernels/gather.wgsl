@@ -61,8 +61,7 @@ fn rigid_part(q: vec4<f32>, ta: vec4<f32>, xr: vec3<f32>) -> vec4<f32> {
 // LANES threads share a particle: each applies every LANES-th cluster correction to the
 // particle (shape matching: a quaternion rotation, 32 B read; hyperelastic: an affine
 // map, 48 B), the partial sums are combined in lane order and lane 0 finishes. Four
-// lanes measured fastest on an H100 (8: 0.161 → 0.136 ms per step at 37,982 particles,
-// 2.97 → 2.23 at 1M; 16 slower; BENCHMARKS.md).
+// lanes measured fastest (against 8 and 16, from 37,982 to 1M particles; BENCHMARKS.md).
 const LANES: u32 = 4u;
 var<workgroup> part: array<vec4<f32>, 128>;
 

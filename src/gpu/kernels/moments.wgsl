@@ -111,7 +111,7 @@ fn moments_from(ms: MemberScan, use_p: bool) -> Moments {
     var s = ms.start;
     // The indices of the next two rounds of four are loaded while the current four
     // members' positions are, so the index loads leave the chain of memory round trips
-    // (one ahead: no gain at 37,982 on an H100; two ahead: clusters 0.148 → 0.141 ms).
+    // (one ahead measured no gain, two ahead a small one; BENCHMARKS.md).
     var jn = ms.jn;
     var jm = ms.jm;
     loop {
