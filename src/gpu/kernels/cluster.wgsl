@@ -11,6 +11,7 @@ fn sym_from(l0: vec4<f32>, l1: vec4<f32>) -> mat3x3<f32> {
     );
 }
 
+// Every component finite (`is_finite_f` of each).
 fn vec_finite(v: vec3<f32>) -> bool {
     return all(v == v) && all(abs(v) <= vec3<f32>(3.4028235e38));
 }
