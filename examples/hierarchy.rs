@@ -406,13 +406,12 @@ fn gpu_curve(
         let mut prof = GpuProfiler::new(&g.device, &g.queue, 4);
         // Warm the GPU up first (1 s of steps): an idle GPU runs at a lower clock; after
         // the host built a model, short bursts (or 0.2 s of warm-up) timed up to 5x slower.
-        let warm = Instant::now();
-        while warm.elapsed().as_secs_f64() < 1.0 {
+        bench::keep_gpu_busy(1.0, || {
             let mut enc = g.device.create_command_encoder(&Default::default());
             world.record_steps(&mut enc, &g.kernels, 2, &mut NoTiming);
             g.queue.submit([enc.finish()]);
             bench::sync(g, &world);
-        }
+        });
         let mut times = Vec::new();
         for _ in 0..5 {
             let mut enc = g.device.create_command_encoder(&Default::default());

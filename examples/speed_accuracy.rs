@@ -458,11 +458,11 @@ struct Gpu {
 }
 
 impl Gpu {
-    /// Steps the warm-up world for 0.5 s, so that the GPU's clocks are up from idle when
-    /// a run starts (between runs the host builds models and measures errors).
+    /// Steps the warm-up world for [`bench::GPU_WARM_UP_S`], so that the GPU's clocks are
+    /// up from idle when a run starts (between runs the host builds models and measures
+    /// errors).
     fn warm_up(&self) {
-        let t = Instant::now();
-        while t.elapsed().as_secs_f64() < 0.5 {
+        bench::keep_gpu_busy(bench::GPU_WARM_UP_S, || {
             let mut enc = self.g.device.create_command_encoder(&Default::default());
             self.warm.record(&mut enc, &self.lattice, 10, None);
             self.g.queue.submit([enc.finish()]);
@@ -473,7 +473,7 @@ impl Gpu {
                 0,
                 16,
             ));
-        }
+        });
     }
 }
 

@@ -203,16 +203,12 @@ fn gpu_cell(g: &Headless, model: &Model, k: u32, steps: u32, repeats: usize) -> 
         }
         enc.finish()
     };
-    // Warm-up (and the GPU's clocks up: 10 steps, then at least 0.5 s of steps).
-    let warm = Instant::now();
-    let cmd = record(&mut world, 10);
-    g.queue.submit([cmd]);
-    bench::sync(g, &world);
-    while warm.elapsed().as_secs_f64() < 0.5 {
+    // Warm-up (and the GPU's clocks up): rounds of 10 steps.
+    bench::keep_gpu_busy(bench::GPU_WARM_UP_S, || {
         let cmd = record(&mut world, 10);
         g.queue.submit([cmd]);
         bench::sync(g, &world);
-    }
+    });
     let mut runs = Vec::new();
     for _ in 0..repeats {
         let cmd = record(&mut world, steps);
@@ -347,11 +343,9 @@ fn lattice_gpu(
         let _ = read_buffer(&g.device, &g.queue, world.pos_buffer(), 0, 16);
         t.elapsed().as_secs_f64() * 1e3 / n as f64
     };
-    let warm = Instant::now();
-    run(10, None);
-    while warm.elapsed().as_secs_f64() < 0.5 {
+    bench::keep_gpu_busy(bench::GPU_WARM_UP_S, || {
         run(10, None);
-    }
+    });
     let runs: Vec<f64> = (0..repeats).map(|_| run(steps, None)).collect();
     let gpu = GpuProfiler::new(&g.device, &g.queue, 1).and_then(|mut prof| {
         run(steps, Some(&mut prof));

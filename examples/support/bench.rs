@@ -99,6 +99,24 @@ pub fn open_gpu() -> Result<Headless, String> {
     bevy_tissue::gpu::headless_with(gpu_settings())
 }
 
+/// Seconds of GPU work before a timed GPU run: an idle GPU runs at a lower clock, and
+/// after the host has spent seconds building a model or measuring an error, runs timed
+/// after a shorter warm-up (0.2 s) were measured up to 5x slower.
+pub const GPU_WARM_UP_S: f64 = 0.5;
+
+/// Calls `round` (a submission of a few steps, waited for) at least once and then until
+/// `seconds` have passed since the first call: keeps the GPU busy so that its clocks are
+/// up for what is timed next.
+pub fn keep_gpu_busy(seconds: f64, mut round: impl FnMut()) {
+    let t = std::time::Instant::now();
+    loop {
+        round();
+        if t.elapsed().as_secs_f64() >= seconds {
+            break;
+        }
+    }
+}
+
 /// Waits for all submitted GPU work (a one-particle read cannot finish before it).
 pub fn sync(g: &Headless, world: &GpuWorld) {
     let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
