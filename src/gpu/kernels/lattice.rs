@@ -240,7 +240,7 @@ pub const ENTRIES: &[Entry] = &[
     Entry {
         kernel: Kernel::Predict,
         name: "predict",
-        uses: &["params", "cols", "pos", "ccol", "nodes"],
+        uses: &["params", "cols", "pos", "ccol", "nodes", "mats"],
     },
     Entry {
         kernel: Kernel::EnergyFirst,

@@ -411,8 +411,28 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     pos[R_T * n + j] = vec4<f32>(t, 0.0);
-    pos[R_Y * n + j] = vec4<f32>(y, 0.0);
+    pos[R_Y * n + j] = vec4<f32>(y, node_tag(j));
     ccol[C_COL * n + j] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+}
+
+// What the particle contacts read of a partner node with its iterate, in the w of its
+// `R_Y` slot (set by `predict`, kept by every later write of the substep): its contact
+// radius (m), the sign bit set where it is held now (`held_now`, fixed for the substep
+// once `predict` has updated the grasps).
+fn node_tag(j: u32) -> f32 {
+    let r = mats[u32(nodes[j].w) * MAT_STRIDE].z;
+    return select(r, -r, held_now(j));
+}
+
+// A node's contact radius (m) from its tag (`node_tag`).
+fn tag_radius(w: f32) -> f32 {
+    return abs(w);
+}
+
+// Whether a node is held now, from its tag (`node_tag`; the sign bit, so a radius of 0
+// keeps it).
+fn tag_held(w: f32) -> bool {
+    return (bitcast<u32>(w) & 0x80000000u) != 0u;
 }
 
 // The closest distance of two nodes over their straight paths from the step's start to
@@ -510,10 +530,10 @@ fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
                     let y = pos[R_Y * n + j].xyz;
                     for (var s = pr.x; s < pr.y; s = s + 1u) {
                         let i = pair_at(s);
-                        let yi = pos[R_Y * n + i].xyz;
-                        let reach = sc.x + contact_scale(i).x;
-                        let di = free_step(i, velocity_step(i));
-                        let r1 = y - yi;
+                        let yi = pos[R_Y * n + i];
+                        let reach = sc.x + tag_radius(yi.w);
+                        let di = select(yi.xyz - pos[R_X * n + i].xyz, vec3<f32>(0.0), tag_held(yi.w));
+                        let r1 = y - yi.xyz;
                         let v = d - di;
                         let o0 = max(reach - swept_gap(r1, v, 0.0), 0.0);
                         let oa = max(vec4<f32>(reach - swept_gap(r1, v, FIRST_STEPS.x),
@@ -585,13 +605,14 @@ fn node_line(acc: vec4<f32>, j: u32, av: vec4<f32>) -> vec4<f32> {
         let sc = contact_scale(j);
         for (var s = pr.x; s < pr.y; s = s + 1u) {
             let i = pair_at(s);
-            let yi = pos[R_Y * n + i].xyz;
-            let reach = sc.x + contact_scale(i).x;
+            let yt = pos[R_Y * n + i];
+            let yi = yt.xyz;
+            let reach = sc.x + tag_radius(yt.w);
             let len0 = length(y - yi);
             if (len0 >= reach || len0 <= 1e-12) {
                 continue;
             }
-            let di = line_step(i);
+            let di = select(vecs[V_DELTA * params.n_total + i].xyz, vec3<f32>(0.0), tag_held(yt.w));
             let d0 = reach - len0;
             let da = reach - vec4<f32>(length(y + d * av.x - yi - di * av.x), length(y + d * av.y - yi - di * av.y),
                                        length(y + d * av.z - yi - di * av.z), length(y + d * av.w - yi - di * av.w));
@@ -932,8 +953,8 @@ fn advance(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let a = red[body_slot(node_body(j), B_ALPHA)];
     if (!held_now(j) && a != 0.0) {
-        let y = pos[R_Y * params.n + j].xyz;
-        pos[R_Y * params.n + j] = vec4<f32>(y + direction(j, pc.mode & 1u) * a, 0.0);
+        let y = pos[R_Y * params.n + j];
+        pos[R_Y * params.n + j] = vec4<f32>(y.xyz + direction(j, pc.mode & 1u) * a, y.w);
     }
     if ((pc.mode & 2u) != 0u) {
         boundary_node(j, false);
@@ -2679,31 +2700,33 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
         }
         for (var s = pr.x; s < pr.y; s = s + 1u) {
             let i = pair_at(s);
-            let d = y - pos[R_Y * n + i].xyz;
-            let reach = r + contact_scale(i).x;
+            let yi = pos[R_Y * n + i];
+            let d = y - yi.xyz;
+            let reach = r + tag_radius(yi.w);
             let len = length(d);
             if (len >= reach || len <= 1e-12) {
                 continue;
             }
             let nn = d / len;
             rhs = rhs + nn * (sc.y * (reach - len));
-            extra = extra + outer(nn, nn) * (sc.y * select(1.0, 2.0, !held_now(i)));
+            extra = extra + outer(nn, nn) * (sc.y * select(1.0, 2.0, !tag_held(yi.w)));
         }
         for (var s = pr.z; s < pr.w; s = s + 1u) {
             let i = pair_at(s);
-            if (held_now(i)) {
+            let yi = pos[R_Y * n + i];
+            if (tag_held(yi.w)) {
                 continue;
             }
-            let d = pos[R_Y * n + i].xyz - y;
-            let si = contact_scale(i);
-            let reach = r + si.x;
+            let d = yi.xyz - y;
+            let reach = r + tag_radius(yi.w);
             let len = length(d);
             if (len >= reach || len <= 1e-12) {
                 continue;
             }
             let nn = d / len;
-            rhs = rhs - nn * (si.y * (reach - len));
-            extra = extra + outer(nn, nn) * (si.y * 2.0);
+            let k = contact_scale(i).y;
+            rhs = rhs - nn * (k * (reach - len));
+            extra = extra + outer(nn, nn) * (k * 2.0);
         }
         vecs[ri] = vec4<f32>(rhs, 0.0);
     }
@@ -2775,11 +2798,15 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
         var count = 0u;
         for (var s = pr.x; s < pr.y; s = s + 1u) {
             let i = pair_at(s);
-            let delta = y - pos[R_Y * n + i].xyz;
-            let dist = rj + contact_scale(i).x;
+            let yi = pos[R_Y * n + i];
+            let delta = y - yi.xyz;
+            let dist = rj + tag_radius(yi.w);
             let l2 = dot(delta, delta);
+            if (l2 >= dist * dist || l2 <= 1e-24) {
+                continue;
+            }
             let w = wj + pair_inv_mass(i);
-            if (l2 >= dist * dist || l2 <= 1e-24 || w <= 0.0) {
+            if (w <= 0.0) {
                 continue;
             }
             let l = sqrt(l2);
@@ -2812,13 +2839,14 @@ fn boundary_node(j: u32, projected: bool) {
         return;
     }
     let n = params.n;
-    let y = pos[R_Y * n + j].xyz;
-    var q = y;
+    let y = pos[R_Y * n + j];
+    let tag = y.w;
+    var q = y.xyz;
     if (projected) {
         q = vecs[V_RES * params.n_total + j].xyz;
     }
     if (params.misc.x == 0u) {
-        pos[R_Y * n + j] = vec4<f32>(q, 0.0);
+        pos[R_Y * n + j] = vec4<f32>(q, tag);
         return;
     }
     let gt = grasp_target(j);
@@ -2826,7 +2854,7 @@ fn boundary_node(j: u32, projected: bool) {
         // A grasped node goes to its target; the correction is the grasper's.
         let old = ccol[C_COL * n + j];
         ccol[C_COL * n + j] = vec4<f32>(old.xyz + gt.xyz - q, ccol[C_GRAB * n + j].w - 1.0);
-        pos[R_Y * n + j] = vec4<f32>(gt.xyz, 0.0);
+        pos[R_Y * n + j] = vec4<f32>(gt.xyz, tag);
         return;
     }
     let r = contact_scale(j).x;
@@ -2845,7 +2873,7 @@ fn boundary_node(j: u32, projected: bool) {
         let old = ccol[C_COL * n + j];
         ccol[C_COL * n + j] = vec4<f32>(old.xyz + total, id);
     }
-    pos[R_Y * n + j] = vec4<f32>(q, 0.0);
+    pos[R_Y * n + j] = vec4<f32>(q, tag);
 }
 
 // The forces a node put on the colliders in this substep: its Newton force (the

@@ -750,7 +750,7 @@ pub struct GpuLattice {
     pass_room: usize,
     groups: Vec<BindGroup>,
     /// Positions, iterate, target, velocity and pin targets (5 regions of
-    /// `layout.n_slots()` vec4).
+    /// `layout.n_slots()` vec4; the iterate's w: the particle's contact tag).
     pos: Buffer,
     /// Element rotations of every level (quaternions; level 0 first).
     rot: Buffer,
@@ -1201,7 +1201,9 @@ impl GpuLattice {
 
     /// The buffer of positions and velocities: five regions (positions, iterate,
     /// inertial target, velocity, pin target), each a vec4 per particle slot (the world's
-    /// particles first, then the room for bodies appended later).
+    /// particles first, then the room for bodies appended later). The iterate's w is the
+    /// solver's own during a substep (the particle's contact radius in metres, its sign
+    /// bit set where the particle is held); the positions' w is 0.
     pub fn pos_buffer(&self) -> &Buffer {
         &self.pos
     }
