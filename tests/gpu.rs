@@ -5,7 +5,7 @@
 mod common;
 
 use bevy_tissue::core::colliders::{Collider, ColliderShape};
-use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
+use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
@@ -2138,126 +2138,185 @@ fn lattice_bodies_in_contact_match_the_cpu() {
         (1, 2, Smoother::Chebyshev),
     ] {
         let mut model = lattice_box(Vec3::new(0.03, 0.016, 0.03), 0.017);
-        // A quarter spacing off the lower box's lattice, so that the upper one settles into
-        // the nearest hollow of its surface instead of balancing on its particles.
-        model.append(&lattice_box_at(
-            Vec3::splat(0.016),
-            Vec3::new(0.002, 0.085, 0.003),
-        ));
-        let s = SolverSettings {
-            method: Method::Jacobi,
-            newton_iterations: newton,
-            newton_cycles: cycles,
-            particle_contacts: true,
-            knn_every: 1,
-            contact_every: 1,
-            smoother,
-            ..lattice_settings()
-        };
-        let start = State::new(&model);
-        let mut run = Lockstep::with_settings(g, model, start, s);
-        let lower = run.model.bodies[0].range();
-        let upper = run.model.bodies[1].range();
-        let reach = run.model.bodies[0].radius + run.model.bodies[1].radius;
-        let gap = |x: &[Vec3]| {
-            let mut d = f32::MAX;
-            for a in &x[lower.clone()] {
-                for b in &x[upper.clone()] {
-                    d = d.min(a.distance(*b));
-                }
-            }
-            d
-        };
-        let control = Control {
-            colliders: vec![Collider::ground(0.0)],
-        };
-        // Each body's centre of mass.
-        let centres = |x: &[Vec3]| {
-            [lower.clone(), upper.clone()]
-                .map(|r| x[r.clone()].iter().sum::<Vec3>() / r.len() as f32)
-        };
-        let mut touched = None;
-        let mut own_centre = 0.0f32;
-        // The step of the largest GPU − CPU difference of the centres after contact, and it.
-        let mut worst = (0u32, 0.0f32);
-        for step in 0..40u32 {
-            let c = run.step(g, &control);
-            let [cpu, gpu] = [&run.cpu.1.x, &run.gpu.1.x].map(|x| centres(x));
-            let centre_diff = (0..2).map(|b| gpu[b].distance(cpu[b])).fold(0.0, f32::max);
-            for p in &run.probes {
-                let probe = centres(&p.2.x);
-                own_centre = (0..2)
-                    .map(|b| probe[b].distance(cpu[b]))
-                    .fold(own_centre, f32::max);
-            }
-            // Within 10 µm of the contact distance counts as touching: whether such a
-            // pair acts is rounding's choice.
-            if touched.is_none() && gap(&run.cpu.1.x) < reach + 1e-5 {
-                touched = Some(step);
-            }
-            // The step the boxes meet and the next: the contact's first push, before a
-            // slip decided by rounding, moves the GPU as it moves the CPU (as close as
-            // the perturbed CPUs come to it).
-            if touched.is_some_and(|t| step <= t + 1) {
-                assert!(
-                    c.diff <= 3.0 * c.own + 1e-7,
-                    "{newton} × {cycles} ({smoother:?}), step {step}, first contact: GPU − CPU {} m (CPU − perturbed CPU {} m)",
-                    c.diff,
-                    c.own
-                );
-            }
-            if touched.is_none() {
-                assert!(
-                    c.diff <= 1e-5 * c.moved + 1e-7,
-                    "step {step}, before contact: GPU − CPU {} m (CPU moved {} m)",
-                    c.diff,
-                    c.moved
-                );
-            } else {
-                // Which way a node slips off another is decided by rounding: the bodies'
-                // motion is compared, as well as the CPU agrees with itself over the run (the
-                // nudged CPU's own slip may come a step later than the GPU's).
-                if centre_diff > worst.1 {
-                    worst = (step, centre_diff);
-                }
+        model.append(&upper_box());
+        bodies_in_contact_match(g, model, newton, cycles, smoother);
+    }
+}
+
+/// The falling box of the contact tests: a quarter spacing off the lower box's lattice,
+/// so that it settles into the nearest hollow of the lower box's surface instead of
+/// balancing on its particles.
+fn upper_box() -> Model {
+    lattice_box_at(Vec3::splat(0.016), Vec3::new(0.002, 0.085, 0.003))
+}
+
+/// As [`lattice_bodies_in_contact_match_the_cpu`], the upper box falling onto a lower box
+/// whose top layers are pinned: the pairs' partners are held there (a held partner does
+/// not move along the step and counts its pair once in the free node's block; a held
+/// node's own candidates hold no contacts), as on the CPU.
+#[test]
+fn lattice_body_on_a_pinned_body_matches_the_cpu() {
+    let Some(g) = gpu() else {
+        return;
+    };
+    let mut model = Model::new();
+    model
+        .add_body(
+            &procedural::cuboid(Vec3::new(0.03, 0.016, 0.03), 2),
+            &BodyDesc {
+                resolution: Resolution::Spacing(0.008),
+                material: Material::Hyperelastic {
+                    youngs_modulus: 20e3,
+                    poisson_ratio: 0.3,
+                },
+                discretisation: Discretisation::Lattice,
+                translation: Vec3::new(0.0, 0.017, 0.0),
+                pins: vec![PinRegion::HalfSpace {
+                    point: Vec3::new(0.0, 0.005, 0.0),
+                    normal: Vec3::Y,
+                }],
+                ..Default::default()
+            },
+        )
+        .unwrap();
+    let pinned = model.pinned.len();
+    assert!(
+        pinned > 0 && pinned < model.particle_count(),
+        "the lower box's top layers are pinned ({pinned} of {})",
+        model.particle_count()
+    );
+    model.append(&upper_box());
+    bodies_in_contact_match(
+        g,
+        model,
+        1,
+        1,
+        bevy_tissue::core::multigrid::Smoother::Chebyshev,
+    );
+}
+
+/// Drops body 1 of `model` onto its body 0 (resting on the ground) with particle contacts
+/// in every Newton iteration, GPU and CPU in lockstep, and checks them against each other
+/// and the upper body's rest (see [`lattice_bodies_in_contact_match_the_cpu`]).
+fn bodies_in_contact_match(
+    g: &Headless,
+    model: Model,
+    newton: u32,
+    cycles: u32,
+    smoother: bevy_tissue::core::multigrid::Smoother,
+) {
+    let s = SolverSettings {
+        method: Method::Jacobi,
+        newton_iterations: newton,
+        newton_cycles: cycles,
+        particle_contacts: true,
+        knn_every: 1,
+        contact_every: 1,
+        smoother,
+        ..lattice_settings()
+    };
+    let start = State::new(&model);
+    let mut run = Lockstep::with_settings(g, model, start, s);
+    let lower = run.model.bodies[0].range();
+    let upper = run.model.bodies[1].range();
+    let reach = run.model.bodies[0].radius + run.model.bodies[1].radius;
+    let gap = |x: &[Vec3]| {
+        let mut d = f32::MAX;
+        for a in &x[lower.clone()] {
+            for b in &x[upper.clone()] {
+                d = d.min(a.distance(*b));
             }
         }
-        let (step, centre_diff) = worst;
-        eprintln!(
-            "{newton} × {cycles} ({smoother:?}): GPU − CPU centres of mass up to {centre_diff} m at step {step}, CPU − nudged CPU up to {own_centre} m"
-        );
-        assert!(
-            centre_diff <= 2.0 * own_centre + 1e-4,
-            "{newton} × {cycles} ({smoother:?}), step {step}: GPU − CPU centres of mass {centre_diff} m (CPU − nudged CPU up to {own_centre} m over the run)"
-        );
-        let touched = touched.expect("the boxes touched");
-        assert!(
-            touched > 2,
-            "the upper box fell before touching (step {touched})"
-        );
-        for (label, x) in [("CPU", &run.cpu.1.x), ("GPU", &run.gpu.1.x)] {
-            let g = gap(x);
+        d
+    };
+    let control = Control {
+        colliders: vec![Collider::ground(0.0)],
+    };
+    // Each body's centre of mass.
+    let centres = |x: &[Vec3]| {
+        [lower.clone(), upper.clone()].map(|r| x[r.clone()].iter().sum::<Vec3>() / r.len() as f32)
+    };
+    let mut touched = None;
+    let mut own_centre = 0.0f32;
+    // The step of the largest GPU − CPU difference of the centres after contact, and it.
+    let mut worst = (0u32, 0.0f32);
+    for step in 0..40u32 {
+        let c = run.step(g, &control);
+        let [cpu, gpu] = [&run.cpu.1.x, &run.gpu.1.x].map(|x| centres(x));
+        let centre_diff = (0..2).map(|b| gpu[b].distance(cpu[b])).fold(0.0, f32::max);
+        for p in &run.probes {
+            let probe = centres(&p.2.x);
+            own_centre = (0..2)
+                .map(|b| probe[b].distance(cpu[b]))
+                .fold(own_centre, f32::max);
+        }
+        // Within 10 µm of the contact distance counts as touching: whether such a
+        // pair acts is rounding's choice.
+        if touched.is_none() && gap(&run.cpu.1.x) < reach + 1e-5 {
+            touched = Some(step);
+        }
+        // The step the boxes meet and the next: the contact's first push, before a
+        // slip decided by rounding, moves the GPU as it moves the CPU (as close as
+        // the perturbed CPUs come to it).
+        if touched.is_some_and(|t| step <= t + 1) {
             assert!(
-                g > 0.6 * reach,
-                "{label}: the upper box rests on the lower one, not in it (closest pair {g} m, contact distance {reach} m)"
-            );
-            let top_of_lower = x[lower.clone()].iter().fold(f32::MIN, |a, p| a.max(p.y));
-            let bottom_of_upper = x[upper.clone()].iter().fold(f32::MAX, |a, p| a.min(p.y));
-            assert!(
-                bottom_of_upper > top_of_lower,
-                "{label}: the upper box is above the lower one ({bottom_of_upper} m against {top_of_lower} m)"
-            );
-            let v = x[upper.clone()].len() as f32;
-            let speed = run.gpu.1.v[upper.clone()]
-                .iter()
-                .map(|v| v.length())
-                .sum::<f32>()
-                / v;
-            assert!(
-                speed < 0.05,
-                "{label}: the upper box settles (mean speed {speed} m/s)"
+                c.diff <= 3.0 * c.own + 1e-7,
+                "{newton} × {cycles} ({smoother:?}), step {step}, first contact: GPU − CPU {} m (CPU − perturbed CPU {} m)",
+                c.diff,
+                c.own
             );
         }
+        if touched.is_none() {
+            assert!(
+                c.diff <= 1e-5 * c.moved + 1e-7,
+                "step {step}, before contact: GPU − CPU {} m (CPU moved {} m)",
+                c.diff,
+                c.moved
+            );
+        } else {
+            // Which way a node slips off another is decided by rounding: the bodies'
+            // motion is compared, as well as the CPU agrees with itself over the run (the
+            // nudged CPU's own slip may come a step later than the GPU's).
+            if centre_diff > worst.1 {
+                worst = (step, centre_diff);
+            }
+        }
+    }
+    let (step, centre_diff) = worst;
+    eprintln!(
+        "{newton} × {cycles} ({smoother:?}): GPU − CPU centres of mass up to {centre_diff} m at step {step}, CPU − nudged CPU up to {own_centre} m"
+    );
+    assert!(
+        centre_diff <= 2.0 * own_centre + 1e-4,
+        "{newton} × {cycles} ({smoother:?}), step {step}: GPU − CPU centres of mass {centre_diff} m (CPU − nudged CPU up to {own_centre} m over the run)"
+    );
+    let touched = touched.expect("the boxes touched");
+    assert!(
+        touched > 2,
+        "the upper box fell before touching (step {touched})"
+    );
+    for (label, x) in [("CPU", &run.cpu.1.x), ("GPU", &run.gpu.1.x)] {
+        let g = gap(x);
+        assert!(
+            g > 0.6 * reach,
+            "{label}: the upper box rests on the lower one, not in it (closest pair {g} m, contact distance {reach} m)"
+        );
+        let top_of_lower = x[lower.clone()].iter().fold(f32::MIN, |a, p| a.max(p.y));
+        let bottom_of_upper = x[upper.clone()].iter().fold(f32::MAX, |a, p| a.min(p.y));
+        assert!(
+            bottom_of_upper > top_of_lower,
+            "{label}: the upper box is above the lower one ({bottom_of_upper} m against {top_of_lower} m)"
+        );
+        let v = x[upper.clone()].len() as f32;
+        let speed = run.gpu.1.v[upper.clone()]
+            .iter()
+            .map(|v| v.length())
+            .sum::<f32>()
+            / v;
+        assert!(
+            speed < 0.05,
+            "{label}: the upper box settles (mean speed {speed} m/s)"
+        );
     }
 }
 
