@@ -5,7 +5,7 @@
 mod common;
 
 use bevy_tissue::core::colliders::{Collider, ColliderShape};
-use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model, PinRegion};
+use bevy_tissue::core::model::{BodyDesc, Material, Model, PinRegion};
 use bevy_tissue::core::procedural;
 use bevy_tissue::core::sampling::Resolution;
 use bevy_tissue::core::solver::{Control, Method, Solver, SolverSettings, State};
@@ -2159,26 +2159,14 @@ fn lattice_body_on_a_pinned_body_matches_the_cpu() {
     let Some(g) = gpu() else {
         return;
     };
-    let mut model = Model::new();
-    model
-        .add_body(
-            &procedural::cuboid(Vec3::new(0.03, 0.016, 0.03), 2),
-            &BodyDesc {
-                resolution: Resolution::Spacing(0.008),
-                material: Material::Hyperelastic {
-                    youngs_modulus: 20e3,
-                    poisson_ratio: 0.3,
-                },
-                discretisation: Discretisation::Lattice,
-                translation: Vec3::new(0.0, 0.017, 0.0),
-                pins: vec![PinRegion::HalfSpace {
-                    point: Vec3::new(0.0, 0.005, 0.0),
-                    normal: Vec3::Y,
-                }],
-                ..Default::default()
-            },
-        )
-        .unwrap();
+    let mut model = common::lattice_box_pinned(
+        Vec3::new(0.03, 0.016, 0.03),
+        Vec3::new(0.0, 0.017, 0.0),
+        vec![PinRegion::HalfSpace {
+            point: Vec3::new(0.0, 0.005, 0.0),
+            normal: Vec3::Y,
+        }],
+    );
     let pinned = model.pinned.len();
     assert!(
         pinned > 0 && pinned < model.particle_count(),

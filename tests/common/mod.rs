@@ -240,6 +240,15 @@ pub fn cpu_path_reference(
 /// A lattice box of half extents `half` (8 mm spacing, E = 20 kPa, ν = 0.3) centred at
 /// `at`: the core's contact and falling scenes.
 pub fn lattice_box_at(half: Vec3, at: Vec3) -> bevy_tissue::core::model::Model {
+    lattice_box_pinned(half, at, Vec::new())
+}
+
+/// [`lattice_box_at`] with the particles in `pins` (body frame) pinned.
+pub fn lattice_box_pinned(
+    half: Vec3,
+    at: Vec3,
+    pins: Vec<bevy_tissue::core::model::PinRegion>,
+) -> bevy_tissue::core::model::Model {
     use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model};
     let mut model = Model::new();
     model
@@ -253,6 +262,7 @@ pub fn lattice_box_at(half: Vec3, at: Vec3) -> bevy_tissue::core::model::Model {
                 },
                 discretisation: Discretisation::Lattice,
                 translation: at,
+                pins,
                 ..Default::default()
             },
         )

@@ -420,7 +420,7 @@ fn predict(@builtin(global_invocation_id) gid: vec3<u32>) {
 // radius (m), the sign bit set where it is held now (`held_now`, fixed for the substep
 // once `predict` has updated the grasps).
 fn node_tag(j: u32) -> f32 {
-    let r = mats[u32(nodes[j].w) * MAT_STRIDE].z;
+    let r = contact_scale(j).x;
     return select(r, -r, held_now(j));
 }
 
@@ -433,6 +433,12 @@ fn tag_radius(w: f32) -> f32 {
 // keeps it).
 fn tag_held(w: f32) -> bool {
     return (bitcast<u32>(w) & 0x80000000u) != 0u;
+}
+
+// `free_step` from a node's tag: direction d where the node moves in this substep, else
+// none.
+fn tag_free_step(w: f32, d: vec3<f32>) -> vec3<f32> {
+    return select(d, vec3<f32>(0.0), tag_held(w));
 }
 
 // The closest distance of two nodes over their straight paths from the step's start to
@@ -532,7 +538,7 @@ fn energy_first(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id
                         let i = pair_at(s);
                         let yi = pos[R_Y * n + i];
                         let reach = sc.x + tag_radius(yi.w);
-                        let di = select(yi.xyz - pos[R_X * n + i].xyz, vec3<f32>(0.0), tag_held(yi.w));
+                        let di = tag_free_step(yi.w, yi.xyz - pos[R_X * n + i].xyz);
                         let r1 = y - yi.xyz;
                         let v = d - di;
                         let o0 = max(reach - swept_gap(r1, v, 0.0), 0.0);
@@ -612,7 +618,7 @@ fn node_line(acc: vec4<f32>, j: u32, av: vec4<f32>) -> vec4<f32> {
             if (len0 >= reach || len0 <= 1e-12) {
                 continue;
             }
-            let di = select(vecs[V_DELTA * params.n_total + i].xyz, vec3<f32>(0.0), tag_held(yt.w));
+            let di = tag_free_step(yt.w, vecs[V_DELTA * params.n_total + i].xyz);
             let d0 = reach - len0;
             let da = reach - vec4<f32>(length(y + d * av.x - yi - di * av.x), length(y + d * av.y - yi - di * av.y),
                                        length(y + d * av.z - yi - di * av.z), length(y + d * av.w - yi - di * av.w));
