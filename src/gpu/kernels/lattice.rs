@@ -159,7 +159,8 @@ pub enum Kernel {
     /// `smooth_chebyshev`: one Chebyshev–Jacobi sweep of a level.
     Chebyshev,
     /// `contact_smooth`: level 0's contact pass after its Chebyshev sweeps (each node
-    /// with a contact penalty solved for its own block).
+    /// with a contact penalty solved for its own block, over the list of such nodes
+    /// [`Kernel::Contacts`] made).
     ContactSmooth,
     /// `smooth_coarsest`: every Chebyshev sweep of the coarsest level, a workgroup per
     /// body.
@@ -192,7 +193,8 @@ pub enum Kernel {
     TrustScale,
     /// `finish`: velocities and positions at the end of a substep.
     Finish,
-    /// `contacts`: penalty contacts with the colliders.
+    /// `contacts`: penalty contacts with the colliders and between bodies; lists the
+    /// nodes with a contact block for [`Kernel::ContactSmooth`].
     Contacts,
     /// `pair_project`: the particle contacts' Jacobi projection between bodies.
     PairProject,
@@ -315,7 +317,7 @@ pub const ENTRIES: &[Entry] = &[
         kernel: Kernel::ContactSmooth,
         name: "contact_smooth",
         uses: &[
-            "params", "pc", "rot", "vecs", "nblk", "ccol", "elems", "kmat", "topo", "nodes",
+            "params", "rot", "vecs", "nblk", "ccol", "elems", "kmat", "topo", "nodes",
         ],
     },
     Entry {

@@ -28,10 +28,12 @@ const B_SHIFT: u32 = 5u;      // + 0..2: the body's translation step (xyz)
 const B_MG_ALPHA: u32 = 8u;   // + level: the coarse correction's step
 // Indirect dispatches' workgroup counts in `args` (x, y, z each; gpu::lattice's
 // `ARGS_*` offsets): the line search's second energy pass, its `pick`, and level 0's
-// contact pass (dispatched only where some node has a contact block).
+// contact pass (dispatched only where some node has a contact block, a thread a node of
+// the list of such nodes, whose length follows).
 const ARGS_LINE: u32 = 0u;
 const ARGS_PENDING: u32 = 4u;
 const ARGS_CONTACT: u32 = 8u;
+const ARGS_CONTACT_COUNT: u32 = 12u;
 
 const R_X: u32 = 0u;
 const R_Y: u32 = 1u;
@@ -49,8 +51,9 @@ const V_PE: u32 = 3u;
 // `cube_op_row`).
 const MAT_OP: u32 = 1u;
 // Regions of `ccol` (× n): this substep's collider corrections (xyz, m; w: the last
-// collider's index, −1: none); the collider touched in the last substep (x, −1: none)
-// and this iteration's penalty contacts (y: a bit per collider).
+// collider's index, −1: none); the collider touched in the last substep (x, −1: none),
+// this iteration's penalty contacts (y: a bit per collider) and, at a node's place in it,
+// the list of nodes with a contact block that `contacts` makes (z, u32 bits).
 const C_COL: u32 = 0u;
 const C_TOUCH: u32 = 1u;
 // Region 2 of `ccol`: the grasp of each node (the offset in the grasper's frame, m; w:
@@ -1011,6 +1014,7 @@ fn residual(@builtin(global_invocation_id) gid: vec3<u32>) {
     // passes have run).
     if (j == 0u) {
         atomicStore(&args[ARGS_CONTACT], 0u);
+        atomicStore(&args[ARGS_CONTACT_COUNT], 0u);
     }
     if (j >= params.lv[0].y) {
         return;
@@ -1786,19 +1790,22 @@ fn smooth_chebyshev(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
     }
 }
 
-// Level 0's contact pass after its Chebyshev sweeps (core::multigrid's contact_pass), for
-// its nodes pc.first .. [.. pc.count]: each free node with a contact block takes
-// δ_j = x_j + D_j⁻¹ (rhs_j − (A x)_j), x the sweeps' result as the last sweep copied it
-// to V_RES (so that every update reads the same x); the others keep theirs.
+// Level 0's contact pass after its Chebyshev sweeps (core::multigrid's contact_pass), a
+// thread a place of the list `contacts` made (each free node with a contact block, in no
+// particular order): the node takes δ_j = x_j + D_j⁻¹ (rhs_j − (A x)_j), x the sweeps'
+// result as the last sweep copied it to V_RES (so that every update reads the same x,
+// whatever the order); the others keep theirs. The last workgroup's places past the
+// list's end hold older entries: a node there is taken only where it has a contact
+// block now, and then it is also in the list (the same update, written twice).
 @compute @workgroup_size(64)
 fn contact_smooth(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= pc.count) {
+    if (gid.x >= params.lv[0].y) {
         return;
     }
-    let j = pc.first + gid.x;
+    let j = bitcast<u32>(ccol[C_TOUCH * params.n + gid.x].z);
     let s = extra_block(j);
     let zero = vec3<f32>(0.0);
-    if (held_in_cycle(j) || (all(s[0] == zero) && all(s[1] == zero) && all(s[2] == zero))) {
+    if (j >= params.lv[0].y || (all(s[0] == zero) && all(s[1] == zero) && all(s[2] == zero))) {
         return;
     }
     let n = params.n_total;
@@ -2668,15 +2675,9 @@ fn contact_scale(j: u32) -> vec2<f32> {
 // the node whose list has it, with that node's stiffness; a free partner counts it twice
 // in its block, the coupling the V-cycle does not see). Adds the penalty forces to its
 // right-hand side, sets its extra stiffness k n nᵀ (zero without contacts) and records
-// which colliders are in contact. A node with a contact block asks for level 0's
-// contact pass (`contact_smooth`, over the same nodes, one thread a node: this pass's
-// workgroups).
-@compute @workgroup_size(64)
-fn contacts(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let j = gid.x;
-    if (j >= params.lv[0].y) {
-        return;
-    }
+// which colliders are in contact. Returns whether it has a contact block (then it is
+// free).
+fn contact_node(j: u32) -> bool {
     let n = params.n;
     var extra = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     var mask = 0u;
@@ -2740,12 +2741,47 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     nblk[o] = vec4<f32>(extra[0], 0.0);
     nblk[o + 1u] = vec4<f32>(extra[1], 0.0);
     nblk[o + 2u] = vec4<f32>(extra[2], 0.0);
+    // Only y: z of this region is the list, written by others.
+    ccol[C_TOUCH * n + j].y = bitcast<f32>(mask);
     let zero = vec3<f32>(0.0);
-    if (any(extra[0] != zero) || any(extra[1] != zero) || any(extra[2] != zero)) {
-        atomicStore(&args[ARGS_CONTACT], nwg.x);
+    return any(extra[0] != zero) || any(extra[1] != zero) || any(extra[2] != zero);
+}
+
+// A workgroup's nodes with a contact block, and where they start in the list.
+var<workgroup> contact_found: atomic<u32>;
+var<workgroup> contact_start: u32;
+
+// Every level-0 node's penalty contacts (`contact_node`). The nodes with a contact
+// block join the list of level 0's contact pass (`contact_smooth`, a thread a node, its
+// workgroups set here): a workgroup's nodes take their places in it with one atomic
+// add, so that the list's length is not a word every node contends for.
+@compute @workgroup_size(64)
+fn contacts(@builtin(global_invocation_id) gid: vec3<u32>,
+            @builtin(local_invocation_index) lid: u32) {
+    if (lid == 0u) {
+        atomicStore(&contact_found, 0u);
     }
-    let t = ccol[C_TOUCH * n + j];
-    ccol[C_TOUCH * n + j] = vec4<f32>(t.x, bitcast<f32>(mask), t.zw);
+    workgroupBarrier();
+    let j = gid.x;
+    var place = 0u;
+    let listed = j < params.lv[0].y && contact_node(j);
+    if (listed) {
+        place = atomicAdd(&contact_found, 1u);
+    }
+    workgroupBarrier();
+    if (lid == 0u) {
+        let found = atomicLoad(&contact_found);
+        var start = 0u;
+        if (found > 0u) {
+            start = atomicAdd(&args[ARGS_CONTACT_COUNT], found);
+            atomicMax(&args[ARGS_CONTACT], (start + found + LWG - 1u) / LWG);
+        }
+        contact_start = start;
+    }
+    let start = workgroupUniformLoad(&contact_start);
+    if (listed) {
+        ccol[C_TOUCH * params.n + start + place].z = bitcast<f32>(j);
+    }
 }
 
 // Coarse node j's extra stiffness: its fine nodes' lumped, Σ w S (exact for a uniform

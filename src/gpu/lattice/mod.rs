@@ -141,10 +141,14 @@ pub const ARGS_PENDING: u32 = 4;
 /// `args` word of level 0's contact pass after the Chebyshev sweeps (set by `contacts`
 /// where some node has a contact block, cleared by `residual` before it).
 pub const ARGS_CONTACT: u32 = 8;
+/// `args` word of the length of the list of level-0 nodes with a contact block that
+/// `contacts` makes for the contact pass (set with [`ARGS_CONTACT`], which is the list's
+/// workgroups).
+pub const ARGS_CONTACT_COUNT: u32 = 12;
 
 /// The indirect dispatches' `args`: three (x, y, z) workgroup counts, each padded to four
-/// words, x 0 until a kernel sets it.
-const ARGS_INITIAL: [u32; 12] = [0, 1, 1, 0, 0, 1, 1, 0, 0, 1, 1, 0];
+/// words, x 0 until a kernel sets it; then the contact list's length.
+const ARGS_INITIAL: [u32; 16] = [0, 1, 1, 0, 0, 1, 1, 0, 0, 1, 1, 0, 0, 0, 0, 0];
 
 /// Whether dispatch `d` makes the colliders' reactions (their forces at the substep's
 /// end and the sums of them): nothing to do without colliders.
