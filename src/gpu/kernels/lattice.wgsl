@@ -2747,40 +2747,19 @@ fn contact_node(j: u32) -> bool {
     return any(extra[0] != zero) || any(extra[1] != zero) || any(extra[2] != zero);
 }
 
-// A workgroup's nodes with a contact block, and where they start in the list.
-var<workgroup> contact_found: atomic<u32>;
-var<workgroup> contact_start: u32;
-
 // Every level-0 node's penalty contacts (`contact_node`). The nodes with a contact
-// block join the list of level 0's contact pass (`contact_smooth`, a thread a node, its
-// workgroups set here): a workgroup's nodes take their places in it with one atomic
-// add, so that the list's length is not a word every node contends for.
+// block join the list of level 0's contact pass (`contact_smooth`, a thread a place):
+// each takes the next place with an atomic add, and the one that takes the first place
+// of a workgroup's worth raises that pass's workgroups to include it.
 @compute @workgroup_size(64)
-fn contacts(@builtin(global_invocation_id) gid: vec3<u32>,
-            @builtin(local_invocation_index) lid: u32) {
-    if (lid == 0u) {
-        atomicStore(&contact_found, 0u);
-    }
-    workgroupBarrier();
+fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
     let j = gid.x;
-    var place = 0u;
-    let listed = j < params.lv[0].y && contact_node(j);
-    if (listed) {
-        place = atomicAdd(&contact_found, 1u);
-    }
-    workgroupBarrier();
-    if (lid == 0u) {
-        let found = atomicLoad(&contact_found);
-        var start = 0u;
-        if (found > 0u) {
-            start = atomicAdd(&args[ARGS_CONTACT_COUNT], found);
-            atomicMax(&args[ARGS_CONTACT], (start + found + LWG - 1u) / LWG);
+    if (j < params.lv[0].y && contact_node(j)) {
+        let place = atomicAdd(&args[ARGS_CONTACT_COUNT], 1u);
+        if (place % LWG == 0u) {
+            atomicMax(&args[ARGS_CONTACT], place / LWG + 1u);
         }
-        contact_start = start;
-    }
-    let start = workgroupUniformLoad(&contact_start);
-    if (listed) {
-        ccol[C_TOUCH * params.n + start + place].z = bitcast<f32>(j);
+        ccol[C_TOUCH * params.n + place].z = bitcast<f32>(j);
     }
 }
 
