@@ -1116,7 +1116,8 @@ fn contacts_on() -> bool {
     return params.misc.x > 0u || params.pair.x != 0u;
 }
 
-// Node j's contact stiffness (N/m over h², a level's lumped blocks below level 0).
+// Node j's contact stiffness (N/m over h², a level's lumped blocks below level 0; the
+// w of its first row is 1 where it is not zero, else 0: `write_extra`).
 fn extra_block(j: u32) -> mat3x3<f32> {
     if (!contacts_on()) {
         return mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
@@ -2737,14 +2738,12 @@ fn contact_node(j: u32) -> bool {
         }
         vecs[ri] = vec4<f32>(rhs, 0.0);
     }
-    let o = 3u * (params.n_total + j);
-    nblk[o] = vec4<f32>(extra[0], 0.0);
-    nblk[o + 1u] = vec4<f32>(extra[1], 0.0);
-    nblk[o + 2u] = vec4<f32>(extra[2], 0.0);
+    let zero = vec3<f32>(0.0);
+    let some = any(extra[0] != zero) || any(extra[1] != zero) || any(extra[2] != zero);
+    write_extra(j, extra, some);
     // Only y: z of this region is the list, written by others.
     ccol[C_TOUCH * n + j].y = bitcast<f32>(mask);
-    let zero = vec3<f32>(0.0);
-    return any(extra[0] != zero) || any(extra[1] != zero) || any(extra[2] != zero);
+    return some;
 }
 
 // Every level-0 node's penalty contacts (`contact_node`). The nodes with a contact
@@ -2764,28 +2763,63 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // Coarse node j's extra stiffness: its fine nodes' lumped, Σ w S (exact for a uniform
-// correction).
+// correction), the blocks that are zero (those away from contacts) skipped after their
+// first row (the same sum).
 fn lump_extra(j: u32) {
     let c = params.restr_base + j - params.lv[1].x;
     var s = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    var some = false;
     var i = topo[c];
     let end = topo[c + 1u];
-    // Four at a time, as `weighted_sum`.
+    // Each fine node's first row first (its w says whether it has a block); the other
+    // two only where it has.
     for (; i + 8u <= end; i = i + 8u) {
-        let b0 = extra_block(topo[i]);
-        let b1 = extra_block(topo[i + 2u]);
-        let b2 = extra_block(topo[i + 4u]);
-        let b3 = extra_block(topo[i + 6u]);
-        s = s + b0 * bitcast<f32>(topo[i + 1u]);
-        s = s + b1 * bitcast<f32>(topo[i + 3u]);
-        s = s + b2 * bitcast<f32>(topo[i + 5u]);
-        s = s + b3 * bitcast<f32>(topo[i + 7u]);
+        let a0 = extra_head(topo[i]);
+        let a1 = extra_head(topo[i + 2u]);
+        let a2 = extra_head(topo[i + 4u]);
+        let a3 = extra_head(topo[i + 6u]);
+        if (a0.w != 0.0) {
+            s = s + extra_rest(topo[i], a0) * bitcast<f32>(topo[i + 1u]);
+            some = true;
+        }
+        if (a1.w != 0.0) {
+            s = s + extra_rest(topo[i + 2u], a1) * bitcast<f32>(topo[i + 3u]);
+            some = true;
+        }
+        if (a2.w != 0.0) {
+            s = s + extra_rest(topo[i + 4u], a2) * bitcast<f32>(topo[i + 5u]);
+            some = true;
+        }
+        if (a3.w != 0.0) {
+            s = s + extra_rest(topo[i + 6u], a3) * bitcast<f32>(topo[i + 7u]);
+            some = true;
+        }
     }
     for (; i < end; i = i + 2u) {
-        s = s + extra_block(topo[i]) * bitcast<f32>(topo[i + 1u]);
+        let a = extra_head(topo[i]);
+        if (a.w != 0.0) {
+            s = s + extra_rest(topo[i], a) * bitcast<f32>(topo[i + 1u]);
+            some = true;
+        }
     }
+    write_extra(j, s, some);
+}
+
+// Node j's contact block's first row (xyz) and whether it has a block (w: 1, else 0).
+fn extra_head(j: u32) -> vec4<f32> {
+    return nblk[3u * (params.n_total + j)];
+}
+
+// Node j's contact block from its first row `head`.
+fn extra_rest(j: u32, head: vec4<f32>) -> mat3x3<f32> {
     let o = 3u * (params.n_total + j);
-    nblk[o] = vec4<f32>(s[0], 0.0);
+    return mat3x3<f32>(head.xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+}
+
+// Sets node j's contact block, `some` where it is not zero (w of its first row).
+fn write_extra(j: u32, s: mat3x3<f32>, some: bool) {
+    let o = 3u * (params.n_total + j);
+    nblk[o] = vec4<f32>(s[0], select(0.0, 1.0, some));
     nblk[o + 1u] = vec4<f32>(s[1], 0.0);
     nblk[o + 2u] = vec4<f32>(s[2], 0.0);
 }
