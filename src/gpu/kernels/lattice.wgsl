@@ -1804,9 +1804,7 @@ fn contact_smooth(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let j = bitcast<u32>(ccol[C_TOUCH * params.n + gid.x].z);
-    let s = extra_block(j);
-    let zero = vec3<f32>(0.0);
-    if (j >= params.lv[0].y || (all(s[0] == zero) && all(s[1] == zero) && all(s[2] == zero))) {
+    if (j >= params.lv[0].y || extra_head(j).w == 0.0) {
         return;
     }
     let n = params.n_total;
