@@ -1122,8 +1122,7 @@ fn extra_block(j: u32) -> mat3x3<f32> {
     if (!contacts_on()) {
         return mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     }
-    let o = 3u * (params.n_total + j);
-    return mat3x3<f32>(nblk[o].xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
+    return extra_rest(j, extra_head(j));
 }
 
 // A coarse element's part of (A x)_j: R Σ_b K_ab Rᵀ x_b over its eight corners b from
@@ -2736,9 +2735,7 @@ fn contact_node(j: u32) -> bool {
         }
         vecs[ri] = vec4<f32>(rhs, 0.0);
     }
-    let zero = vec3<f32>(0.0);
-    let some = any(extra[0] != zero) || any(extra[1] != zero) || any(extra[2] != zero);
-    write_extra(j, extra, some);
+    let some = write_extra(j, extra);
     // Only y: z of this region is the list, written by others.
     ccol[C_TOUCH * n + j].y = bitcast<f32>(mask);
     return some;
@@ -2766,41 +2763,33 @@ fn contacts(@builtin(global_invocation_id) gid: vec3<u32>) {
 fn lump_extra(j: u32) {
     let c = params.restr_base + j - params.lv[1].x;
     var s = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
-    var some = false;
     var i = topo[c];
     let end = topo[c + 1u];
-    // Each fine node's first row first (its w says whether it has a block); the other
-    // two only where it has.
+    // Each fine node's first row first (its w says whether it has a block), four at a
+    // time; the other two only where it has.
     for (; i + 8u <= end; i = i + 8u) {
         let a0 = extra_head(topo[i]);
         let a1 = extra_head(topo[i + 2u]);
         let a2 = extra_head(topo[i + 4u]);
         let a3 = extra_head(topo[i + 6u]);
-        if (a0.w != 0.0) {
-            s = s + extra_rest(topo[i], a0) * bitcast<f32>(topo[i + 1u]);
-            some = true;
-        }
-        if (a1.w != 0.0) {
-            s = s + extra_rest(topo[i + 2u], a1) * bitcast<f32>(topo[i + 3u]);
-            some = true;
-        }
-        if (a2.w != 0.0) {
-            s = s + extra_rest(topo[i + 4u], a2) * bitcast<f32>(topo[i + 5u]);
-            some = true;
-        }
-        if (a3.w != 0.0) {
-            s = s + extra_rest(topo[i + 6u], a3) * bitcast<f32>(topo[i + 7u]);
-            some = true;
-        }
+        s = s + weighted_extra(topo[i], a0, topo[i + 1u]);
+        s = s + weighted_extra(topo[i + 2u], a1, topo[i + 3u]);
+        s = s + weighted_extra(topo[i + 4u], a2, topo[i + 5u]);
+        s = s + weighted_extra(topo[i + 6u], a3, topo[i + 7u]);
     }
     for (; i < end; i = i + 2u) {
-        let a = extra_head(topo[i]);
-        if (a.w != 0.0) {
-            s = s + extra_rest(topo[i], a) * bitcast<f32>(topo[i + 1u]);
-            some = true;
-        }
+        s = s + weighted_extra(topo[i], extra_head(topo[i]), topo[i + 1u]);
     }
-    write_extra(j, s, some);
+    write_extra(j, s);
+}
+
+// Node j's contact block (its first row `head`) times the weight with bits `w`; zero,
+// its other rows not read, where it has none.
+fn weighted_extra(j: u32, head: vec4<f32>, w: u32) -> mat3x3<f32> {
+    if (head.w == 0.0) {
+        return mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    }
+    return extra_rest(j, head) * bitcast<f32>(w);
 }
 
 // Node j's contact block's first row (xyz) and whether it has a block (w: 1, else 0).
@@ -2814,12 +2803,16 @@ fn extra_rest(j: u32, head: vec4<f32>) -> mat3x3<f32> {
     return mat3x3<f32>(head.xyz, nblk[o + 1u].xyz, nblk[o + 2u].xyz);
 }
 
-// Sets node j's contact block, `some` where it is not zero (w of its first row).
-fn write_extra(j: u32, s: mat3x3<f32>, some: bool) {
+// Sets node j's contact block, flagged (w of its first row) where it is not zero;
+// returns whether it is not.
+fn write_extra(j: u32, s: mat3x3<f32>) -> bool {
+    let zero = vec3<f32>(0.0);
+    let some = any(s[0] != zero) || any(s[1] != zero) || any(s[2] != zero);
     let o = 3u * (params.n_total + j);
     nblk[o] = vec4<f32>(s[0], select(0.0, 1.0, some));
     nblk[o + 1u] = vec4<f32>(s[1], 0.0);
     nblk[o + 2u] = vec4<f32>(s[2], 0.0);
+    return some;
 }
 
 // Inverse mass of node j for the particle contacts' projection (0 when pinned).
