@@ -181,7 +181,8 @@ fn warm_world(g: &Gpu, model: &Model, s: &SolverSettings, options: LatticeOption
         .unwrap_or_else(|e| fail("GPU lattice", e));
     if world.has_particle_contacts() {
         let mut lists = Solver::new(model, s.clone()).unwrap_or_else(|e| fail("solver", e));
-        lists.refresh_contacts(model, &state.x);
+        // The plugin's search (at rest here: the usual reach).
+        lists.refresh_contacts_if_due(model, &state.x, &state.v, &[], 1, true);
         let (start, list) = lists.contact_lists();
         world
             .set_contacts(&g.queue, start, list)

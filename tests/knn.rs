@@ -265,3 +265,117 @@ fn contact_lists_among_active_bodies_leave_the_others_out() {
     let (_, l_all) = lists(&three, &State::new(&three).x, &[]);
     assert!(l_all.iter().any(|&j| j as usize >= n2));
 }
+
+/// Bodies approaching fast find each other before they meet, whatever `knn_every`
+/// (`Solver::refresh_contacts_if_due`, the CPU step's rule): two lattice boxes flying at
+/// each other at 4 m/s each (67 mm a step, about eight particle radii) and a third
+/// falling onto them, moved kinematically; searched when due with the default
+/// `knn_every` (10) and when stale, at every step's end every pair of particles of
+/// different bodies within contact distance (brute force) is in the lists made before
+/// the step, unless the particle's list is full of nearer candidates. A search only
+/// every 10 steps (the schedule alone) misses most of the pairs; the rule searches
+/// again while they approach, and only on the schedule once everything drifts slowly.
+#[test]
+fn contact_lists_keep_up_with_fast_bodies() {
+    use bevy_tissue::core::solver::{Solver, SolverSettings};
+    let mut model = common::lattice_box_at(Vec3::splat(0.02), Vec3::new(-0.5, 0.1, 0.0));
+    model.append(&common::lattice_box_at(
+        Vec3::splat(0.02),
+        Vec3::new(0.5, 0.105, 0.01),
+    ));
+    model.append(&common::lattice_box_at(
+        Vec3::splat(0.016),
+        Vec3::new(0.0, 0.6, 0.0),
+    ));
+    let speed = [
+        Vec3::new(4.0, 0.0, 0.0),
+        Vec3::new(-4.0, 0.0, 0.0),
+        Vec3::ZERO,
+    ];
+    let settings = SolverSettings::default();
+    assert_eq!(settings.knn_every, 10);
+    let (h, g) = (settings.dt, settings.gravity);
+    let k = settings.contact_neighbours as usize;
+    let n = model.particle_count();
+    let mut x: Vec<Vec3> = model.rest.clone();
+    // The second box placed so that the two meet in the 7th step, overlapping by 2 mm.
+    let body = |b: usize| model.bodies[b].range();
+    let touch = model.bodies[0].radius + model.bodies[1].radius;
+    let face = |b: usize, sign: f32| {
+        x[body(b)]
+            .iter()
+            .map(|p| sign * p.x)
+            .fold(f32::MIN, f32::max)
+    };
+    let gap = -face(1, -1.0) - face(0, 1.0);
+    let shift = 7.0 * 8.0 * h - (touch - 0.002) - gap;
+    for p in &mut x[body(1)] {
+        p.x += shift;
+    }
+    let mut v: Vec<Vec3> = (0..n)
+        .map(|i| speed[model.particle_body[i] as usize])
+        .collect();
+    // The schedule alone (searched every 10 steps) against the rule.
+    let mut every = Solver::new(&model, settings.clone()).unwrap();
+    let mut solver = Solver::new(&model, settings).unwrap();
+    let (mut met, mut missed_by_schedule, mut searches) = (0usize, 0usize, [0u32; 2]);
+    for step in 0..42u64 {
+        let periodic = step % 10 == 0;
+        let searched = solver.refresh_contacts_if_due(&model, &x, &v, &[], 1, periodic);
+        searches[(step > 22) as usize] += searched as u32;
+        if periodic {
+            every.refresh_contacts(&model, &x);
+        }
+        // The step: the two fly on until they meet in the middle, then part slowly; the
+        // third box falls under gravity onto them (from step 22 on, everything drifts
+        // slowly).
+        for (i, (p, u)) in x.iter_mut().zip(v.iter_mut()).enumerate() {
+            let b = model.particle_body[i] as usize;
+            if step >= 22 {
+                *u = Vec3::new(0.0, 0.0, 0.01);
+            } else if b == 2 {
+                *u += g * h;
+            } else if step == 7 {
+                // Met: they part slowly.
+                *u = -0.02 * speed[b];
+            }
+            *p += *u * h;
+        }
+        let (start, list) = solver.contact_lists();
+        let (start_e, list_e) = every.contact_lists();
+        for i in 0..n {
+            let bi = model.particle_body[i];
+            let ri = model.bodies[bi as usize].radius;
+            let own = &list[start[i] as usize..start[i + 1] as usize];
+            for j in 0..n {
+                let bj = model.particle_body[j];
+                let touch = ri + model.bodies[bj as usize].radius;
+                if bj == bi || x[i].distance(x[j]) >= touch {
+                    continue;
+                }
+                met += 1;
+                let e = &list_e[start_e[i] as usize..start_e[i + 1] as usize];
+                missed_by_schedule += !e.contains(&(j as u32)) as usize;
+                assert!(
+                    own.contains(&(j as u32)) || own.len() == k,
+                    "step {step}: particles {i} (body {bi}) and {j} (body {bj}) touch, {} m apart, but {j} is not in {i}'s {} candidates",
+                    x[i].distance(x[j]),
+                    own.len()
+                );
+            }
+        }
+    }
+    assert!(met > 100, "the bodies must meet ({met} touching pairs)");
+    assert!(
+        missed_by_schedule > met / 2,
+        "the schedule alone would have missed most ({missed_by_schedule} of {met})"
+    );
+    // While they approach, searches at least every other step; drifting, only the
+    // schedule's (steps 30 and 40).
+    assert!(
+        searches[0] >= 8,
+        "searched {} times approaching",
+        searches[0]
+    );
+    assert_eq!(searches[1], 2, "searches while drifting");
+}

@@ -973,8 +973,9 @@ fn the_cpu_takes_over_where_the_gpu_cannot_run_the_kernels() {
 
 /// Two lattice bodies touching each other step on the GPU: the upper one, dropped onto
 /// the lower (held whole) one, rests on it through particle contacts instead of passing
-/// through (the scene of the CPU backend's `cpu_bodies_touch_each_other`; contacts
-/// searched every step).
+/// through (the scene of the CPU backend's `cpu_bodies_touch_each_other`), at the
+/// default `knn_every` of 10: the contacts are searched again whenever particles may
+/// move out of the last search's reach.
 #[test]
 fn lattice_bodies_touch_each_other_on_the_gpu() {
     let _one = ONE_APP.lock().unwrap_or_else(|e| e.into_inner());
@@ -982,7 +983,7 @@ fn lattice_bodies_touch_each_other_on_the_gpu() {
         return;
     }
     let mut app = app(WgpuSettings::default());
-    app.world_mut().resource_mut::<TissueSettings>().knn_every = 1;
+    assert_eq!(app.world().resource::<TissueSettings>().knn_every, 10);
     let (body, _) = common::lattice_body();
     // The lower body held whole (every particle pinned): a fixed shelf.
     let shelf = Pinned::region(PinShape::HalfSpace {

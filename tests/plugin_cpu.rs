@@ -193,15 +193,14 @@ fn a_diverging_cpu_body_is_put_back_at_rest_with_a_diagnosis() {
 
 /// Two lattice bodies on the CPU share one world: the upper one, dropped onto the lower
 /// (held whole) one, rests on it through particle contacts instead of passing through, and
-/// each body's particles are its own slice of the world. (Contacts found every step:
-/// at the default `knn_every` of 10 a body falling from 1 cm crosses the contact reach
-/// between two searches, on the GPU as here.)
+/// each body's particles are its own slice of the world. At the default `knn_every` of
+/// 10 (searched only then, the body falling from 4 cm crossed the contact reach between
+/// two searches): the contacts are searched again whenever particles may move out of
+/// the last search's reach.
 #[test]
 fn cpu_bodies_touch_each_other() {
-    let mut app = app(TissueSettings {
-        knn_every: 1,
-        ..default()
-    });
+    let mut app = app(TissueSettings::default());
+    assert_eq!(app.world().resource::<TissueSettings>().knn_every, 10);
     let (body, _) = common::lattice_body();
     // The lower body held whole (every particle pinned): a fixed shelf.
     let shelf = Pinned::region(PinShape::HalfSpace {

@@ -110,7 +110,12 @@ pub struct SolverSettings {
     pub relaxation: f32,
     /// Worker threads for Jacobi and KNN (0 = all cores).
     pub threads: usize,
-    /// Refresh particle-contact neighbours every this many steps (the paper: 10).
+    /// Search the particle-contact neighbours at least every this many steps (the
+    /// paper: 10). [`Solver::step`] also searches whenever a particle may have moved
+    /// out of the last search's reach ([`Solver::refresh_contacts_if_due`]: the search
+    /// reaches farther the faster the particles move), so bodies meeting fast find each
+    /// other whatever this is; the GPU world of the paper's clusters searches only on
+    /// this schedule.
     pub knn_every: u32,
     /// Particle–particle contacts between bodies on.
     pub particle_contacts: bool,
@@ -497,6 +502,11 @@ pub struct Solver {
     pin_slot: Vec<u32>,
     contact_start: Vec<u32>,
     contact_list: Vec<u32>,
+    /// Positions at the last particle-contact search, m (empty before the first).
+    contact_ref: Vec<Vec3>,
+    /// The least slack of the last search, m: every pair of particles of different
+    /// bodies this much farther apart than their contact distance was left out.
+    contact_skin: f32,
     /// Per particle: collider correction summed over the substep, and the collider.
     col: Vec<(Vec3, u32)>,
     timings: StageTimes,
@@ -532,6 +542,10 @@ pub struct Solver {
     /// substep, or `u32::MAX` (multigrid: the contacts that start the next substep
     /// active).
     touched: Vec<u32>,
+    /// Multigrid: per particle, whether the last particle-contact projection found one
+    /// of its own candidates overlapping it (a pair the Newton iteration left pressed
+    /// together, held a little past touching in the next: [`PAIR_HOLD`]).
+    pressed: Vec<bool>,
     /// Multigrid: the next Newton iteration is its substep's first.
     mg_fresh: bool,
     /// Multigrid: per particle, the force on a grasper (the pull it holds against) in the
@@ -590,6 +604,8 @@ impl Solver {
             pin_slot,
             contact_start: vec![0; n + 1],
             contact_list: Vec::new(),
+            contact_ref: Vec::new(),
+            contact_skin: 0.0,
             col: vec![(Vec3::ZERO, u32::MAX); n],
             timings: StageTimes::default(),
             backup_x: Vec::new(),
@@ -608,6 +624,7 @@ impl Solver {
             mg: None,
             mg_work: Default::default(),
             touched: vec![u32::MAX; n],
+            pressed: vec![false; n],
             mg_fresh: false,
             newton_force: Vec::new(),
             newton_now: true,
@@ -692,10 +709,11 @@ impl Solver {
             ..Default::default()
         };
         self.timings = StageTimes::default();
-        if s.particle_contacts && state.step.is_multiple_of(s.knn_every as u64) {
+        if s.particle_contacts {
             let t = std::time::Instant::now();
-            self.refresh_contacts(model, &state.x);
-            stats.knn_refreshed = true;
+            let periodic = state.step.is_multiple_of(s.knn_every as u64);
+            stats.knn_refreshed =
+                self.refresh_contacts_if_due(model, &state.x, &state.v, &[], 1, periodic);
             self.timings.knn = ms(t);
         }
         let consts = self.body_consts(model);
@@ -1004,7 +1022,91 @@ impl Solver {
     /// candidate, and their positions do not shape the search grid (a body parked far
     /// away costs nothing).
     pub fn refresh_contacts_among(&mut self, model: &Model, x: &[Vec3], active: &[bool]) {
+        self.search_contacts(model, x, active, 0.0);
+    }
+
+    /// How far a particle may move in the next `steps` steps, m: the fastest particle's
+    /// speed over that time plus twice gravity's fall from rest in it, `|v|max T + |g|
+    /// T²` (`T` = `steps` × `dt`). Zero where a speed is not finite (a diverged state,
+    /// which the step reports).
+    pub fn contact_travel(&self, v: &[Vec3], steps: u32) -> f32 {
+        let (speed, fall) = self.motion(v, steps);
+        speed + fall
+    }
+
+    /// The two parts of [`Solver::contact_travel`], m: the fastest particle's speed over
+    /// the steps' time, and twice gravity's fall from rest in it (both zero where a speed
+    /// is not finite).
+    fn motion(&self, v: &[Vec3], steps: u32) -> (f32, f32) {
+        let t = self.settings.dt * steps as f32;
+        let fastest = v.iter().map(|v| v.length_squared()).fold(0.0f32, f32::max);
+        let speed = fastest.sqrt() * t;
+        let fall = self.settings.gravity.length() * t * t;
+        if (speed + fall).is_finite() {
+            (speed, fall)
+        } else {
+            (0.0, 0.0)
+        }
+    }
+
+    /// Whether the particle-contact candidates must be searched again before particles
+    /// move up to `travel` (m) more: no search yet (or for another particle count), or
+    /// a particle may end farther than half the last search's slack from where that
+    /// search saw it, so that two particles left out of each other's lists could meet.
+    pub fn contacts_stale(&self, x: &[Vec3], travel: f32) -> bool {
+        if self.contact_ref.len() != x.len() {
+            return true;
+        }
+        let moved = x
+            .iter()
+            .zip(&self.contact_ref)
+            .map(|(a, b)| a.distance_squared(*b))
+            .fold(0.0f32, f32::max)
+            .sqrt();
+        // (A position that is not finite searches again.)
+        moved.is_nan() || moved + travel > 0.5 * self.contact_skin
+    }
+
+    /// Searches the particle-contact candidates among the bodies `active` marks (as
+    /// [`Solver::refresh_contacts_among`]) when `periodic` (the caller's schedule,
+    /// [`SolverSettings::knn_every`]) or when the lists are stale for the next `steps`
+    /// steps ([`Solver::contacts_stale`] with [`Solver::contact_travel`] of velocities
+    /// `v`, m/s). The search then reaches beyond contact by at least twice that travel
+    /// plus twice the speed's part of it (`4 |v| T + 2 |g| T²`), so that bodies
+    /// approaching fast find each other before they meet however far they move between
+    /// searches (searched again about every other step while they move steadily), and
+    /// bodies at rest are searched within the usual reach. Returns whether it searched.
+    pub fn refresh_contacts_if_due(
+        &mut self,
+        model: &Model,
+        x: &[Vec3],
+        v: &[Vec3],
+        active: &[bool],
+        steps: u32,
+        periodic: bool,
+    ) -> bool {
+        let (speed, fall) = self.motion(v, steps);
+        if !periodic && !self.contacts_stale(x, speed + fall) {
+            return false;
+        }
+        self.search_contacts(model, x, active, 4.0 * speed + 2.0 * fall);
+        true
+    }
+
+    /// The particle-contact search: each particle's K nearest particles of other bodies
+    /// within its contact distance to the largest radius plus a slack, the larger of
+    /// that distance and `skin_travel` (m).
+    fn search_contacts(&mut self, model: &Model, x: &[Vec3], active: &[bool], skin_travel: f32) {
         let n = x.len();
+        let min_r = model
+            .bodies
+            .iter()
+            .map(|b| b.radius)
+            .fold(f32::MAX, f32::min);
+        let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
+        self.contact_ref.clear();
+        self.contact_ref.extend_from_slice(x);
+        self.contact_skin = (min_r + max_r).max(skin_travel);
         let k = (self.settings.contact_neighbours as usize).min(n.saturating_sub(1));
         self.contact_start.clear();
         self.contact_list.clear();
@@ -1025,13 +1127,15 @@ impl Solver {
             None => Vec::new(),
         };
         let index = |j: u32| subset.as_ref().map_or(j, |ids| ids[j as usize]);
-        // Per particle: the k nearest particles of other bodies within twice the contact
-        // distance (candidates for the next `knn_every` steps).
+        // Per particle: the k nearest particles of other bodies within its reach (the
+        // candidates until the next search).
         let grid = super::knn::Grid::build(if subset.is_some() { &points } else { x }, 2.0);
-        let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
         // Broad phase: a body near no other searches nothing (its lists stay empty).
         let boxes = super::knn::body_boxes(x, model.bodies.iter().map(|b| (b.first, b.count)));
-        let mut near = super::knn::near_bodies(&boxes, super::knn::contact_reach_bound(max_r));
+        // (The farthest reach below, with the same margin for rounding.)
+        let bound = super::knn::contact_reach_bound(max_r)
+            .max((2.0 * max_r + skin_travel) * 1.001 + 1.0e-6);
+        let mut near = super::knn::near_bodies(&boxes, bound);
         for (b, nb) in near.iter_mut().enumerate() {
             *nb &= is_active(b as u32);
         }
@@ -1044,7 +1148,8 @@ impl Solver {
                 if !near[bi as usize] {
                     continue;
                 }
-                let reach = 2.0 * (model.bodies[bi as usize].radius + max_r);
+                let touch = model.bodies[bi as usize].radius + max_r;
+                let reach = touch + touch.max(skin_travel);
                 grid.knn_filtered(
                     x[i],
                     k,
@@ -1463,7 +1568,9 @@ impl Solver {
     /// inside a collider now; every free particle the boundary projection moved out of a
     /// collider in the last substep that is still within a radius of it (bilateral at
     /// the collider's surface for this iteration); with particle contacts on, every pair
-    /// of the contact lists (another body's particle) closer than their radii. The
+    /// of the contact lists (another body's particle) closer than their radii, or, where
+    /// the last projection found the particle pressed into one of them, no more than
+    /// [`PAIR_HOLD`] of that farther (then held at it for this iteration). The
     /// penalty stiffness is `PENALTY` times the particle's own stiffness scale,
     /// `m/h² + (λ + 2μ) s` (inertia plus the P-wave modulus times the lattice spacing
     /// `s`: what its elements hold it with), so that it dominates soft and stiff bodies
@@ -1513,7 +1620,12 @@ impl Solver {
                 let reach = r + model.bodies[model.particle_body[i] as usize].radius;
                 let d = self.p[j] - self.p[i];
                 let len = d.length();
-                if len >= reach || len <= 1e-12 {
+                let hold = if self.pressed[j] {
+                    1.0 + PAIR_HOLD
+                } else {
+                    1.0
+                };
+                if len >= reach * hold || len <= 1e-12 {
                     continue;
                 }
                 out.push(NewtonContact {
@@ -1727,6 +1839,9 @@ impl Solver {
         }
         self.timings.clusters += ms(t);
         let t = std::time::Instant::now();
+        let p = std::mem::take(&mut self.p);
+        self.mark_pressed_pairs(model, &state.x, &p);
+        self.p = p;
         for i in 0..n {
             if self.settled(model, i) {
                 continue;
@@ -1764,6 +1879,34 @@ impl Solver {
     /// which it is an immovable obstacle).
     fn settled(&self, model: &Model, j: usize) -> bool {
         !self.newton_now && self.newton_particle(model, j)
+    }
+
+    /// Records for each lattice particle stepped by Newton–multigrid whose particle
+    /// contacts this iteration projects (and which is not pinned) whether one of its own
+    /// candidates is pressed into it ([`pressed_pair`]) at `p`, the positions the
+    /// projection starts from (`x`: the substep's start): the pairs the Newton iteration
+    /// left pressed together, which the next holds a little past touching
+    /// ([`PAIR_HOLD`]). The GPU's `pair_project` records the same.
+    fn mark_pressed_pairs(&mut self, model: &Model, x: &[Vec3], p: &[Vec3]) {
+        for j in 0..p.len() {
+            if !self.newton_particle(model, j)
+                || self.settled(model, j)
+                || !self.contacts_of(model, j)
+            {
+                continue;
+            }
+            let rj = model.bodies[model.particle_body[j] as usize].radius;
+            let free = inv_mass(model, &self.pin_slot, j) > 0.0;
+            self.pressed[j] = free
+                && self.contact_list
+                    [self.contact_start[j] as usize..self.contact_start[j + 1] as usize]
+                    .iter()
+                    .any(|&i| {
+                        let i = i as usize;
+                        let dist = rj + model.bodies[model.particle_body[i] as usize].radius;
+                        pressed_pair(x[j] - x[i], p[j] - p[i], dist)
+                    });
+        }
     }
 
     /// Whether this iteration projects particle `j`'s particle contacts.
@@ -1895,6 +2038,7 @@ impl Solver {
         // Pass C: particle contacts (from the positions pass B left, so the two do not
         // correct the same overlap twice), then colliders and pins.
         let t = std::time::Instant::now();
+        self.mark_pressed_pairs(model, &state.x, &out);
         {
             let mut projected = std::mem::take(&mut self.p);
             let mut col = std::mem::take(&mut self.col);
@@ -2334,6 +2478,34 @@ fn contact_stiffness(model: &Model, j: usize, h2: f32) -> f32 {
         Material::ShapeMatching { .. } => 0.0,
     };
     PENALTY * (model.mass[j] / h2 + modulus * body.spacing)
+}
+
+/// How far past their contact distance (a fraction of it) a pair of particles of
+/// different bodies that the last projection found pressed together still holds in the
+/// next Newton iteration of the lattice bodies (bilateral there, for that iteration).
+/// The projection leaves such pairs at their contact distance; held only while
+/// overlapping, a body resting on another would fall into it in every other step and
+/// be pushed out in the next (a buzz of about gravity's step, `|g| h²`). A pair the
+/// iteration then leaves apart (pulled, not pressed) is not pressed at the projection,
+/// so the next iteration lets it go: no pair sticks. GPU twin: `PAIR_HOLD` in
+/// `lattice.wgsl` (set from this).
+pub(crate) const PAIR_HOLD: f32 = 0.01;
+
+/// Whether a pair of particles `d` apart (m; `d0` at the substep's start) is pressed
+/// together closer than their contact distance `dist` (m) along the line between them
+/// at the substep's start: `d · d0/|d0| < dist` (where `d0` is not zero; else `|d| <
+/// dist`). Measured along that fixed line, a pair the Newton iteration held at its
+/// contact distance while sliding sideways over a partner reads as touching, as it
+/// is, not as parted by the sliding's second-order lengthening of `|d|` (which,
+/// measured as `|d|`, left a body resting on a held one unheld every other step).
+pub fn pressed_pair(d0: Vec3, d: Vec3, dist: f32) -> bool {
+    let l0 = d0.length();
+    let along = if l0 > 1e-12 {
+        d.dot(d0) / l0
+    } else {
+        d.length()
+    };
+    along < dist && d.length_squared() > 1e-24
 }
 
 /// The substep's first iterate ties: a candidate start lowering a body's energy by less

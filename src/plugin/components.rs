@@ -509,7 +509,11 @@ pub struct TissueSettings {
     pub damping: f32,
     /// Jacobi relaxation ω.
     pub relaxation: f32,
-    /// Refresh the contact neighbours every this many steps (the paper: 10).
+    /// Search the contact neighbours at least every this many steps (the paper: 10).
+    /// Bodies stepped from the main world (lattice bodies, the default, and every body
+    /// on the CPU) are also searched whenever a particle may have moved out of the last
+    /// search's reach, so they meet however fast they move; the render graph's cluster
+    /// bodies are searched only on this schedule (fast impacts want 1 there).
     pub knn_every: u32,
     /// Particle contacts between bodies.
     pub particle_contacts: bool,

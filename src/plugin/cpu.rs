@@ -11,7 +11,8 @@
 //! body, the steps run on the GPU ([`GpuLattice`]: the same Newton–multigrid, colliders,
 //! graspers and particle contacts between bodies) and the positions are read back for
 //! the skinning; the contact candidates are searched on the CPU from those positions
-//! (every [`TissueSettings::knn_every`] steps, as the CPU solver does) and uploaded. The
+//! (every [`TissueSettings::knn_every`] steps and whenever particles may move out of
+//! the last search's reach, as the CPU solver does) and uploaded. The
 //! CPU's solver takes over where the GPU path is not possible (it cannot be set up, more
 //! than [`crate::gpu::kernels::lattice::MAX_COLLIDERS`] colliders).
 //!
@@ -782,21 +783,23 @@ impl CpuWorld {
             return Some(Err(e));
         }
         // Particle-contact candidates, searched from the positions read back last frame
-        // when one of this frame's steps is due a search (the CPU solver's rule).
+        // when one of this frame's steps is due a search or particles may move out of
+        // the last search's reach in this frame's steps (the CPU solver's rule).
         let every = settings.knn_every.max(1) as u64;
-        let due = !g.lists || (state.step..state.step + steps as u64).any(|s| s % every == 0);
+        let periodic = !g.lists || (state.step..state.step + steps as u64).any(|s| s % every == 0);
         if world.has_particle_contacts()
-            && due
             && let Some(solver) = self.solver.as_mut()
         {
             // Retired bodies are parked far away: out of the search.
             let active: Vec<bool> = self.retired.iter().map(|r| !r).collect();
-            solver.refresh_contacts_among(&self.model, &state.x, &active);
-            let (start, list) = solver.contact_lists();
-            if let Err(e) = world.set_contacts(queue, start, list) {
-                return Some(Err(e));
+            let (x, v) = (&state.x, &state.v);
+            if solver.refresh_contacts_if_due(&self.model, x, v, &active, steps, periodic) {
+                let (start, list) = solver.contact_lists();
+                if let Err(e) = world.set_contacts(queue, start, list) {
+                    return Some(Err(e));
+                }
+                g.lists = true;
             }
-            g.lists = true;
         }
         // The fastest particle of each body before the steps (for a divergence's advice).
         let before: Vec<f32> = self

@@ -501,9 +501,13 @@ pub fn source() -> String {
          const EXACT_PACKED: u32 = {}u;\n\
          const FACTOR_STRIDE: u32 = {FACTOR_STRIDE}u;\n\
          // Vec4s of a body's material record in `mats` (gpu::lattice's MAT_RECORD).\n\
-         const MAT_STRIDE: u32 = {}u;\n",
+         const MAT_STRIDE: u32 = {}u;\n\
+         // How far past their contact distance (a fraction of it) two nodes of different\n\
+         // bodies still hold each other in a Newton iteration (core::solver::PAIR_HOLD).\n\
+         const PAIR_HOLD: f32 = {:?};\n",
         packed_len(rows + 1),
         crate::gpu::lattice::MAT_RECORD,
+        crate::core::solver::PAIR_HOLD,
     ));
     s.push_str("\n// Bindings (src/gpu/kernels/lattice.rs, SLOTS).\n");
     // The declarations refer to the structs of lattice.wgsl; WGSL resolves them in any

@@ -52,8 +52,10 @@ const V_PE: u32 = 3u;
 const MAT_OP: u32 = 1u;
 // Regions of `ccol` (× n): this substep's collider corrections (xyz, m; w: the last
 // collider's index, −1: none); the collider touched in the last substep (x, −1: none),
-// this iteration's penalty contacts (y: a bit per collider) and, at a node's place in it,
-// the list of nodes with a contact block that `contacts` makes (z, u32 bits).
+// this iteration's penalty contacts (y: a bit per collider), at a node's place in it,
+// the list of nodes with a contact block that `contacts` makes (z, u32 bits), and
+// whether the last particle-contact projection found the node pressed into one of its
+// candidates (w, 1 or 0: `pressed_pair`, `pair_hold`).
 const C_COL: u32 = 0u;
 const C_TOUCH: u32 = 1u;
 // Region 2 of `ccol`: the grasp of each node (the offset in the grasper's frame, m; w:
@@ -612,13 +614,14 @@ fn node_line(acc: vec4<f32>, j: u32, av: vec4<f32>) -> vec4<f32> {
     let pr = pair_range(j);
     if (pr.x < pr.y) {
         let sc = contact_scale(j);
+        let hold = pair_hold(j);
         for (var s = pr.x; s < pr.y; s = s + 1u) {
             let i = pair_at(s);
             let yt = pos[R_Y * n + i];
             let yi = yt.xyz;
             let reach = sc.x + tag_radius(yt.w);
             let len0 = length(y - yi);
-            if (len0 >= reach || len0 <= 1e-12) {
+            if (len0 >= reach * hold || len0 <= 1e-12) {
                 continue;
             }
             let di = tag_free_step(yt.w, vecs[V_DELTA * params.n_total + i].xyz);
@@ -2668,7 +2671,9 @@ fn contact_scale(j: u32) -> vec2<f32> {
 
 // Penalty contacts of node j (core::solver's Newton contacts): with every collider it
 // is inside now, and the one it touched in the last substep while within a radius of
-// it; and with another body's node closer than their radii, for the pairs in its own
+// it; and with another body's node closer than their radii (or, where the pair's
+// holder was pressed into a candidate at the last projection, within PAIR_HOLD of that:
+// `pair_hold`), for the pairs in its own
 // candidate list and those in the lists of others (each pair is one contact, held by
 // the node whose list has it, with that node's stiffness; a free partner counts it twice
 // in its block, the coupling the V-cycle does not see). Adds the penalty forces to its
@@ -2703,13 +2708,14 @@ fn contact_node(j: u32) -> bool {
             // The collider's step widens its body's trust region (`trust_node`).
             atomicMax(&bodyt[params.chunks.z + node_body(j)], bitcast<u32>(length(cols[k].vel.xyz) * params.h));
         }
+        let hold = pair_hold(j);
         for (var s = pr.x; s < pr.y; s = s + 1u) {
             let i = pair_at(s);
             let yi = pos[R_Y * n + i];
             let d = y - yi.xyz;
             let reach = r + tag_radius(yi.w);
             let len = length(d);
-            if (len >= reach || len <= 1e-12) {
+            if (len >= reach * hold || len <= 1e-12) {
                 continue;
             }
             let nn = d / len;
@@ -2725,7 +2731,7 @@ fn contact_node(j: u32) -> bool {
             let d = yi.xyz - y;
             let reach = r + tag_radius(yi.w);
             let len = length(d);
-            if (len >= reach || len <= 1e-12) {
+            if (len >= reach * pair_hold(i) || len <= 1e-12) {
                 continue;
             }
             let nn = d / len;
@@ -2838,8 +2844,10 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
     var q = y;
     let wj = pair_inv_mass(j);
     let pr = pair_range(j);
+    var pressed = false;
     if (wj > 0.0 && pr.x < pr.y) {
         let rj = contact_scale(j).x;
+        let xj = pos[R_X * n + j].xyz;
         var sum = vec3<f32>(0.0);
         var count = 0u;
         for (var s = pr.x; s < pr.y; s = s + 1u) {
@@ -2847,6 +2855,7 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
             let yi = pos[R_Y * n + i];
             let delta = y - yi.xyz;
             let dist = rj + tag_radius(yi.w);
+            pressed = pressed || pressed_pair(xj - pos[R_X * n + i].xyz, delta, dist);
             let l2 = dot(delta, delta);
             if (l2 >= dist * dist || l2 <= 1e-24) {
                 continue;
@@ -2864,6 +2873,23 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     vecs[V_RES * params.n_total + j] = vec4<f32>(q, 0.0);
+    // Pressed into a candidate: the next Newton iteration holds its pairs PAIR_HOLD past
+    // touching (`pair_hold`).
+    ccol[C_TOUCH * n + j].w = select(0.0, 1.0, pressed);
+}
+
+// Whether a pair `d` apart (`d0` at the substep's start) is closer than `dist` along the
+// line between them at the substep's start (core::solver::pressed_pair).
+fn pressed_pair(d0: vec3<f32>, d: vec3<f32>, dist: f32) -> bool {
+    let l0 = length(d0);
+    let along = select(length(d), dot(d, d0) / l0, l0 > 1e-12);
+    return along < dist && dot(d, d) > 1e-24;
+}
+
+// How far node j's own candidates hold it (a factor on their contact distance): a
+// little past touching where the last projection found it pressed into one of them.
+fn pair_hold(j: u32) -> f32 {
+    return select(1.0, 1.0 + PAIR_HOLD, ccol[C_TOUCH * params.n + j].w > 0.5);
 }
 
 // The colliders' projection after a Newton iteration (pins already hold their targets),
