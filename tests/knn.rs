@@ -274,7 +274,7 @@ fn contact_lists_among_active_bodies_leave_the_others_out() {
 /// different bodies within contact distance (brute force) is in the lists made before
 /// the step, unless the particle's list is full of nearer candidates. A search only
 /// every 10 steps (the schedule alone) misses most of the pairs; the rule searches
-/// again while they approach, and only on the schedule once everything drifts slowly.
+/// again while they approach, and only on the schedule once everything rests.
 #[test]
 fn contact_lists_keep_up_with_fast_bodies() {
     use bevy_tissue::core::solver::{Solver, SolverSettings};
@@ -327,12 +327,11 @@ fn contact_lists_keep_up_with_fast_bodies() {
             every.refresh_contacts(&model, &x);
         }
         // The step: the two fly on until they meet in the middle, then part slowly; the
-        // third box falls under gravity onto them (from step 22 on, everything drifts
-        // slowly).
+        // third box falls under gravity onto them (from step 22 on, everything rests).
         for (i, (p, u)) in x.iter_mut().zip(v.iter_mut()).enumerate() {
             let b = model.particle_body[i] as usize;
             if step >= 22 {
-                *u = Vec3::new(0.0, 0.0, 0.01);
+                *u = Vec3::ZERO;
             } else if b == 2 {
                 *u += g * h;
             } else if step == 7 {
@@ -370,12 +369,12 @@ fn contact_lists_keep_up_with_fast_bodies() {
         missed_by_schedule > met / 2,
         "the schedule alone would have missed most ({missed_by_schedule} of {met})"
     );
-    // While they approach, searches at least every other step; drifting, only the
+    // While they approach, searches at least every other step; at rest, only the
     // schedule's (steps 30 and 40).
     assert!(
         searches[0] >= 8,
         "searched {} times approaching",
         searches[0]
     );
-    assert_eq!(searches[1], 2, "searches while drifting");
+    assert_eq!(searches[1], 2, "searches at rest");
 }
