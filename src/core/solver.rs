@@ -2493,11 +2493,12 @@ pub(crate) const PAIR_HOLD: f32 = 0.01;
 
 /// Whether a pair of particles `d` apart (m; `d0` at the substep's start) is pressed
 /// together closer than their contact distance `dist` (m) along the line between them
-/// at the substep's start: `d · d0/|d0| < dist` (where `d0` is not zero; else `|d| <
-/// dist`). Measured along that fixed line, a pair the Newton iteration held at its
-/// contact distance while sliding sideways over a partner reads as touching, as it
-/// is, not as parted by the sliding's second-order lengthening of `|d|` (which,
-/// measured as `|d|`, left a body resting on a held one unheld every other step).
+/// at the substep's start, `d · d0/|d0| < dist` (where `d0` is not zero; else `|d| <
+/// dist`), while within the hold's reach, `|d| < (1 + PAIR_HOLD) dist`. Measured along
+/// that fixed line, a pair the Newton iteration held at its contact distance while
+/// sliding sideways over a partner reads as touching, as it is, not as parted by the
+/// sliding's second-order lengthening of `|d|` (which, measured as `|d|`, left a body
+/// resting on a held one unheld every other step).
 pub fn pressed_pair(d0: Vec3, d: Vec3, dist: f32) -> bool {
     let l0 = d0.length();
     let along = if l0 > 1e-12 {
@@ -2505,7 +2506,9 @@ pub fn pressed_pair(d0: Vec3, d: Vec3, dist: f32) -> bool {
     } else {
         d.length()
     };
-    along < dist && d.length_squared() > 1e-24
+    let l2 = d.length_squared();
+    let zone = dist * (1.0 + PAIR_HOLD);
+    along < dist && l2 > 1e-24 && l2 < zone * zone
 }
 
 /// The substep's first iterate ties: a candidate start lowering a body's energy by less

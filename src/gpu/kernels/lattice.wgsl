@@ -2855,8 +2855,12 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
             let yi = pos[R_Y * n + i];
             let delta = y - yi.xyz;
             let dist = rj + tag_radius(yi.w);
-            pressed = pressed || pressed_pair(xj - pos[R_X * n + i].xyz, delta, dist);
             let l2 = dot(delta, delta);
+            // (Only a pair within the hold's reach can be pressed: `pressed_pair`.)
+            let zone = dist * (1.0 + PAIR_HOLD);
+            if (!pressed && l2 < zone * zone) {
+                pressed = pressed_pair(xj - pos[R_X * n + i].xyz, delta, dist);
+            }
             if (l2 >= dist * dist || l2 <= 1e-24) {
                 continue;
             }
@@ -2879,11 +2883,14 @@ fn pair_project(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // Whether a pair `d` apart (`d0` at the substep's start) is closer than `dist` along the
-// line between them at the substep's start (core::solver::pressed_pair).
+// line between them at the substep's start, within the hold's reach
+// (core::solver::pressed_pair).
 fn pressed_pair(d0: vec3<f32>, d: vec3<f32>, dist: f32) -> bool {
     let l0 = length(d0);
     let along = select(length(d), dot(d, d0) / l0, l0 > 1e-12);
-    return along < dist && dot(d, d) > 1e-24;
+    let l2 = dot(d, d);
+    let zone = dist * (1.0 + PAIR_HOLD);
+    return along < dist && l2 > 1e-24 && l2 < zone * zone;
 }
 
 // How far node j's own candidates hold it (a factor on their contact distance): a
