@@ -543,8 +543,9 @@ pub struct Solver {
     /// active).
     touched: Vec<u32>,
     /// Multigrid: per particle, whether the last particle-contact projection found one
-    /// of its own candidates overlapping it (a pair the Newton iteration left pressed
-    /// together, held a little past touching in the next: [`PAIR_HOLD`]).
+    /// of its own candidates pressed into it ([`pressed_pair`]: a pair the Newton
+    /// iteration left pressed together, held a little past touching in the next:
+    /// [`PAIR_HOLD`]).
     pressed: Vec<bool>,
     /// Multigrid: the next Newton iteration is its substep's first.
     mg_fresh: bool,
