@@ -75,6 +75,114 @@ fn query_off_points_and_k_too_large() {
     assert!(knn_brute_force(&pts, 500).is_none());
 }
 
+/// Queries within a reach, filtered, and bounded by a known distance
+/// (`Grid::knn_bounded`) equal brute force: on random points and on a lattice (ties),
+/// from inside and outside the grid, with reaches from under a cell to the whole set
+/// and with known bounds at, above and far above the true K-th distance. Skipping cells
+/// by their box distance, and stopping the rings once they cover the reach, must lose
+/// nothing.
+#[test]
+fn bounded_and_filtered_queries_equal_brute_force() {
+    let mut rng = Rng(0x5eed);
+    let random: Vec<Vec3> = (0..1500)
+        .map(|_| rng.vec3() * Vec3::new(1.0, 0.3, 0.7))
+        .collect();
+    let lattice: Vec<Vec3> = (0..1000)
+        .map(|i| Vec3::new((i % 10) as f32, ((i / 10) % 10) as f32, (i / 100) as f32) * 0.05)
+        .collect();
+    let mut out = Vec::new();
+    for (what, pts) in [("random", &random), ("lattice", &lattice)] {
+        let grid = Grid::build(pts, 2.0);
+        let accept = |j: u32| j % 3 != 0;
+        for t in 0..120 {
+            let q = if t % 4 == 0 {
+                rng.vec3() * 1.6 - 0.3 // also outside the grid
+            } else {
+                pts[(rng.vec3().x * pts.len() as f32) as usize % pts.len()]
+            };
+            let reach = [0.01f32, 0.04, 0.07, 0.12, 0.3, 5.0][t % 6];
+            let k = [1usize, 5, 16][t % 3];
+            let mut all: Vec<(f32, u32)> = pts
+                .iter()
+                .enumerate()
+                .map(|(i, p)| (bevy_tissue::core::knn::dist2(q, *p), i as u32))
+                .filter(|&(d2, i)| accept(i) && d2 <= reach * reach)
+                .collect();
+            all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            all.truncate(k);
+            grid.knn_filtered(q, k, reach, accept, &mut out);
+            assert_eq!(out, all, "{what}, query {t}: filtered, reach {reach}");
+            // Known bounds: none, the K-th distance itself, and above it.
+            let kth = match all.len() == k {
+                true => all[k - 1].0,
+                false => f32::INFINITY,
+            };
+            for known in [f32::INFINITY, kth, kth * 1.5 + 1e-4, kth * 30.0] {
+                grid.knn_bounded(q, k, reach, known, accept, &mut out);
+                assert_eq!(out, all, "{what}, query {t}: reach {reach}, known {known}");
+            }
+        }
+    }
+}
+
+/// A contact search that starts from the last one's lists (each full row's farthest
+/// candidate, measured again, bounds the search) gives the lists a search from scratch
+/// gives, equal to brute force, after the bodies moved: two lattice boxes sliding past
+/// each other and a third dropped between them, searched every step.
+#[test]
+fn contact_searches_after_the_first_equal_brute_force() {
+    use bevy_tissue::core::solver::{Solver, SolverSettings};
+    let mut model = common::lattice_box_at(Vec3::splat(0.02), Vec3::ZERO);
+    model.append(&common::lattice_box_at(
+        Vec3::splat(0.02),
+        Vec3::new(0.041, 0.0, 0.0),
+    ));
+    model.append(&common::lattice_box_at(
+        Vec3::splat(0.016),
+        Vec3::new(0.02, 0.05, 0.0),
+    ));
+    let settings = SolverSettings::default();
+    let k = settings.contact_neighbours as usize;
+    let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
+    let mut x = model.placed_rest();
+    let mut solver = Solver::new(&model, settings).unwrap();
+    let mut full_rows = 0;
+    for step in 0..12 {
+        solver.refresh_contacts(&model, &x);
+        let (start, list) = solver.contact_lists();
+        for (i, &q) in x.iter().enumerate() {
+            let bi = model.particle_body[i];
+            let reach = 2.0 * (model.bodies[bi as usize].radius + max_r);
+            let mut all: Vec<(f32, u32)> = x
+                .iter()
+                .enumerate()
+                .filter(|&(j, _)| model.particle_body[j] != bi)
+                .map(|(j, p)| (bevy_tissue::core::knn::dist2(q, *p), j as u32))
+                .filter(|&(d2, _)| d2 <= reach * reach)
+                .collect();
+            all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            all.truncate(k);
+            let want: Vec<u32> = all.iter().map(|&(_, j)| j).collect();
+            let got = &list[start[i] as usize..start[i + 1] as usize];
+            assert_eq!(got, &want[..], "step {step}, particle {i}");
+            full_rows += (got.len() == k) as usize;
+        }
+        let mut fresh = Solver::new(&model, SolverSettings::default()).unwrap();
+        fresh.refresh_contacts(&model, &x);
+        assert_eq!(fresh.contact_lists(), solver.contact_lists(), "step {step}");
+        // The second box slides along the first (y), the third sinks between them.
+        for (p, &b) in x.iter_mut().zip(&model.particle_body) {
+            match b {
+                1 => p.y += 0.003,
+                2 => *p += Vec3::new(0.0005, -0.002, 0.001),
+                _ => {}
+            }
+        }
+    }
+    // The warm bound was at work: many rows were full.
+    assert!(full_rows > 1000, "{full_rows} full rows");
+}
+
 /// The contact broad phase (`near_bodies`) is conservative: every pair of particles of
 /// two bodies within the largest contact reach marks both bodies near, and it is exact
 /// for its boxes (a body is near another only if its grown box overlaps that box).

@@ -141,6 +141,23 @@ impl Grid {
         accept: impl Fn(u32) -> bool,
         out: &mut Vec<(f32, u32)>,
     ) -> usize {
+        self.knn_bounded(q, k, max_dist, f32::INFINITY, accept, out)
+    }
+
+    /// [`Grid::knn_filtered`] given `known2` (m²): a squared distance within which at
+    /// least `k` accepted points are known to lie (for instance the farthest of a
+    /// previous search's `k` results, measured again), or infinity. Cells wholly beyond
+    /// it (or beyond `max_dist`) are not visited; the result is the same, found sooner.
+    /// A `known2` smaller than the truth drops points: it must be an upper bound.
+    pub fn knn_bounded(
+        &self,
+        q: Vec3,
+        k: usize,
+        max_dist: f32,
+        known2: f32,
+        accept: impl Fn(u32) -> bool,
+        out: &mut Vec<(f32, u32)>,
+    ) -> usize {
         out.clear();
         if k == 0 {
             return 0;
@@ -148,6 +165,8 @@ impl Grid {
         let c = self.cell_coords(q);
         // Unclamped position of q relative to the grid, to bound unvisited cells.
         let rel = (q - self.origin) / self.cell;
+        // How far q's cell may be off by the rounding of `rel`, in cells.
+        let ring_eps = 1.0e-3 + 1.0e-6 * rel.abs().max_element();
         let max_ring = self.dims.iter().copied().max().unwrap_or(1) as i32;
         let max2 = max_dist as f64 * max_dist as f64;
         let max2 = if max2 >= f32::MAX as f64 {
@@ -155,13 +174,36 @@ impl Grid {
         } else {
             max2 as f32
         };
+        // Only points within `bound2` can enter the list.
+        let bound2 = max2.min(known2.max(0.0));
+        let bound = bound2.sqrt();
         for r in 0..=max_ring {
             let lo = [c[0] - r, c[1] - r, c[2] - r];
             let hi = [c[0] + r, c[1] + r, c[2] + r];
             for z in lo[2].max(0)..=hi[2].min(self.dims[2] as i32 - 1) {
                 let zr = z == lo[2] || z == hi[2];
+                let gz = axis_gap(z, rel.z);
                 for y in lo[1].max(0)..=hi[1].min(self.dims[1] as i32 - 1) {
                     let yr = zr || y == lo[1] || y == hi[1];
+                    // Cells whose every point is beyond what can still enter the list
+                    // are skipped: their box distance (in cells, squared) against the
+                    // bound, widened by the rounding slack. Whole rows first.
+                    let cut = match out.len() == k {
+                        true => bound2.min(out[k - 1].0),
+                        false => bound2,
+                    };
+                    let lim = if cut < f32::INFINITY {
+                        (cut.sqrt() / self.cell + ring_eps).powi(2)
+                    } else {
+                        f32::INFINITY
+                    };
+                    let gy = axis_gap(y, rel.y);
+                    let gzy = gz * gz + gy * gy;
+                    if gzy > lim {
+                        continue;
+                    }
+                    let row =
+                        self.dims[0] as usize * (y as usize + self.dims[1] as usize * z as usize);
                     let mut x = lo[0].max(0);
                     let x1 = hi[0].min(self.dims[0] as i32 - 1);
                     while x <= x1 {
@@ -170,20 +212,20 @@ impl Grid {
                             x = hi[0];
                             continue;
                         }
-                        let ci = x as usize
-                            + self.dims[0] as usize
-                                * (y as usize + self.dims[1] as usize * z as usize);
+                        let gx = axis_gap(x, rel.x);
+                        if gzy + gx * gx > lim {
+                            x += 1;
+                            continue;
+                        }
+                        let ci = x as usize + row;
                         let (s, e) = (
                             self.cell_start[ci] as usize,
                             self.cell_start[ci + 1] as usize,
                         );
                         for slot in s..e {
                             let idx = self.sorted[slot];
-                            if !accept(idx) {
-                                continue;
-                            }
                             let d2 = dist2(q, self.sorted_pos[slot]);
-                            if d2 <= max2 {
+                            if d2 <= bound2 && accept(idx) {
                                 insert_sorted(out, k, (d2, idx));
                             }
                         }
@@ -191,8 +233,10 @@ impl Grid {
                     }
                 }
             }
-            // Everything within max_dist has been visited once the ring covers it.
-            if (r as f32) * self.cell >= max_dist + self.cell {
+            // Everything within the bound has been visited once the ring covers it: a
+            // cell outside rings 0..=r is at least r cells from q's cell along an axis,
+            // so at least r cell edges from q (less a little for q's cell rounding).
+            if (r as f32 - ring_eps) * self.cell >= bound {
                 break;
             }
             if out.len() == k {
@@ -219,6 +263,14 @@ impl Grid {
         }
         out.len()
     }
+}
+
+/// Distance (in cells) from grid coordinate `rel` to cell `i`'s slab along one axis
+/// (zero inside it).
+#[inline(always)]
+fn axis_gap(i: i32, rel: f32) -> f32 {
+    let lo = i as f32;
+    (lo - rel).max(rel - lo - 1.0).max(0.0)
 }
 
 /// How far apart two bodies' particle bounding boxes must be (m) for no contact

@@ -1109,8 +1109,10 @@ impl Solver {
         self.contact_ref.extend_from_slice(x);
         self.contact_skin = (min_r + max_r).max(skin_travel);
         let k = (self.settings.contact_neighbours as usize).min(n.saturating_sub(1));
-        self.contact_start.clear();
-        self.contact_list.clear();
+        // The last search's lists bound this one's (see below).
+        let old_start = std::mem::take(&mut self.contact_start);
+        let old_list = std::mem::take(&mut self.contact_list);
+        let warm = old_start.len() == n + 1;
         self.contact_start.push(0);
         if k == 0 {
             self.contact_start.resize(n + 1, 0);
@@ -1151,10 +1153,36 @@ impl Solver {
                 }
                 let touch = model.bodies[bi as usize].radius + max_r;
                 let reach = touch + touch.max(skin_travel);
-                grid.knn_filtered(
+                // A full row of the last search (k particles of other active bodies,
+                // distinct) bounds the k-th nearest now by the farthest of them.
+                let mut known = f32::INFINITY;
+                if warm {
+                    let row = &old_list[old_start[i] as usize..old_start[i + 1] as usize];
+                    let other = |&j: &u32| {
+                        let bj = model.particle_body[j as usize];
+                        bj != bi && is_active(bj)
+                    };
+                    if row.len() == k && row.iter().all(other) {
+                        let far = row
+                            .iter()
+                            .map(|&j| super::knn::dist2(x[i], x[j as usize]))
+                            .fold(0.0f32, |a, d| {
+                                if a.is_nan() || d.is_nan() {
+                                    f32::NAN
+                                } else {
+                                    a.max(d)
+                                }
+                            });
+                        if far.is_finite() {
+                            known = far;
+                        }
+                    }
+                }
+                grid.knn_bounded(
                     x[i],
                     k,
                     reach,
+                    known,
                     |j| model.particle_body[index(j) as usize] != bi,
                     &mut buf,
                 );
