@@ -11,10 +11,19 @@
 //! 5 warm-up steps, the same stage breakdown). `--sizes a,b,..` picks other counts
 //! (sampled at the 37,982-particle spacing scaled by the cube root of the ratio).
 //!
+//! With `--contacts` it times the particle-contact search that the plugin's main world
+//! runs for lattice bodies (from the positions read back): touching 5 cm lattice cubes
+//! of 512 particles on a square grid (the GPU benchmark's "touching cubes"; `--bodies
+//! a,b,..`, default 36, 100 and 1,000), at rest, all falling together at 1 m/s, and every
+//! other body falling at 1 m/s past the others at rest (the search's reach widened for
+//! their relative travel), the first search and the next one (which starts from the
+//! last search's lists), on all cores.
+//!
 //! ```text
 //! cargo run --release --example cpu_bench            # the full table
 //! cargo run --release --example cpu_bench -- --quick # small sizes only, seconds
 //! cargo run --release --example cpu_bench -- --scale # 38k to 1M particles, minutes
+//! cargo run --release --example cpu_bench -- --contacts --bodies 36,1000
 //! ```
 #[path = "support/bench.rs"]
 mod bench;
@@ -146,6 +155,10 @@ fn main() {
         scale();
         return;
     }
+    if args.flag("--contacts") {
+        contacts(&args.list("--bodies", &[36, 100, 1000]));
+        return;
+    }
     let quick = args.flag("--quick");
     let sizes: &[u32] = if quick {
         &[512, 4096]
@@ -229,5 +242,100 @@ fn main() {
     println!("|---|---|---|---|---|---|---|---|---|");
     for row in breakdown {
         println!("{row}");
+    }
+}
+
+/// `bodies` lattice cubes of 512 particles (5 cm, E = 100 kPa), centres `pitch` (m)
+/// apart on a square grid (5.7 cm: the facing layers of particles touch).
+fn cubes_at(bodies: u32, pitch: f32) -> Result<Model, String> {
+    let mut model = Model::new();
+    let side = (bodies as f32).sqrt().ceil() as u32;
+    let mesh = procedural::cuboid(glam::Vec3::splat(0.025), 1);
+    for b in 0..bodies {
+        let at = glam::Vec3::new((b % side) as f32 * pitch, 0.5, (b / side) as f32 * pitch);
+        let desc = BodyDesc {
+            resolution: Resolution::Spacing(0.05 / 7.0),
+            material: Material::Hyperelastic {
+                youngs_modulus: 100e3,
+                poisson_ratio: 0.3,
+            },
+            discretisation: bevy_tissue::core::model::Discretisation::Lattice,
+            translation: at,
+            ..Default::default()
+        };
+        model.add_body(&mesh, &desc).map_err(|e| e.to_string())?;
+    }
+    Ok(model)
+}
+
+/// `--contacts`: ms per particle-contact search over touching cubes, at rest and
+/// moving, first search and next (median of 3 each), and after how many steps of that
+/// motion the lists would be stale.
+fn contacts(sizes: &[u32]) {
+    let threads = bevy_tissue::core::par::default_threads();
+    let settings = SolverSettings::default();
+    println!(
+        "Particle-contact search (K = {}), touching lattice cubes of 512 particles, {threads} threads\n",
+        settings.contact_neighbours
+    );
+    println!(
+        "| bodies | particles | motion | first ms | next ms | candidates | searched again after (steps) |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for &bodies in sizes {
+        let model = match cubes_at(bodies, 0.057) {
+            Ok(m) => m,
+            Err(e) => {
+                eprintln!("{bodies} cubes: {e}");
+                continue;
+            }
+        };
+        let x = model.placed_rest();
+        let n = x.len();
+        for (motion, moving) in [
+            ("at rest", 0u32),
+            ("all falling at 1 m/s", 1),
+            ("every other body at 1 m/s", 2),
+        ] {
+            let v: Vec<glam::Vec3> = (0..n)
+                .map(|i| {
+                    let b = model.particle_body[i];
+                    let falls = moving == 1 || (moving == 2 && b % 2 == 0);
+                    glam::Vec3::new(0.0, if falls { -1.0 } else { 0.0 }, 0.0)
+                })
+                .collect();
+            let (mut first, mut next, mut pairs) = (Vec::new(), Vec::new(), 0);
+            let mut every = String::new();
+            for _ in 0..3 {
+                let mut solver = match Solver::new(&model, settings.clone()) {
+                    Ok(s) => s,
+                    Err(e) => {
+                        eprintln!("{bodies} cubes: {e}");
+                        return;
+                    }
+                };
+                for times in [&mut first, &mut next] {
+                    let t = Instant::now();
+                    solver.refresh_contacts_if_due(&model, &x, &v, &[], 1, true);
+                    times.push(t.elapsed().as_secs_f64() * 1e3);
+                }
+                pairs = solver.contact_lists().1.len();
+                // Steps of this motion (kinematic) until the lists are stale.
+                let travel = solver.contact_travel(&v, 1);
+                every = (1..=20u32)
+                    .find(|&s| {
+                        let t = settings.dt * s as f32;
+                        let moved: Vec<glam::Vec3> =
+                            x.iter().zip(&v).map(|(p, u)| *p + *u * t).collect();
+                        solver.contacts_stale(&moved, travel)
+                    })
+                    .map_or("over 20".into(), |s| s.to_string());
+            }
+            println!(
+                "| {bodies} | {n} | {motion} | {:.1} | {:.1} | {pairs} | {every} |",
+                median(first),
+                median(next)
+            );
+        }
     }
 }

@@ -486,3 +486,62 @@ fn contact_lists_keep_up_with_fast_bodies() {
     );
     assert_eq!(searches[1], 2, "searches at rest");
 }
+
+/// Bodies moving together (a pile carried sideways at 5 m/s while falling) change no
+/// distance between their particles, so their contact lists stay valid: searched only
+/// on the `knn_every` schedule, never for their speed, and every touching pair stays in
+/// the lists. A rule that bounds travel by the fastest particle's speed instead of the
+/// spread of the velocities searches every other step.
+#[test]
+fn bodies_moving_together_keep_their_contact_lists() {
+    use bevy_tissue::core::solver::{Solver, SolverSettings};
+    let mut model = common::lattice_box_at(Vec3::splat(0.02), Vec3::ZERO);
+    model.append(&common::lattice_box_at(
+        Vec3::splat(0.02),
+        Vec3::new(0.0, 0.047, 0.003),
+    ));
+    model.append(&common::lattice_box_at(
+        Vec3::splat(0.016),
+        Vec3::new(0.046, 0.0, -0.004),
+    ));
+    let settings = SolverSettings::default();
+    let (h, g, k) = (
+        settings.dt,
+        settings.gravity,
+        settings.contact_neighbours as usize,
+    );
+    let mut x = model.placed_rest();
+    let n = x.len();
+    let mut v = vec![Vec3::new(5.0, 0.0, 0.0); n];
+    let mut solver = Solver::new(&model, settings).unwrap();
+    let (mut searches, mut touching) = (0, 0);
+    for step in 0..30u64 {
+        searches += solver.refresh_contacts_if_due(&model, &x, &v, &[], 1, step % 10 == 0) as u32;
+        for (p, u) in x.iter_mut().zip(v.iter_mut()) {
+            *u += g * h;
+            *p += *u * h;
+        }
+        let (start, list) = solver.contact_lists();
+        for i in 0..n {
+            let bi = model.particle_body[i];
+            let own = &list[start[i] as usize..start[i + 1] as usize];
+            for j in 0..n {
+                let bj = model.particle_body[j];
+                let touch = model.bodies[bi as usize].radius + model.bodies[bj as usize].radius;
+                if bj == bi || x[i].distance(x[j]) >= touch {
+                    continue;
+                }
+                touching += 1;
+                assert!(
+                    own.contains(&(j as u32)) || own.len() == k,
+                    "step {step}: particles {i} and {j} touch but {j} is not in {i}'s list"
+                );
+            }
+        }
+    }
+    assert!(touching > 100, "the boxes must touch ({touching} pairs)");
+    assert_eq!(
+        searches, 3,
+        "searches: only the schedule's (steps 0, 10, 20)"
+    );
+}

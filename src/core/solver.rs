@@ -1026,22 +1026,23 @@ impl Solver {
         self.search_contacts(model, x, active, 0.0);
     }
 
-    /// How far a particle may move in the next `steps` steps, m: the fastest particle's
-    /// speed over that time plus twice gravity's fall from rest in it, `|v|max T + |g|
-    /// T²` (`T` = `steps` × `dt`). Zero where a speed is not finite (a diverged state,
-    /// which the step reports).
+    /// How far a particle may move in the next `steps` steps relative to the others'
+    /// common motion, m: the largest deviation of a particle's velocity from the middle
+    /// of all velocities (the centre of their bounding box) over that time, plus twice
+    /// gravity's fall from rest in it, `|v − v_mid|max T + |g| T²` (`T` = `steps` ×
+    /// `dt`). Two particles approach each other by at most twice that. Zero where a speed
+    /// is not finite (a diverged state, which the step reports).
     pub fn contact_travel(&self, v: &[Vec3], steps: u32) -> f32 {
         let (speed, fall) = self.motion(v, steps);
         speed + fall
     }
 
-    /// The two parts of [`Solver::contact_travel`], m: the fastest particle's speed over
-    /// the steps' time, and twice gravity's fall from rest in it (both zero where a speed
-    /// is not finite).
+    /// The two parts of [`Solver::contact_travel`], m: the largest deviation from the
+    /// middle velocity over the steps' time, and twice gravity's fall from rest in it
+    /// (both zero where a speed is not finite).
     fn motion(&self, v: &[Vec3], steps: u32) -> (f32, f32) {
         let t = self.settings.dt * steps as f32;
-        let fastest = v.iter().map(|v| v.length_squared()).fold(0.0f32, f32::max);
-        let speed = fastest.sqrt() * t;
+        let speed = spread(v) * t;
         let fall = self.settings.gravity.length() * t * t;
         if (speed + fall).is_finite() {
             (speed, fall)
@@ -1051,21 +1052,25 @@ impl Solver {
     }
 
     /// Whether the particle-contact candidates must be searched again before particles
-    /// move up to `travel` (m) more: no search yet (or for another particle count), or
-    /// a particle may end farther than half the last search's slack from where that
-    /// search saw it, so that two particles left out of each other's lists could meet.
+    /// move up to `travel` (m, relative to their common motion, as
+    /// [`Solver::contact_travel`]) more: no search yet (or for another particle count),
+    /// or a particle's displacement since that search may end farther than half the
+    /// search's slack from the middle of all displacements, so that two particles left
+    /// out of each other's lists could meet. (Moving together, as a pile falling or
+    /// carried as one, changes no distance between particles: it never makes the lists
+    /// stale.)
     pub fn contacts_stale(&self, x: &[Vec3], travel: f32) -> bool {
         if self.contact_ref.len() != x.len() {
             return true;
         }
-        let moved = x
+        let moved: Vec<Vec3> = x
             .iter()
             .zip(&self.contact_ref)
-            .map(|(a, b)| a.distance_squared(*b))
-            .fold(0.0f32, f32::max)
-            .sqrt();
+            .map(|(a, b)| *a - *b)
+            .collect();
+        let moved = spread(&moved);
         // (A position that is not finite searches again.)
-        moved.is_nan() || moved + travel > 0.5 * self.contact_skin
+        !moved.is_finite() || moved + travel > 0.5 * self.contact_skin
     }
 
     /// Searches the particle-contact candidates among the bodies `active` marks (as
@@ -1073,10 +1078,11 @@ impl Solver {
     /// [`SolverSettings::knn_every`]) or when the lists are stale for the next `steps`
     /// steps ([`Solver::contacts_stale`] with [`Solver::contact_travel`] of velocities
     /// `v`, m/s). The search then reaches beyond contact by at least twice that travel
-    /// plus twice the speed's part of it (`4 |v| T + 2 |g| T²`), so that bodies
-    /// approaching fast find each other before they meet however far they move between
-    /// searches (searched again about every other step while they move steadily), and
-    /// bodies at rest are searched within the usual reach. Returns whether it searched.
+    /// plus 2.5 times the speed's part of it (`4.5 |v − v_mid| T + 2 |g| T²`), so that
+    /// bodies approaching fast find each other before they meet however far they move
+    /// between searches (searched again every other step while they approach steadily),
+    /// and bodies at rest, or moving together, are searched within the usual reach.
+    /// Returns whether it searched.
     pub fn refresh_contacts_if_due(
         &mut self,
         model: &Model,
@@ -1090,7 +1096,7 @@ impl Solver {
         if !periodic && !self.contacts_stale(x, speed + fall) {
             return false;
         }
-        self.search_contacts(model, x, active, 4.0 * speed + 2.0 * fall);
+        self.search_contacts(model, x, active, 4.5 * speed + 2.0 * fall);
         true
     }
 
@@ -2587,4 +2593,26 @@ fn substep_energy(
         g[model.particle_body[c.node] as usize] += 0.5 * (c.stiffness * depth * depth) as f64;
     }
     g
+}
+
+/// How far the vectors `v` spread: the largest distance of one from a common centre,
+/// the middle of their bounding box or zero, whichever gives less (any two are at most
+/// twice this apart); zero for none, infinite where one is not finite.
+fn spread(v: &[Vec3]) -> f32 {
+    let (lo, hi) = v.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), &p| (lo.min(p), hi.max(p)),
+    );
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mid = 0.5 * (lo + hi);
+    let (around_mid, around_zero) = v.iter().fold((0.0f32, 0.0f32), |(m, z), p| {
+        (m.max(p.distance_squared(mid)), z.max(p.length_squared()))
+    });
+    // (f32::max passes NaN over: a position or speed that is not finite is caught here.)
+    if !(lo.is_finite() && hi.is_finite()) || v.iter().any(|p| p.is_nan()) {
+        return f32::INFINITY;
+    }
+    around_mid.min(around_zero).sqrt()
 }
