@@ -110,12 +110,13 @@ pub struct SolverSettings {
     pub relaxation: f32,
     /// Worker threads for Jacobi and KNN (0 = all cores).
     pub threads: usize,
-    /// Search the particle-contact neighbours at least every this many steps (the
-    /// paper: 10). [`Solver::step`] also searches whenever a particle may have moved
-    /// out of the last search's reach ([`Solver::refresh_contacts_if_due`]: the search
-    /// reaches farther the faster the particles move), so bodies meeting fast find each
-    /// other whatever this is; the GPU world of the paper's clusters searches only on
-    /// this schedule.
+    /// Search the particle-contact neighbours at least every this many steps while the
+    /// particles move relative to one another (the paper: 10; bodies lying still, or
+    /// moving together, keep their lists: [`Solver::contacts_moved`]). [`Solver::step`]
+    /// also searches whenever a particle may have moved out of the last search's reach
+    /// ([`Solver::refresh_contacts_if_due`]: the search reaches farther the faster the
+    /// particles move), so bodies meeting fast find each other whatever this is; the GPU
+    /// world of the paper's clusters searches only on this schedule, moving or not.
     pub knn_every: u32,
     /// Particle–particle contacts between bodies on.
     pub particle_contacts: bool,
@@ -712,7 +713,8 @@ impl Solver {
         self.timings = StageTimes::default();
         if s.particle_contacts {
             let t = std::time::Instant::now();
-            let periodic = state.step.is_multiple_of(s.knn_every as u64);
+            let periodic =
+                state.step.is_multiple_of(s.knn_every as u64) && self.contacts_moved(&state.x);
             stats.knn_refreshed =
                 self.refresh_contacts_if_due(model, &state.x, &state.v, &[], 1, periodic);
             self.timings.knn = ms(t);
@@ -1042,7 +1044,7 @@ impl Solver {
     /// (both zero where a speed is not finite).
     fn motion(&self, v: &[Vec3], steps: u32) -> (f32, f32) {
         let t = self.settings.dt * steps as f32;
-        let speed = spread(v) * t;
+        let speed = spread(v.iter().copied()) * t;
         let fall = self.settings.gravity.length() * t * t;
         if (speed + fall).is_finite() {
             (speed, fall)
@@ -1060,17 +1062,35 @@ impl Solver {
     /// carried as one, changes no distance between particles: it never makes the lists
     /// stale.)
     pub fn contacts_stale(&self, x: &[Vec3], travel: f32) -> bool {
-        if self.contact_ref.len() != x.len() {
-            return true;
+        match self.contact_motion(x) {
+            Some(moved) => !moved.is_finite() || moved + travel > 0.5 * self.contact_skin,
+            None => true,
         }
-        let moved: Vec<Vec3> = x
-            .iter()
-            .zip(&self.contact_ref)
-            .map(|(a, b)| *a - *b)
-            .collect();
-        let moved = spread(&moved);
-        // (A position that is not finite searches again.)
-        !moved.is_finite() || moved + travel > 0.5 * self.contact_skin
+    }
+
+    /// Whether the particles moved relative to one another since the last
+    /// particle-contact search by more than a tenth of its slack (or there was none), so
+    /// that a search on the [`SolverSettings::knn_every`] schedule could find other
+    /// nearest candidates. Bodies lying still, or moving together, keep their lists:
+    /// [`Solver::step`] searches on the schedule only when this holds.
+    pub fn contacts_moved(&self, x: &[Vec3]) -> bool {
+        match self.contact_motion(x) {
+            Some(moved) => !(moved <= SCHEDULED_SEARCH_MOTION * self.contact_skin),
+            None => true,
+        }
+    }
+
+    /// How far the particles moved relative to their common motion since the last
+    /// particle-contact search, m ([`spread`] of the displacements: infinite where a
+    /// position is not finite), or `None` before a search (or for another particle
+    /// count).
+    fn contact_motion(&self, x: &[Vec3]) -> Option<f32> {
+        if self.contact_ref.len() != x.len() {
+            return None;
+        }
+        Some(spread(
+            x.iter().zip(&self.contact_ref).map(|(a, b)| *a - *b),
+        ))
     }
 
     /// Searches the particle-contact candidates among the bodies `active` marks (as
@@ -2595,24 +2615,36 @@ fn substep_energy(
     g
 }
 
+/// The share of the last contact search's slack that particles must have moved
+/// relative to one another for a search on the `knn_every` schedule
+/// ([`Solver::contacts_moved`]).
+const SCHEDULED_SEARCH_MOTION: f32 = 0.1;
+
 /// How far the vectors `v` spread: the largest distance of one from a common centre,
 /// the middle of their bounding box or zero, whichever gives less (any two are at most
 /// twice this apart); zero for none, infinite where one is not finite.
-fn spread(v: &[Vec3]) -> f32 {
-    let (lo, hi) = v.iter().fold(
-        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-        |(lo, hi), &p| (lo.min(p), hi.max(p)),
+fn spread(v: impl Iterator<Item = Vec3> + Clone) -> f32 {
+    let (lo, hi, nan) = v.clone().fold(
+        (
+            Vec3::splat(f32::INFINITY),
+            Vec3::splat(f32::NEG_INFINITY),
+            false,
+        ),
+        |(lo, hi, nan), p| (lo.min(p), hi.max(p), nan || p.is_nan()),
     );
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mid = 0.5 * (lo + hi);
-    let (around_mid, around_zero) = v.iter().fold((0.0f32, 0.0f32), |(m, z), p| {
-        (m.max(p.distance_squared(mid)), z.max(p.length_squared()))
-    });
-    // (f32::max passes NaN over: a position or speed that is not finite is caught here.)
-    if !(lo.is_finite() && hi.is_finite()) || v.iter().any(|p| p.is_nan()) {
+    // (f32::min and max pass NaN over: a value that is not finite is caught here.)
+    if nan {
         return f32::INFINITY;
     }
+    if lo.x > hi.x {
+        return 0.0; // none
+    }
+    if !(lo.is_finite() && hi.is_finite()) {
+        return f32::INFINITY;
+    }
+    let mid = 0.5 * (lo + hi);
+    let (around_mid, around_zero) = v.fold((0.0f32, 0.0f32), |(m, z), p| {
+        (m.max(p.distance_squared(mid)), z.max(p.length_squared()))
+    });
     around_mid.min(around_zero).sqrt()
 }

@@ -511,9 +511,11 @@ pub struct TissueSettings {
     pub relaxation: f32,
     /// Search the contact neighbours at least every this many steps (the paper: 10).
     /// Bodies stepped from the main world (lattice bodies, the default, and every body
-    /// on the CPU) are also searched whenever a particle may have moved out of the last
-    /// search's reach, so they meet however fast they move; the render graph's cluster
-    /// bodies are searched only on this schedule (fast impacts want 1 there).
+    /// on the CPU) are searched on it only while they move relative to one another
+    /// (lying still, or moving together, they keep their lists), and also whenever a
+    /// particle may have moved out of the last search's reach, so they meet however fast
+    /// they move; the render graph's cluster bodies are searched only on this schedule
+    /// (fast impacts want 1 there).
     pub knn_every: u32,
     /// Particle contacts between bodies.
     pub particle_contacts: bool,

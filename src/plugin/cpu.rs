@@ -11,8 +11,9 @@
 //! body, the steps run on the GPU ([`GpuLattice`]: the same Newton–multigrid, colliders,
 //! graspers and particle contacts between bodies) and the positions are read back for
 //! the skinning; the contact candidates are searched on the CPU from those positions
-//! (every [`TissueSettings::knn_every`] steps and whenever particles may move out of
-//! the last search's reach, as the CPU solver does) and uploaded. The
+//! (every [`TissueSettings::knn_every`] steps while they move relative to one another,
+//! and whenever particles may move out of the last search's reach, as the CPU solver
+//! does) and uploaded. The
 //! CPU's solver takes over where the GPU path is not possible (it cannot be set up, more
 //! than [`crate::gpu::kernels::lattice::MAX_COLLIDERS`] colliders).
 //!
@@ -783,13 +784,15 @@ impl CpuWorld {
             return Some(Err(e));
         }
         // Particle-contact candidates, searched from the positions read back last frame
-        // when one of this frame's steps is due a search or particles may move out of
-        // the last search's reach in this frame's steps (the CPU solver's rule).
+        // when one of this frame's steps is due a search and particles moved relative to
+        // one another, or particles may move out of the last search's reach in this
+        // frame's steps (the CPU solver's rule), or this world has no lists yet.
         let every = settings.knn_every.max(1) as u64;
-        let periodic = !g.lists || (state.step..state.step + steps as u64).any(|s| s % every == 0);
+        let due = (state.step..state.step + steps as u64).any(|s| s % every == 0);
         if world.has_particle_contacts()
             && let Some(solver) = self.solver.as_mut()
         {
+            let periodic = !g.lists || (due && solver.contacts_moved(&state.x));
             // Retired bodies are parked far away: out of the search.
             let active: Vec<bool> = self.retired.iter().map(|r| !r).collect();
             let (x, v) = (&state.x, &state.v);
