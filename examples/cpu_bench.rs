@@ -300,7 +300,7 @@ fn contacts(sizes: &[u32]) {
             let v: Vec<glam::Vec3> = (0..n)
                 .map(|i| {
                     let b = model.particle_body[i];
-                    let falls = moving == 1 || (moving == 2 && b % 2 == 0);
+                    let falls = moving == 1 || (moving == 2 && b.is_multiple_of(2));
                     glam::Vec3::new(0.0, if falls { -1.0 } else { 0.0 }, 0.0)
                 })
                 .collect();

@@ -37,7 +37,9 @@
 //! V-cycle's translation step, `Sweeps::translation`; `B:A` for a level's sweeps before
 //! and after the coarse correction where they differ; default the library's,
 //! `0:1/0:2/30x`), `--no-touching` (speed: leave out
-//! the touching cubes),
+//! the touching cubes), `--moving-lists` (speed: also the touching cubes with the
+//! contact lists the plugin searches while every other body moves at 1 m/s past the
+//! others, a reach widened for that travel),
 //! `--smoother chebyshev|hybrid|gs`, `--first N,...` (speed only: line-search candidates
 //! of the first energy pass, `LatticeOptions::first_candidates`, values to compare,
 //! default the library's), `--room R` (speed only: the worlds made with room for bodies
@@ -174,15 +176,31 @@ fn wait(g: &Gpu, world: &GpuLattice) {
 
 /// A world of `model` with its contact candidates of the start (the bodies fall
 /// together, side by side), stepped 5 times (pipelines, caches, the first steps' larger
-/// line-search work).
-fn warm_world(g: &Gpu, model: &Model, s: &SolverSettings, options: LatticeOptions) -> GpuLattice {
+/// line-search work). `moving`: the candidates instead searched as the plugin would for
+/// every other body moving at 1 m/s past the others (a reach widened for that travel;
+/// the state stepped still starts at rest).
+fn warm_world(
+    g: &Gpu,
+    model: &Model,
+    s: &SolverSettings,
+    options: LatticeOptions,
+    moving: bool,
+) -> GpuLattice {
     let state = State::new(model);
     let mut world = GpuLattice::new_with(&g.device, &g.kernels, model, &state, s, options)
         .unwrap_or_else(|e| fail("GPU lattice", e));
     if world.has_particle_contacts() {
         let mut lists = Solver::new(model, s.clone()).unwrap_or_else(|e| fail("solver", e));
-        // The plugin's search (at rest here: the usual reach).
-        lists.refresh_contacts_if_due(model, &state.x, &state.v, &[], 1, true);
+        // The plugin's search (at rest: the usual reach; moving: widened).
+        let v: Vec<Vec3> = (0..model.particle_count())
+            .map(
+                |i| match moving && model.particle_body[i].is_multiple_of(2) {
+                    true => Vec3::new(0.0, -1.0, 0.0),
+                    false => Vec3::ZERO,
+                },
+            )
+            .collect();
+        lists.refresh_contacts_if_due(model, &state.x, &v, &[], 1, true);
         let (start, list) = lists.contact_lists();
         world
             .set_contacts(&g.queue, start, list)
@@ -231,7 +249,7 @@ fn costs(
     const STEPS: u32 = 20;
     const ROUNDS: usize = 3;
     let mut out = String::new();
-    let mut world = warm_world(g, model, s, options);
+    let mut world = warm_world(g, model, s, options, false);
     let mut start = State::new(model);
     world.download(&g.device, &g.queue, &mut start);
     let names = world.dispatch_names();
@@ -283,8 +301,9 @@ fn time(
     steps: u32,
     options: LatticeOptions,
     line_steps: bool,
+    moving: bool,
 ) -> (Option<f64>, f64, usize) {
-    let world = warm_world(g, model, s, options);
+    let world = warm_world(g, model, s, options, moving);
     if line_steps {
         eprintln!("line search after the warm-up: {}", line_summary(g, &world));
     }
@@ -438,6 +457,7 @@ fn speed(
     room: f32,
     steps_of: &StepsOf,
     touching: bool,
+    moving_lists: bool,
 ) {
     println!("\n## Speed: Newton–multigrid on the GPU, 1/60 s steps of 1 substep\n");
     println!(
@@ -461,6 +481,13 @@ fn speed(
             ),
         ]
     };
+    if moving_lists && touching {
+        let n = if quick { 20 } else { bodies };
+        scenes.push((
+            format!("{n} touching cubes × 512, lists of bodies moving past"),
+            cubes_at(n, 0.057),
+        ));
+    }
     if !touching {
         scenes.retain(|(name, _)| !name.contains("touching"));
     }
@@ -501,7 +528,15 @@ fn speed(
                         one_thread_rows_from: row,
                         keep_coarsest_factor: keep,
                     };
-                    let (gpu_ms, wall, dispatches) = time(g, model, &s, steps, options, line_steps);
+                    let (gpu_ms, wall, dispatches) = time(
+                        g,
+                        model,
+                        &s,
+                        steps,
+                        options,
+                        line_steps,
+                        name.contains("moving"),
+                    );
                     println!(
                         "| {name} | {} | {} | {sm:?} | {first} | {fused} | {row} | {} | {it} × {c} | {} | {} | {wall:.3} | {dispatches} |",
                         model.particle_count(),
@@ -819,6 +854,7 @@ fn main() {
             a.num("--room", LatticeOptions::default().room),
             &steps_of,
             !a.flag("--no-touching"),
+            a.flag("--moving-lists"),
         );
     }
     if !a.flag("--no-accuracy") {

@@ -93,7 +93,7 @@ fn bounded_and_filtered_queries_equal_brute_force() {
     let mut out = Vec::new();
     for (what, pts) in [("random", &random), ("lattice", &lattice)] {
         let grid = Grid::build(pts, 2.0);
-        let accept = |j: u32| j % 3 != 0;
+        let accept = |j: u32| !j.is_multiple_of(3);
         for t in 0..120 {
             let q = if t % 4 == 0 {
                 rng.vec3() * 1.6 - 0.3 // also outside the grid

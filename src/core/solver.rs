@@ -1075,7 +1075,7 @@ impl Solver {
     /// [`Solver::step`] searches on the schedule only when this holds.
     pub fn contacts_moved(&self, x: &[Vec3]) -> bool {
         match self.contact_motion(x) {
-            Some(moved) => !(moved <= SCHEDULED_SEARCH_MOTION * self.contact_skin),
+            Some(moved) => moved.is_nan() || moved > SCHEDULED_SEARCH_MOTION * self.contact_skin,
             None => true,
         }
     }
