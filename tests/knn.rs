@@ -125,6 +125,14 @@ fn bounded_and_filtered_queries_equal_brute_force() {
     }
 }
 
+/// Three lattice boxes: 4 cm at the origin, 4 cm at `second` and 3.2 cm at `third` (m).
+fn three_boxes(second: Vec3, third: Vec3) -> bevy_tissue::core::model::Model {
+    let mut model = common::lattice_box_at(Vec3::splat(0.02), Vec3::ZERO);
+    model.append(&common::lattice_box_at(Vec3::splat(0.02), second));
+    model.append(&common::lattice_box_at(Vec3::splat(0.016), third));
+    model
+}
+
 /// A contact search that starts from the last one's lists (each full row's farthest
 /// candidate, measured again, bounds the search) gives the lists a search from scratch
 /// gives, equal to brute force, after the bodies moved: two lattice boxes sliding past
@@ -132,15 +140,7 @@ fn bounded_and_filtered_queries_equal_brute_force() {
 #[test]
 fn contact_searches_after_the_first_equal_brute_force() {
     use bevy_tissue::core::solver::{Solver, SolverSettings};
-    let mut model = common::lattice_box_at(Vec3::splat(0.02), Vec3::ZERO);
-    model.append(&common::lattice_box_at(
-        Vec3::splat(0.02),
-        Vec3::new(0.041, 0.0, 0.0),
-    ));
-    model.append(&common::lattice_box_at(
-        Vec3::splat(0.016),
-        Vec3::new(0.02, 0.05, 0.0),
-    ));
+    let model = three_boxes(Vec3::new(0.041, 0.0, 0.0), Vec3::new(0.02, 0.05, 0.0));
     let settings = SolverSettings::default();
     let k = settings.contact_neighbours as usize;
     let max_r = model.bodies.iter().map(|b| b.radius).fold(0.0f32, f32::max);
@@ -495,15 +495,7 @@ fn contact_lists_keep_up_with_fast_bodies() {
 #[test]
 fn bodies_moving_together_keep_their_contact_lists() {
     use bevy_tissue::core::solver::{Solver, SolverSettings};
-    let mut model = common::lattice_box_at(Vec3::splat(0.02), Vec3::ZERO);
-    model.append(&common::lattice_box_at(
-        Vec3::splat(0.02),
-        Vec3::new(0.0, 0.047, 0.003),
-    ));
-    model.append(&common::lattice_box_at(
-        Vec3::splat(0.016),
-        Vec3::new(0.046, 0.0, -0.004),
-    ));
+    let model = three_boxes(Vec3::new(0.0, 0.047, 0.003), Vec3::new(0.046, 0.0, -0.004));
     let settings = SolverSettings::default();
     let (h, g, k) = (
         settings.dt,
