@@ -245,29 +245,6 @@ fn main() {
     }
 }
 
-/// `bodies` lattice cubes of 512 particles (5 cm, E = 100 kPa), centres `pitch` (m)
-/// apart on a square grid (5.7 cm: the facing layers of particles touch).
-fn cubes_at(bodies: u32, pitch: f32) -> Result<Model, String> {
-    let mut model = Model::new();
-    let side = (bodies as f32).sqrt().ceil() as u32;
-    let mesh = procedural::cuboid(glam::Vec3::splat(0.025), 1);
-    for b in 0..bodies {
-        let at = glam::Vec3::new((b % side) as f32 * pitch, 0.5, (b / side) as f32 * pitch);
-        let desc = BodyDesc {
-            resolution: Resolution::Spacing(0.05 / 7.0),
-            material: Material::Hyperelastic {
-                youngs_modulus: 100e3,
-                poisson_ratio: 0.3,
-            },
-            discretisation: bevy_tissue::core::model::Discretisation::Lattice,
-            translation: at,
-            ..Default::default()
-        };
-        model.add_body(&mesh, &desc).map_err(|e| e.to_string())?;
-    }
-    Ok(model)
-}
-
 /// `--contacts`: ms per particle-contact search over touching cubes, at rest and
 /// moving, first search and next (median of 3 each), and after how many steps of that
 /// motion the lists would be stale.
@@ -283,7 +260,7 @@ fn contacts(sizes: &[u32]) {
     );
     println!("|---|---|---|---|---|---|---|");
     for &bodies in sizes {
-        let model = match cubes_at(bodies, 0.057) {
+        let model = match bench::cubes_at(bodies, 0.057) {
             Ok(m) => m,
             Err(e) => {
                 eprintln!("{bodies} cubes: {e}");

@@ -139,29 +139,7 @@ fn cubes(bodies: u32) -> Model {
 
 /// `bodies` cubes of 512 particles on a square grid of `pitch` (m) between centres.
 fn cubes_at(bodies: u32, pitch: f32) -> Model {
-    let mut model = Model::new();
-    let side = (bodies as f32).sqrt().ceil() as u32;
-    // 8 particles across a 5 cm cube: spacing 5 cm / 7.
-    let mesh = procedural::cuboid(Vec3::splat(0.025), 1);
-    for b in 0..bodies {
-        let at = Vec3::new((b % side) as f32 * pitch, 0.5, (b / side) as f32 * pitch);
-        model
-            .add_body(
-                &mesh,
-                &BodyDesc {
-                    resolution: Resolution::Spacing(0.05 / 7.0),
-                    material: Material::Hyperelastic {
-                        youngs_modulus: 100e3,
-                        poisson_ratio: 0.3,
-                    },
-                    discretisation: Discretisation::Lattice,
-                    translation: at,
-                    ..Default::default()
-                },
-            )
-            .unwrap_or_else(|e| fail("cube", e));
-    }
-    model
+    bench::cubes_at(bodies, pitch).unwrap_or_else(|e| fail("cube", e))
 }
 
 struct Gpu {

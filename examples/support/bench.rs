@@ -121,3 +121,34 @@ pub fn keep_gpu_busy(seconds: f64, mut round: impl FnMut()) {
 pub fn sync(g: &Headless, world: &GpuWorld) {
     let _ = read_vec3(&g.device, &g.queue, world.positions(), 1);
 }
+
+/// `bodies` lattice cubes of 5 cm with 8 particles across (512 each; E = 100 kPa, ν =
+/// 0.3) on a square grid of `pitch` (m) between centres, 0.5 m up: 0.1 m apart, or
+/// 0.057 m so that the facing layers of particles (radius 3.6 mm) touch.
+pub fn cubes_at(
+    bodies: u32,
+    pitch: f32,
+) -> Result<bevy_tissue::core::model::Model, bevy_tissue::core::error::TissueError> {
+    use bevy_tissue::core::model::{BodyDesc, Discretisation, Material, Model};
+    use bevy_tissue::core::sampling::Resolution;
+    use glam::Vec3;
+    let mut model = Model::new();
+    let side = (bodies as f32).sqrt().ceil() as u32;
+    // 8 particles across a 5 cm cube: spacing 5 cm / 7.
+    let mesh = bevy_tissue::core::procedural::cuboid(Vec3::splat(0.025), 1);
+    for b in 0..bodies {
+        let at = Vec3::new((b % side) as f32 * pitch, 0.5, (b / side) as f32 * pitch);
+        let desc = BodyDesc {
+            resolution: Resolution::Spacing(0.05 / 7.0),
+            material: Material::Hyperelastic {
+                youngs_modulus: 100e3,
+                poisson_ratio: 0.3,
+            },
+            discretisation: Discretisation::Lattice,
+            translation: at,
+            ..Default::default()
+        };
+        model.add_body(&mesh, &desc)?;
+    }
+    Ok(model)
+}
