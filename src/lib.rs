@@ -26,6 +26,7 @@ pub mod prelude {
         TissueClock, TissueCollider, TissueDiscretisation, TissueHierarchy, TissueMaterial,
         TissueQuality, TissueResolution, TissueSettings,
     };
+    pub use crate::plugin::diagnostics::TissueDiagnostics;
     pub use crate::plugin::sleep::{BodyMotion, Sleeping, TissueSleep};
     pub use crate::plugin::{TissuePlugin, TissueSet};
 }

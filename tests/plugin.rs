@@ -1031,6 +1031,15 @@ fn lattice_bodies_touch_each_other_on_the_gpu() {
         speed < 0.2,
         "the upper body settles (fastest particle {speed} m/s)"
     );
+    // The contact search's time was measured on every frame that stepped on the GPU.
+    let store = app.world().resource::<bevy::diagnostic::DiagnosticsStore>();
+    let count =
+        |path: &bevy::diagnostic::DiagnosticPath| store.get(path).map_or(0, |d| d.history_len());
+    let steps = count(&TissueDiagnostics::STEP);
+    assert!(steps > 0, "no step times");
+    assert_eq!(count(&TissueDiagnostics::CONTACTS), steps);
+    let contacts = store.get(&TissueDiagnostics::CONTACTS).unwrap();
+    assert!(contacts.values().all(|ms| ms.is_finite() && *ms >= 0.0));
 }
 
 /// On a device held to WebGPU's default limits (8 storage buffers per stage, 16 KiB of

@@ -5,6 +5,7 @@
 //! with an error that says where, why and what to change.
 
 use bevy::asset::AssetPlugin;
+use bevy::diagnostic::{DiagnosticPath, DiagnosticsStore};
 use bevy::prelude::*;
 use bevy_tissue::core::model::Model;
 use bevy_tissue::plugin::build::BuiltBody;
@@ -127,6 +128,26 @@ fn a_lattice_body_steps_on_the_cpu_like_the_core_and_is_drawn() {
         .map(|(p, s)| (Vec3::from_array(*p) + at).distance(*s))
         .fold(0.0f32, f32::max);
     assert!(off < 1e-5, "draw mesh off the skinned surface by {off} m");
+    // The main world's timings: one step measurement per stepping frame (30, not the
+    // paused frames), skinning on every frame that wrote the mesh, and no GPU contact
+    // search (the CPU solver's searches are part of its steps).
+    let store = app.world().resource::<DiagnosticsStore>();
+    let values = |path: &DiagnosticPath| -> Vec<f64> {
+        store.get(path).unwrap().values().copied().collect()
+    };
+    let step = values(&TissueDiagnostics::STEP);
+    assert_eq!(step.len(), 30, "step times {step:?}");
+    assert!(
+        step.iter().all(|ms| ms.is_finite() && *ms > 0.0),
+        "{step:?}"
+    );
+    let skin = values(&TissueDiagnostics::SKIN);
+    assert!(skin.len() >= 30, "skinning measured {} times", skin.len());
+    assert!(
+        skin.iter().all(|ms| ms.is_finite() && *ms > 0.0),
+        "{skin:?}"
+    );
+    assert!(values(&TissueDiagnostics::CONTACTS).is_empty());
 }
 
 #[test]

@@ -18,7 +18,8 @@
 //! --msaa N            MSAA samples, 1, 2 or 4 (default: 4 where the adapter can
 //!                     multisample the scene's formats 4x, else 1; --lite: 1)
 //! --pause             start with the simulation paused (what drawing alone costs)
-//! --profile           where a frame's time goes: the main world's update, the render
+//! --profile           where a frame's time goes: the main world's update (and the
+//!                     plugin's steps, contact search and skinning in it), the render
 //!                     world's stages, and CPU and GPU ms per render pass
 //! --webgpu-limits     hold the device to WebGPU's default limits (what every browser
 //!                     guarantees; the tests run the scenes so)
@@ -504,9 +505,11 @@ impl ScriptPointer<'_, '_> {
 /// ahead of the GPU) and its frame-to-frame time.
 mod profile {
     use super::{Frames, SceneArgs, at_end};
+    use bevy::diagnostic::DiagnosticsStore;
     use bevy::prelude::*;
     use bevy::render::diagnostic::RenderDiagnosticsPlugin;
     use bevy::render::{Render, RenderApp, RenderSystems};
+    use bevy_tissue::prelude::TissueDiagnostics;
     use std::sync::{Arc, Mutex};
     use std::time::Instant;
 
@@ -515,6 +518,9 @@ mod profile {
     struct Samples {
         main_start: Option<Instant>,
         main: Vec<f64>,
+        /// Per frame, the plugin's main-world diagnostics measured in it (ms, 0 when
+        /// not): step, contacts, skin.
+        tissue: Vec<[f64; 3]>,
         marks: [Option<Instant>; 4],
         last_frame: Option<Instant>,
         prepare: Vec<f64>,
@@ -561,11 +567,18 @@ mod profile {
         }
     }
 
-    fn main_end(shared: Res<Shared>) {
+    fn main_end(shared: Res<Shared>, store: Res<DiagnosticsStore>) {
         if let Ok(mut s) = shared.0.lock()
             && let Some(t) = s.main_start
         {
             s.main.push(ms(t, Instant::now()));
+            let this_frame = TissueDiagnostics::ALL.map(|p| {
+                store
+                    .get_measurement(&p)
+                    .filter(|m| m.time >= t)
+                    .map_or(0.0, |m| m.value)
+            });
+            s.tissue.push(this_frame);
         }
     }
 
@@ -601,6 +614,15 @@ mod profile {
             }
             v.iter().sum::<f64>() / v.len() as f64
         };
+        let part = |i: usize| mean(&s.tissue.iter().map(|t| t[i]).collect::<Vec<_>>());
+        println!(
+            "profile, mean ms per frame after the warm-up: the plugin's main-world work: \
+             steps {:.3} (on the GPU: submit, wait, read back), contact search {:.3}, \
+             skinning {:.3}",
+            part(0),
+            part(1),
+            part(2)
+        );
         println!(
             "profile, mean ms after the warm-up: main world update {:.3}; render world: \
              frame-to-frame {:.3}, prepare {:.3}, render graph (encode + submit) {:.3}, \

@@ -35,6 +35,7 @@
 
 use super::build::BuiltBody;
 use super::components::*;
+use super::diagnostics::{TissueDiagnostics, ms_since};
 use super::render::{LastPose, core_collider};
 use crate::core::TissueError;
 use crate::core::colliders::{Collider, ColliderShape, GraspMode};
@@ -46,7 +47,9 @@ use crate::core::solver::{Control, Solver, SolverSettings, State};
 use crate::gpu::kernels::lattice::{LatticeKernels, MAX_COLLIDERS};
 use crate::gpu::lattice::{GpuLattice, LatticeOptions, PreparedAppend, StateRun};
 use bevy::camera::primitives::Aabb;
+use bevy::diagnostic::Diagnostics;
 use bevy::mesh::VertexAttributeValues;
+use bevy::platform::time::Instant;
 use bevy::prelude::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, futures_lite::future};
@@ -129,6 +132,9 @@ pub struct CpuWorld {
     /// Bodies were appended in place since the solver was made: it is made again
     /// before a CPU step.
     solver_stale: bool,
+    /// Wall time of the last GPU step's contact search (staleness test, search and
+    /// upload), ms; `None` where that step had no particle contacts.
+    contacts_ms: Option<f64>,
 }
 
 /// The CPU world's lattice bodies on the GPU.
@@ -789,9 +795,11 @@ impl CpuWorld {
         // frame's steps (the CPU solver's rule), or this world has no lists yet.
         let every = settings.knn_every.max(1) as u64;
         let due = (state.step..state.step + steps as u64).any(|s| s % every == 0);
+        self.contacts_ms = None;
         if world.has_particle_contacts()
             && let Some(solver) = self.solver.as_mut()
         {
+            let start = Instant::now();
             let periodic = !g.lists || (due && solver.contacts_moved(&state.x));
             // Retired bodies are parked far away: out of the search.
             let active: Vec<bool> = self.retired.iter().map(|r| !r).collect();
@@ -803,6 +811,7 @@ impl CpuWorld {
                 }
                 g.lists = true;
             }
+            self.contacts_ms = Some(ms_since(start));
         }
         // The fastest particle of each body before the steps (for a divergence's advice).
         let before: Vec<f32> = self
@@ -1007,6 +1016,7 @@ pub fn step_cpu_bodies(
     forces: Query<(), With<ColliderForce>>,
     mut errors: MessageWriter<SoftBodyError>,
     render: (Option<Res<RenderDevice>>, Option<Res<RenderQueue>>),
+    mut diagnostics: Diagnostics,
 ) {
     let mut cpu: Vec<(Entity, &BuiltBody)> = Vec::new();
     let mut all_cpu = true;
@@ -1095,6 +1105,7 @@ pub fn step_cpu_bodies(
     let mut force = vec![Vec3::ZERO; cols.len()];
     let w = &mut *world;
     let mut diverged = None;
+    let step_start = Instant::now();
     // Lattice bodies step on the GPU where they can; the CPU's solver steps the rest.
     let on_gpu = match (&render.0, &render.1) {
         (Some(device), Some(queue))
@@ -1147,6 +1158,14 @@ pub fn step_cpu_bodies(
             }
         }
     }
+    if clock.steps_this_frame > 0 {
+        let contacts = w.contacts_ms.take().filter(|_| w.last_on_gpu);
+        let step = ms_since(step_start) - contacts.unwrap_or(0.0);
+        diagnostics.add_measurement(&TissueDiagnostics::STEP, || step);
+        if let Some(ms) = contacts {
+            diagnostics.add_measurement(&TissueDiagnostics::CONTACTS, || ms);
+        }
+    }
     if let Some(e) = diverged {
         let body = match &e {
             TissueError::Diverged { body, .. } => *body,
@@ -1173,6 +1192,7 @@ pub fn step_cpu_bodies(
     let moved = cpu
         .iter()
         .any(|(e, _)| bodies.get(*e).is_ok_and(|b| b.2.is_changed()));
+    let skin_start = Instant::now();
     let f = if dirty || moved {
         Solver::deformation_gradients(&w.model, &state.x)
     } else {
@@ -1216,6 +1236,10 @@ pub fn step_cpu_bodies(
             let (l, h) = transform_box(&to_world.affine().inverse(), lo - m, hi + m);
             commands.entity(*entity).insert(Aabb::from_min_max(l, h));
         }
+    }
+    if dirty || moved {
+        let ms = ms_since(skin_start);
+        diagnostics.add_measurement(&TissueDiagnostics::SKIN, || ms);
     }
 }
 

@@ -24,6 +24,7 @@
 pub mod build;
 pub mod components;
 pub mod cpu;
+pub mod diagnostics;
 pub mod quality;
 pub mod render;
 pub mod sleep;
@@ -118,6 +119,7 @@ impl Plugin for TissuePlugin {
             .add_systems(First, render::latch_graspers)
             .add_observer(add_last_pose)
             .add_observer(remove_soft_body);
+        diagnostics::TissueDiagnostics::register(app);
         let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
             return;
         };

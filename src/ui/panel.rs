@@ -448,6 +448,26 @@ pub(crate) fn timing_widgets(
                 ui.end_row();
             }
         });
+    let main = store.map(stats::main_rows).unwrap_or_default();
+    if !main.is_empty() {
+        ui.label("Main thread per working frame (smoothed)")
+            .on_hover_text(
+                "Bodies stepped from the main world (lattice bodies, or all under the CPU \
+             backend): their steps (on the GPU: submitting, waiting and reading back), \
+             their contact search on the CPU and the skinning of their meshes. From the \
+             tissue/main/* diagnostics.",
+            );
+        egui::Grid::new("tissue_main_times")
+            .num_columns(2)
+            .striped(true)
+            .show(ui, |ui| {
+                for (label, ms) in &main {
+                    ui.label(*label);
+                    ui.monospace(stats::fmt_ms(Some(*ms)));
+                    ui.end_row();
+                }
+            });
+    }
     if rows.is_empty() {
         ui.weak(
             "No per-pass GPU times: they need Bevy's RenderDiagnosticsPlugin \

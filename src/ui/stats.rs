@@ -1,5 +1,6 @@
 //! Pure helpers behind the panel's timing section (testable without a window).
 
+use crate::plugin::diagnostics::TissueDiagnostics;
 use bevy::diagnostic::DiagnosticsStore;
 use core::time::Duration;
 
@@ -59,6 +60,23 @@ pub(crate) fn frame_total(store: &DiagnosticsStore) -> Option<f64> {
         .find(|d| d.is_enabled && d.path().as_str() == FRAME_TOTAL)?
         .smoothed()
         .filter(|ms| ms.is_finite())
+}
+
+/// The main world's share of the frame: `(label, smoothed ms)` for each enabled
+/// [`TissueDiagnostics`] path measured with a number, in its order (step, contacts,
+/// skin). Empty where no body is stepped from the main world.
+pub(crate) fn main_rows(store: &DiagnosticsStore) -> Vec<(&'static str, f64)> {
+    let labels = ["step", "contact search", "skinning"];
+    TissueDiagnostics::ALL
+        .iter()
+        .zip(labels)
+        .filter_map(|(path, label)| {
+            let d = store.get(path).filter(|d| d.is_enabled)?;
+            d.measurement().filter(|m| m.value.is_finite())?;
+            let ms = d.smoothed().filter(|ms| ms.is_finite())?;
+            Some((label, ms))
+        })
+        .collect()
 }
 
 /// GPU time per simulation step, ms: the frame's tissue GPU time ([`frame_total`])
@@ -156,6 +174,23 @@ mod tests {
         let rows = pass_rows(&s);
         assert_eq!(rows.len(), 1);
         assert!(rows[0].1 > 1.0 && rows[0].1 < 11.0, "{rows:?}");
+    }
+
+    #[test]
+    fn main_rows_are_the_main_world_diagnostics_in_order() {
+        let now = Instant::now();
+        let mut s = DiagnosticsStore::default();
+        // Registered as the plugin does, skin first: the rows keep the paths' order.
+        add(&mut s, "tissue/main/skin", &[0.5], now);
+        add(&mut s, "tissue/main/step", &[2.0], now);
+        // Registered, never measured (no GPU stepping): left out.
+        add(&mut s, "tissue/main/contacts", &[], now);
+        // A GPU pass: not a main-world row.
+        add(&mut s, "render/tissue/skin/elapsed_gpu", &[9.0], now);
+        assert_eq!(main_rows(&s), vec![("step", 2.0), ("skinning", 0.5)]);
+        s.get_mut(&TissueDiagnostics::STEP).unwrap().is_enabled = false;
+        assert_eq!(main_rows(&s), vec![("skinning", 0.5)]);
+        assert!(main_rows(&DiagnosticsStore::default()).is_empty());
     }
 
     #[test]
