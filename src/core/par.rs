@@ -8,6 +8,18 @@ pub fn default_threads() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
+/// Threads worth using for `items` light items (a few arithmetic operations or copies
+/// each): up to `threads` (0 = all cores) but at least `per_thread` items each, since a
+/// scoped thread costs tens of microseconds to start. At least 1.
+pub fn threads_for(items: usize, per_thread: usize, threads: usize) -> usize {
+    let threads = if threads == 0 {
+        default_threads()
+    } else {
+        threads
+    };
+    threads.min(items / per_thread.max(1)).max(1)
+}
+
 /// Calls `f(first_item, chunk)` on contiguous chunks of `data`, each a whole number of
 /// `item`-sized items, on up to `threads` threads (0 = all cores).
 pub fn for_chunks_mut<T: Send, F>(data: &mut [T], item: usize, threads: usize, f: F)
@@ -113,4 +125,19 @@ where
             .flat_map(|r| r.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
             .collect()
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn threads_for_keeps_enough_items_per_thread() {
+        assert_eq!(threads_for(100, 10, 4), 4);
+        assert_eq!(threads_for(39, 10, 4), 3);
+        assert_eq!(threads_for(9, 10, 4), 1);
+        assert_eq!(threads_for(0, 10, 4), 1);
+        assert_eq!(threads_for(100, 0, 2), 2);
+        assert!(threads_for(usize::MAX, 1, 0) == default_threads());
+    }
 }

@@ -2156,32 +2156,42 @@ impl Solver {
     }
 
     /// Each particle's own cluster's deformation gradient `F = A_pq A_qq⁻¹` at positions `x`
-    /// (what the skinning uses). A lattice body's particle gets the mean of its elements' centre gradients.
+    /// (what the skinning uses). A lattice body's particle gets the mean of its elements'
+    /// centre gradients. Computed on all cores; the result does not depend on their number.
     pub fn deformation_gradients(model: &Model, x: &[Vec3]) -> Vec<Mat3> {
-        let element_f: Vec<Mat3> = model
-            .elements
-            .iter()
-            .zip(&model.element_rest)
-            .map(|(nodes, r)| element_gradient(&nodes.map(|j| x[j as usize]), r.size))
-            .collect();
-        (0..model.particle_count())
-            .map(|c| {
+        // Light work per item: threads only for thousands of items each.
+        let threads = |items| par::threads_for(items, 8192, 0);
+        let mut element_f = vec![Mat3::IDENTITY; model.elements.len()];
+        let t = threads(element_f.len());
+        par::for_chunks_mut(&mut element_f, 1, t, |first, out| {
+            for (k, f) in out.iter_mut().enumerate() {
+                let e = first + k;
+                if let Some(r) = model.element_rest.get(e) {
+                    *f = element_gradient(&model.elements[e].map(|j| x[j as usize]), r.size);
+                }
+            }
+        });
+        let mut f = vec![Mat3::IDENTITY; model.particle_count()];
+        let t = threads(f.len());
+        par::for_chunks_mut(&mut f, 1, t, |first, out| {
+            for (k, f) in out.iter_mut().enumerate() {
+                let c = first + k;
                 let elements = model.elements_of(c);
                 if !elements.is_empty() {
                     let sum: Mat3 = elements
                         .iter()
                         .map(|&ec| element_f[(ec >> 3) as usize])
                         .sum();
-                    return sum * (1.0 / elements.len() as f32);
+                    *f = sum * (1.0 / elements.len() as f32);
+                } else if model.cluster_start[c] != model.cluster_start[c + 1] {
+                    let r = &model.cluster_rest[c];
+                    let (_, apq, _) =
+                        cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
+                    *f = apq * r.aqq_inv;
                 }
-                if model.cluster_start[c] == model.cluster_start[c + 1] {
-                    return Mat3::IDENTITY;
-                }
-                let r = &model.cluster_rest[c];
-                let (_, apq, _) = cluster_moments(model.members(c), x, &model.rest, &model.mass, r);
-                apq * r.aqq_inv
-            })
-            .collect()
+            }
+        });
+        f
     }
 
     /// Constraint residual at positions `x`: the mass-weighted RMS of the correction each

@@ -48,6 +48,7 @@ use crate::gpu::kernels::lattice::{LatticeKernels, MAX_COLLIDERS};
 use crate::gpu::lattice::{GpuLattice, LatticeOptions, PreparedAppend, StateRun};
 use bevy::camera::primitives::Aabb;
 use bevy::diagnostic::Diagnostics;
+use bevy::math::Affine3A;
 use bevy::mesh::VertexAttributeValues;
 use bevy::platform::time::Instant;
 use bevy::prelude::*;
@@ -97,8 +98,6 @@ pub struct CpuWorld {
     settings: Option<SolverSettings>,
     /// Particle range and element range of each body.
     ranges: Vec<(Range<usize>, Range<usize>)>,
-    positions: Vec<Vec3>,
-    normals: Vec<Vec3>,
     /// Graspers that have had a CPU step while closed (they then hold, not capture).
     captured: Vec<Entity>,
     /// The lattice kernels and, once made, the world's bodies on the GPU.
@@ -1198,6 +1197,9 @@ pub fn step_cpu_bodies(
     } else {
         Vec::new()
     };
+    // The bodies whose meshes are written this frame: skinned on all cores, then
+    // written into their meshes.
+    let mut jobs: Vec<SkinJob> = Vec::new();
     for (entity, built) in &cpu {
         let Ok((_, _, to_world, _, readback)) = bodies.get(*entity) else {
             continue;
@@ -1205,36 +1207,63 @@ pub fn step_cpu_bodies(
         let Some(i) = w.index_of(*entity) else {
             continue;
         };
-        let p = w.ranges[i].0.clone();
         if let Some(r) = readback {
             let mut e = commands.entity(*entity);
             e.insert(ParticlePositions {
-                positions: state.x[p.clone()].to_vec(),
+                positions: state.x[w.ranges[i].0.clone()].to_vec(),
                 step: clock.steps,
             });
             if !r.continuous {
                 e.remove::<ReadbackParticles>();
             }
         }
-        if !(dirty || to_world.is_changed()) {
-            continue;
+        if dirty || to_world.is_changed() {
+            jobs.push(SkinJob {
+                entity: *entity,
+                index: i,
+                to_world: to_world.affine(),
+                mesh: built.draw_mesh.clone(),
+                out: None,
+            });
         }
-        write_mesh(
-            &w.model,
-            i,
-            state,
-            &f,
-            (&mut w.positions, &mut w.normals),
-            &to_world,
-            &built.draw_mesh,
-            &mut meshes,
-        );
-        // The entity-local box of the particles, grown by the skin's reach past them.
-        if let Some((lo, hi)) = crate::core::mesh::bounds_of(&state.x[p.clone()]) {
-            let spacing = w.model.bodies[i].spacing;
-            let m = Vec3::splat(3.0 * spacing);
-            let (l, h) = transform_box(&to_world.affine().inverse(), lo - m, hi + m);
-            commands.entity(*entity).insert(Aabb::from_min_max(l, h));
+    }
+    let threads = w.settings.as_ref().map_or(0, |s| s.threads);
+    let (model, ranges) = (&w.model, &w.ranges);
+    crate::core::par::for_chunks_mut(&mut jobs, 1, threads, |_, chunk| {
+        let mut scratch = (Vec::new(), Vec::new());
+        for job in chunk {
+            let particles = ranges[job.index].0.clone();
+            job.out = skin_body(
+                model,
+                job.index,
+                particles,
+                state,
+                &f,
+                &mut scratch,
+                &job.to_world,
+            );
+        }
+    });
+    for job in jobs {
+        let Some(out) = job.out else {
+            continue;
+        };
+        if let Some(mut m) = meshes.get_mut(&job.mesh)
+            && m.count_vertices() == out.positions.len()
+        {
+            m.insert_attribute(
+                Mesh::ATTRIBUTE_POSITION,
+                VertexAttributeValues::Float32x3(out.positions),
+            );
+            m.insert_attribute(
+                Mesh::ATTRIBUTE_NORMAL,
+                VertexAttributeValues::Float32x3(out.normals),
+            );
+        }
+        if let Some((lo, hi)) = out.bounds {
+            commands
+                .entity(job.entity)
+                .insert(Aabb::from_min_max(lo, hi));
         }
     }
     if dirty || moved {
@@ -1265,53 +1294,62 @@ fn mark_bodies(
     }
 }
 
+/// A body whose mesh is written this frame: what to skin, and the result.
+struct SkinJob {
+    entity: Entity,
+    /// The body's index in the batched model.
+    index: usize,
+    /// The entity's world-from-local transform.
+    to_world: Affine3A,
+    mesh: Handle<Mesh>,
+    out: Option<SkinnedMesh>,
+}
+
+/// A body's skinned render surface in its entity's frame.
+struct SkinnedMesh {
+    positions: Vec<[f32; 3]>,
+    normals: Vec<[f32; 3]>,
+    /// The entity-local box of its particles, grown by the skin's reach past them (m).
+    bounds: Option<(Vec3, Vec3)>,
+}
+
 /// Skins body `index`'s render surface on the CPU (particle positions and deformation
-/// gradients of the whole batch) and writes positions and normals (entity frame) into
-/// its draw mesh.
-#[allow(clippy::too_many_arguments)]
-fn write_mesh(
+/// gradients `f` of the whole batch; `particles`: the body's) into its entity's frame
+/// (`to_world`: world from local), with `scratch` for the world-frame positions and
+/// normals. `None` for an index outside the model.
+fn skin_body(
     model: &Model,
     index: usize,
+    particles: Range<usize>,
     state: &State,
     f: &[Mat3],
-    scratch: (&mut Vec<Vec3>, &mut Vec<Vec3>),
-    to_world: &GlobalTransform,
-    mesh: &Handle<Mesh>,
-    meshes: &mut Assets<Mesh>,
-) {
-    let Some(info) = model.bodies.get(index) else {
-        return;
-    };
+    scratch: &mut (Vec<Vec3>, Vec<Vec3>),
+    to_world: &Affine3A,
+) -> Option<SkinnedMesh> {
+    let info = model.bodies.get(index)?;
     let (positions, normals) = scratch;
     let vertices = info.skin.rest_vertices.len();
     positions.resize(vertices, Vec3::ZERO);
     normals.resize(vertices, Vec3::Y);
     skin_positions(&info.skin, &state.x, &model.rest, f, positions);
     skin_normals(&info.skin, positions, normals);
-    let Some(mut m) = meshes.get_mut(mesh) else {
-        return;
-    };
-    if m.count_vertices() != vertices {
-        return;
-    }
-    let to_local = to_world.affine().inverse();
+    let to_local = to_world.inverse();
     // Normals go back by the transpose of the entity's linear part (the inverse
     // transpose of world-from-local's inverse).
-    let normal_to_local = to_world.affine().matrix3.transpose();
-    let pos: Vec<[f32; 3]> = positions
-        .iter()
-        .map(|p| to_local.transform_point3(*p).to_array())
-        .collect();
-    let nrm: Vec<[f32; 3]> = normals
-        .iter()
-        .map(|n| (normal_to_local * *n).normalize_or_zero().to_array())
-        .collect();
-    m.insert_attribute(
-        Mesh::ATTRIBUTE_POSITION,
-        VertexAttributeValues::Float32x3(pos),
-    );
-    m.insert_attribute(
-        Mesh::ATTRIBUTE_NORMAL,
-        VertexAttributeValues::Float32x3(nrm),
-    );
+    let normal_to_local = to_world.matrix3.transpose();
+    let bounds = crate::core::mesh::bounds_of(state.x.get(particles)?).map(|(lo, hi)| {
+        let m = Vec3::splat(3.0 * info.spacing);
+        transform_box(&to_local, lo - m, hi + m)
+    });
+    Some(SkinnedMesh {
+        positions: positions
+            .iter()
+            .map(|p| to_local.transform_point3(*p).to_array())
+            .collect(),
+        normals: normals
+            .iter()
+            .map(|n| (normal_to_local * *n).normalize_or_zero().to_array())
+            .collect(),
+        bounds,
+    })
 }

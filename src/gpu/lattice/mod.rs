@@ -783,6 +783,8 @@ pub struct GpuLattice {
     /// the fastest collider it touches (f32 bits, m).
     bodyt: Buffer,
     _keep: Vec<Buffer>,
+    /// The mappable buffer [`GpuLattice::download`] reads through, kept between reads.
+    staging: super::world::Staging,
 }
 
 impl GpuLattice {
@@ -1117,6 +1119,7 @@ impl GpuLattice {
             mats,
             bodyt,
             _keep: vec![ef, vecs, nblk, cfac],
+            staging: Default::default(),
         })
     }
 
@@ -1643,50 +1646,67 @@ impl GpuLattice {
         let n = self.particle_count() as u64 * 16;
         let slots = self.layout.n_slots() as u64 * 16;
         let ne = self.layout.elems[0].used as u64 * 16;
-        let parts = super::world::read_buffers(
-            device,
-            queue,
-            &[
-                (&self.pos, 0, n),
-                (&self.pos, 3 * slots, n),
-                (&self.rot, 0, ne),
-                (&self.ccol, 2 * slots, n),
-                (
-                    &self.red,
-                    self.force_out as u64 * 4,
-                    self.colliders as u64 * 16,
-                ),
-            ],
-        );
-        // Copied out (a byte vector need not be aligned for f32, an empty one is not).
-        let vec4s = |i: usize| -> Vec<[f32; 4]> { bytemuck::pod_collect_to_vec(&parts[i]) };
-        for (i, (a, b)) in vec4s(0).iter().zip(&vec4s(1)).enumerate() {
-            state.x[i] = Vec3::new(a[0], a[1], a[2]);
-            state.v[i] = Vec3::new(b[0], b[1], b[2]);
-        }
-        for (e, q) in vec4s(2).iter().enumerate() {
-            state.element_rot[e] = Quat::from_array(*q);
-        }
-        for (g, s) in vec4s(3).iter().zip(state.grab.iter_mut()) {
-            *s = if g[3] > 0.5 {
-                crate::core::colliders::Grab {
-                    collider: g[3] as u32 - 1,
-                    offset: Vec3::new(g[0], g[1], g[2]),
-                }
-            } else {
-                crate::core::colliders::Grab::FREE
+        let ranges = [
+            (&self.pos, 0, n),
+            (&self.pos, 3 * slots, n),
+            (&self.rot, 0, ne),
+            (&self.ccol, 2 * slots, n),
+            (
+                &self.red,
+                self.force_out as u64 * 4,
+                self.colliders as u64 * 16,
+            ),
+        ];
+        super::world::read_buffers_with(device, queue, &self.staging, &ranges, |parts| {
+            let [x, v, rot, grab, forces] = parts else {
+                return Vec::new();
             };
-        }
-        forces_of(&parts[4])
+            let (x, v, rot, grab) = (vec4s(x), vec4s(v), vec4s(rot), vec4s(grab));
+            // Copies: threads only for tens of thousands of particles each.
+            let threads = crate::core::par::threads_for(state.x.len(), 32768, 0);
+            let (xs, vs) = (&mut state.x, &mut state.v);
+            crate::core::par::for_chunks_mut2(xs, vs, threads, |first, xs, vs| {
+                let (x, v) = (x.get(first..).unwrap_or(&[]), v.get(first..).unwrap_or(&[]));
+                let read = x.iter().zip(v);
+                for ((xo, vo), (a, b)) in xs.iter_mut().zip(vs.iter_mut()).zip(read) {
+                    *xo = Vec3::new(a[0], a[1], a[2]);
+                    *vo = Vec3::new(b[0], b[1], b[2]);
+                }
+            });
+            for (q, r) in rot.iter().zip(state.element_rot.iter_mut()) {
+                *r = Quat::from_array(*q);
+            }
+            for (g, s) in grab.iter().zip(state.grab.iter_mut()) {
+                *s = if g[3] > 0.5 {
+                    crate::core::colliders::Grab {
+                        collider: g[3] as u32 - 1,
+                        offset: Vec3::new(g[0], g[1], g[2]),
+                    }
+                } else {
+                    crate::core::colliders::Grab::FREE
+                };
+            }
+            forces_of(forces)
+        })
     }
 }
 
 /// Collider forces (vec4 each, N) as `Vec3`s.
 fn forces_of(bytes: &[u8]) -> Vec<Vec3> {
-    bytemuck::pod_collect_to_vec::<u8, [f32; 4]>(bytes)
+    vec4s(bytes)
         .iter()
         .map(|f| Vec3::new(f[0], f[1], f[2]))
         .collect()
+}
+
+/// Bytes read back as vec4s: in place where they are aligned for `f32` (a mapped
+/// buffer's are), else copied out.
+fn vec4s(bytes: &[u8]) -> std::borrow::Cow<'_, [[f32; 4]]> {
+    let whole = &bytes[..bytes.len() / 16 * 16];
+    match bytemuck::try_cast_slice(whole) {
+        Ok(v) => std::borrow::Cow::Borrowed(v),
+        Err(_) => std::borrow::Cow::Owned(bytemuck::pod_collect_to_vec(whole)),
+    }
 }
 
 /// The `ccol` buffer's regions for `state`: no collider corrections yet (w = −1),

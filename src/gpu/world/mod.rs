@@ -69,7 +69,7 @@ mod readback;
 mod record;
 pub use alloc::{Capacity, SlabGroup};
 use plan::groups;
-pub use readback::{read_buffer, read_buffers, read_u32, read_vec3};
+pub use readback::{Staging, read_buffer, read_buffers, read_buffers_with, read_u32, read_vec3};
 use record::{Bound, Recording};
 pub use record::{NoTiming, PassRecorder};
 

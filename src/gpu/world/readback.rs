@@ -1,9 +1,17 @@
-//! Blocking reads of GPU buffers (tests and benchmarks; the plugin reads back
-//! asynchronously).
+//! Blocking reads of GPU buffers: tests and benchmarks, and the main world's lattice
+//! bodies, whose state the main thread reads back after each frame's steps (with a
+//! staging buffer kept between reads, [`Staging`]). The render graph's bodies read back
+//! asynchronously.
 
 use bevy::render::render_resource::{Buffer, BufferDescriptor, BufferUsages, MapMode};
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use glam::Vec3;
+use std::sync::Mutex;
+
+/// A mappable buffer kept between blocking reads ([`read_buffers_with`]), grown when a
+/// read needs more: a read every frame does not allocate and map a new one.
+#[derive(Default)]
+pub struct Staging(Mutex<Option<Buffer>>);
 
 /// Blocking read of `size` bytes at `offset` of `buffer` (tests and benchmarks; the
 /// plugin reads back asynchronously).
@@ -26,13 +34,38 @@ pub fn read_buffers(
     queue: &RenderQueue,
     ranges: &[(&Buffer, u64, u64)],
 ) -> Vec<Vec<u8>> {
+    read_buffers_with(device, queue, &Staging::default(), ranges, |parts| {
+        parts.iter().map(|p| p.to_vec()).collect()
+    })
+}
+
+/// Blocking read of several `(buffer, byte offset, bytes)` ranges (offsets and sizes
+/// multiples of 4) with one copy submission and one wait, through `staging` (made or
+/// grown here when it is smaller than the ranges together): `read` gets the ranges'
+/// bytes in the mapped buffer itself, one slice per range (each as aligned as its
+/// offset in the staging buffer: the first at 8 bytes or more), and its result is
+/// returned.
+pub fn read_buffers_with<R>(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    staging: &Staging,
+    ranges: &[(&Buffer, u64, u64)],
+    read: impl FnOnce(&[&[u8]]) -> R,
+) -> R {
     let total: u64 = ranges.iter().map(|r| r.2).sum();
-    let staging = device.create_buffer(&BufferDescriptor {
-        label: Some("tissue readback"),
-        size: total.max(4),
-        usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
+    let mut kept = staging.0.lock().unwrap_or_else(|e| e.into_inner());
+    if kept.as_ref().is_none_or(|b| b.size() < total.max(4)) {
+        // A quarter more than asked: a world that grows a little is not remade each time.
+        *kept = Some(device.create_buffer(&BufferDescriptor {
+            label: Some("tissue readback"),
+            size: (total.max(4) + total / 4).next_multiple_of(4),
+            usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        }));
+    }
+    let Some(staging) = kept.as_ref() else {
+        return read(&[]);
+    };
     let mut enc = device.create_command_encoder(&Default::default());
     let mut at = 0;
     for &(buffer, offset, size) in ranges {
@@ -42,20 +75,21 @@ pub fn read_buffers(
         at += size;
     }
     queue.submit([enc.finish()]);
-    let slice = staging.slice(..);
+    let slice = staging.slice(..total.max(4));
     slice.map_async(MapMode::Read, |_| {});
     let _ = device.poll(bevy::render::render_resource::PollType::wait_indefinitely());
     let out = {
         let data = slice.get_mapped_range();
         let mut at = 0usize;
-        ranges
+        let parts: Vec<&[u8]> = ranges
             .iter()
             .map(|r| {
-                let part = data[at..at + r.2 as usize].to_vec();
+                let part = &data[at..at + r.2 as usize];
                 at += r.2 as usize;
                 part
             })
-            .collect()
+            .collect();
+        read(&parts)
     };
     staging.unmap();
     out
