@@ -70,7 +70,7 @@ pub fn read_buffers_with<R>(
     let mut at = 0;
     for &(buffer, offset, size) in ranges {
         if size > 0 {
-            enc.copy_buffer_to_buffer(buffer, offset, &staging, at, size);
+            enc.copy_buffer_to_buffer(buffer, offset, staging, at, size);
         }
         at += size;
     }
