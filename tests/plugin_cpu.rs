@@ -321,3 +321,63 @@ fn a_lattice_body_is_rebuilt_for_its_material_not_its_k() {
     }
     assert!(rebuilt, "the material change rebuilt the body");
 }
+
+/// The positions of `mesh` (entity frame, m).
+fn mesh_positions(app: &App, mesh: &Handle<Mesh>) -> Vec<Vec3> {
+    let meshes = app.world().resource::<Assets<Mesh>>();
+    match meshes
+        .get(mesh)
+        .and_then(|m| m.attribute(Mesh::ATTRIBUTE_POSITION))
+    {
+        Some(bevy::mesh::VertexAttributeValues::Float32x3(p)) => {
+            p.iter().map(|p| Vec3::from_array(*p)).collect()
+        }
+        _ => panic!("the draw mesh has no positions"),
+    }
+}
+
+/// A body that comes to rest (pinned, sagging under gravity) stops being skinned and
+/// written: its draw mesh stays the same, and its particles stay within `SKIN_STILL` of
+/// their spacing of what it shows. A body put back at rest is written again at once.
+#[test]
+fn a_body_lying_still_is_not_skinned_again() {
+    use bevy_tissue::plugin::cpu::SKIN_STILL;
+    let mut app = app(TissueSettings::default());
+    let at = Vec3::new(0.0, 0.3, 0.0);
+    let (body, pinned) = common::lattice_body();
+    let e = spawn(&mut app, at, body, pinned);
+    until_built(&mut app, e);
+    let built = app.world().get::<BuiltBody>(e).unwrap().clone();
+    let spacing = built.model.bodies[0].spacing;
+    // Sagging: the mesh follows step by step.
+    let before = mesh_positions(&app, &built.draw_mesh);
+    run(&mut app, e, 10);
+    let sagging = mesh_positions(&app, &built.draw_mesh);
+    assert!(common::max_distance(&before, &sagging) > 1e-4);
+    // Settled: further steps change the particles by less than the threshold since
+    // the mesh was last written, and the mesh not at all.
+    run(&mut app, e, 400);
+    let settled = mesh_positions(&app, &built.draw_mesh);
+    let read = run(&mut app, e, 30);
+    let still = mesh_positions(&app, &built.draw_mesh);
+    assert_eq!(settled, still, "a body lying still was written again");
+    // What the mesh shows is the skin of particles within the threshold of these.
+    let skinned = common::skinned(&built.model, &read.positions);
+    let off = still
+        .iter()
+        .zip(&skinned)
+        .map(|(p, s)| (*p + at).distance(*s))
+        .fold(0.0f32, f32::max);
+    assert!(
+        off < 4.0 * SKIN_STILL * spacing,
+        "the mesh is {off} m off the particles' skin (spacing {spacing} m)"
+    );
+    // Put back at rest: written in the next step.
+    app.world_mut().write_message(ResetSoftBody { entity: e });
+    run(&mut app, e, 1);
+    let reset = mesh_positions(&app, &built.draw_mesh);
+    assert!(
+        common::max_distance(&still, &reset) > 1e-4,
+        "the reset body was not written"
+    );
+}

@@ -3,9 +3,12 @@
 //! the adapter cannot run the kernels), every body. They are batched into one core
 //! model, state and [`Solver`] (so they touch each other through particle contacts, as
 //! on the GPU); every frame the world takes the clock's steps against the scene's
-//! colliders, then each body's render surface is skinned on the CPU and written into its
-//! draw mesh (positions and normals, in the entity's frame). The render world leaves
-//! these bodies alone ([`runs_on_cpu`]).
+//! colliders, then each body's render surface is skinned on the CPU (bodies on all
+//! cores) and written into its draw mesh (positions and normals, in the entity's frame),
+//! unless its particles moved less than [`SKIN_STILL`] of their spacing since its mesh
+//! was last written (a body lying still costs no skinning and no mesh upload). The
+//! render world leaves these bodies alone ([`runs_on_cpu`]). What this costs the main
+//! thread is measured as [`TissueDiagnostics`](super::diagnostics::TissueDiagnostics).
 //!
 //! Under [`TissueBackend::Auto`], when every body of this world is a hyperelastic lattice
 //! body, the steps run on the GPU ([`GpuLattice`]: the same Newton–multigrid, colliders,
@@ -131,6 +134,8 @@ pub struct CpuWorld {
     /// Bodies were appended in place since the solver was made: it is made again
     /// before a CPU step.
     solver_stale: bool,
+    /// The particles as the bodies' meshes last showed them (m; empty until written).
+    shown: Vec<Vec3>,
     /// Wall time of the last GPU step's contact search (staleness test, search and
     /// upload), ms; `None` where that step had no particle contacts.
     contacts_ms: Option<f64>,
@@ -1034,12 +1039,15 @@ pub fn step_cpu_bodies(
     let keys: Vec<(Entity, u64)> = cpu.iter().map(|(e, b)| (*e, b.generation)).collect();
     // Whether the particles may differ from what the meshes show (a rebuild or a step).
     let mut dirty = clock.steps_this_frame > 0;
+    // Whether every mesh is written whatever its body moved (the bodies were remade).
+    let mut remade = false;
     let same_bodies = world.holds_exactly(&keys);
     let in_place = same_bodies
         && world.settings.as_ref() != Some(&core)
         && world.apply_in_place(&core, render.1.as_deref());
     if !in_place && (!same_bodies || world.settings.as_ref() != Some(&core)) {
         dirty = true;
+        remade = true;
         // Bodies gone are retired in place, and bodies new or rebuilt made into a batch
         // on a worker thread, where the batch steps on the GPU and the settings are the
         // same; anything else makes the batch again now.
@@ -1130,6 +1138,7 @@ pub fn step_cpu_bodies(
                     return;
                 }
                 dirty = true;
+                remade = true;
                 mark_bodies(&mut commands, w, &cpu, |e| {
                     bodies.get(e).ok().and_then(|b| b.3.cloned())
                 });
@@ -1184,21 +1193,22 @@ pub fn step_cpu_bodies(
             }
         }
     }
+    // The particles as the meshes last showed them: a body that moved less than
+    // `SKIN_STILL` of its spacing since is not skinned and written again.
+    let mut shown = std::mem::take(&mut w.shown);
     let Some(state) = w.state.as_ref() else {
         return;
     };
+    if shown.len() != state.x.len() {
+        shown = state.x.clone();
+        remade = true;
+    }
     // Meshes are written only where something changed: a paused world re-uploads nothing.
     let moved = cpu
         .iter()
         .any(|(e, _)| bodies.get(*e).is_ok_and(|b| b.2.is_changed()));
     let skin_start = Instant::now();
-    let f = if dirty || moved {
-        Solver::deformation_gradients(&w.model, &state.x)
-    } else {
-        Vec::new()
-    };
-    // The bodies whose meshes are written this frame: skinned on all cores, then
-    // written into their meshes.
+    // The bodies whose meshes may be written this frame.
     let mut jobs: Vec<SkinJob> = Vec::new();
     for (entity, built) in &cpu {
         let Ok((_, _, to_world, _, readback)) = bodies.get(*entity) else {
@@ -1223,15 +1233,33 @@ pub fn step_cpu_bodies(
                 index: i,
                 to_world: to_world.affine(),
                 mesh: built.draw_mesh.clone(),
+                write: remade || to_world.is_changed(),
                 out: None,
             });
         }
     }
     let threads = w.settings.as_ref().map_or(0, |s| s.threads);
     let (model, ranges) = (&w.model, &w.ranges);
+    // Which of them moved enough to be seen, then (only if any did) the deformation
+    // gradients, then their skinning: on all cores.
+    crate::core::par::for_chunks_mut(&mut jobs, 1, threads, |_, chunk| {
+        for job in chunk.iter_mut().filter(|j| !j.write) {
+            let p = ranges[job.index].0.clone();
+            let still = SKIN_STILL * model.bodies.get(job.index).map_or(0.0, |b| b.spacing);
+            job.write = state.x[p.clone()]
+                .iter()
+                .zip(&shown[p])
+                .any(|(x, s)| x.distance_squared(*s) > still * still);
+        }
+    });
+    let f = if jobs.iter().any(|j| j.write) {
+        Solver::deformation_gradients(model, &state.x)
+    } else {
+        Vec::new()
+    };
     crate::core::par::for_chunks_mut(&mut jobs, 1, threads, |_, chunk| {
         let mut scratch = (Vec::new(), Vec::new());
-        for job in chunk {
+        for job in chunk.iter_mut().filter(|j| j.write) {
             let particles = ranges[job.index].0.clone();
             job.out = skin_body(
                 model,
@@ -1259,6 +1287,8 @@ pub fn step_cpu_bodies(
                 Mesh::ATTRIBUTE_NORMAL,
                 VertexAttributeValues::Float32x3(out.normals),
             );
+            let p = ranges[job.index].0.clone();
+            shown[p.clone()].copy_from_slice(&state.x[p]);
         }
         if let Some((lo, hi)) = out.bounds {
             commands
@@ -1266,6 +1296,7 @@ pub fn step_cpu_bodies(
                 .insert(Aabb::from_min_max(lo, hi));
         }
     }
+    w.shown = shown;
     if dirty || moved {
         let ms = ms_since(skin_start);
         diagnostics.add_measurement(&TissueDiagnostics::SKIN, || ms);
@@ -1294,7 +1325,13 @@ fn mark_bodies(
     }
 }
 
-/// A body whose mesh is written this frame: what to skin, and the result.
+/// How far (in its particle spacing) a body's particles must have moved since its mesh
+/// was last written for the mesh to be skinned and written again: a body lying still
+/// costs no skinning and no mesh upload, and its particles are never further than this
+/// from where its mesh shows them.
+pub const SKIN_STILL: f32 = 1.0e-3;
+
+/// A body whose mesh may be written this frame: what to skin, and the result.
 struct SkinJob {
     entity: Entity,
     /// The body's index in the batched model.
@@ -1302,6 +1339,8 @@ struct SkinJob {
     /// The entity's world-from-local transform.
     to_world: Affine3A,
     mesh: Handle<Mesh>,
+    /// Skin and write it (it moved enough to be seen, or must be written anyway).
+    write: bool,
     out: Option<SkinnedMesh>,
 }
 
