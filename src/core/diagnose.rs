@@ -132,19 +132,41 @@ pub fn implausible(info: &BodyInfo) -> Option<String> {
 }
 
 /// The particle that shows a step diverged, if one does: the fastest over `max_speed`
-/// (m/s), else the first whose position or velocity is not finite.
+/// (m/s; the first of equals), else the first whose position or velocity is not finite.
+/// Checked on all cores for large states; the answer does not depend on their number.
 pub fn worst_particle(x: &[Vec3], v: &[Vec3], max_speed: f32) -> Option<(usize, DivergenceKind)> {
+    let n = x.len().min(v.len());
+    let threads = super::par::threads_for(n, 32768, 0);
+    let per = n.div_ceil(threads).max(1);
+    // Per run of particles: its fastest over the limit and its first not finite.
+    let runs = super::par::map(n.div_ceil(per), threads, |r| {
+        let first = r * per;
+        let last = (first + per).min(n);
+        let mut fastest: Option<(usize, f32)> = None;
+        let mut non_finite = None;
+        for i in first..last {
+            let (x, v) = (x[i], v[i]);
+            if !x.is_finite() || !v.is_finite() {
+                non_finite = non_finite.or(Some(i));
+                continue;
+            }
+            let speed = v.length();
+            if speed > max_speed && fastest.is_none_or(|(_, w)| speed > w) {
+                fastest = Some((i, speed));
+            }
+        }
+        (fastest, non_finite)
+    });
+    // Runs in order: a later run wins only with a faster particle.
     let mut fastest: Option<(usize, f32)> = None;
     let mut non_finite = None;
-    for (i, (x, v)) in x.iter().zip(v).enumerate() {
-        if !x.is_finite() || !v.is_finite() {
-            non_finite = non_finite.or(Some(i));
-            continue;
-        }
-        let speed = v.length();
-        if speed > max_speed && fastest.is_none_or(|(_, w)| speed > w) {
+    for (f, nf) in runs {
+        if let Some((i, speed)) = f
+            && fastest.is_none_or(|(_, w)| speed > w)
+        {
             fastest = Some((i, speed));
         }
+        non_finite = non_finite.or(nf);
     }
     match (fastest, non_finite) {
         (Some((i, speed)), _) => Some((i, DivergenceKind::Exploding { speed })),
@@ -180,6 +202,55 @@ mod tests {
     use crate::core::model::BodyDesc;
     use crate::core::procedural;
     use crate::core::sampling::Resolution;
+
+    /// The particle a plain loop finds (what [`worst_particle`] must equal).
+    fn worst_by_loop(x: &[Vec3], v: &[Vec3], max: f32) -> Option<(usize, DivergenceKind)> {
+        let mut fastest: Option<(usize, f32)> = None;
+        let mut non_finite = None;
+        for (i, (x, v)) in x.iter().zip(v).enumerate() {
+            if !x.is_finite() || !v.is_finite() {
+                non_finite = non_finite.or(Some(i));
+            } else if v.length() > max && fastest.is_none_or(|(_, w)| v.length() > w) {
+                fastest = Some((i, v.length()));
+            }
+        }
+        match (fastest, non_finite) {
+            (Some((i, speed)), _) => Some((i, DivergenceKind::Exploding { speed })),
+            (None, Some(i)) => Some((i, DivergenceKind::NonFinite)),
+            (None, None) => None,
+        }
+    }
+
+    #[test]
+    fn worst_particle_equals_a_plain_loop_on_a_large_state() {
+        // Enough particles for several threads' runs; speeds below the limit but for
+        // the particles set below.
+        let n: usize = 300_000;
+        let x: Vec<Vec3> = (0..n).map(|i| Vec3::splat(i as f32 * 1e-3)).collect();
+        let mut v: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(((i * 7919) % 1000) as f32 * 1e-2, 0.0, 0.0))
+            .collect();
+        let max = 50.0;
+        let check = |x: &[Vec3], v: &[Vec3]| {
+            let got = format!("{:?}", worst_particle(x, v, max));
+            assert_eq!(got, format!("{:?}", worst_by_loop(x, v, max)));
+            got
+        };
+        assert_eq!(check(&x, &v), "None");
+        // A non-finite velocity late and a position early: the first is named.
+        v[250_000].y = f32::NAN;
+        let mut xs = x.clone();
+        xs[100_001] = Vec3::INFINITY;
+        assert!(check(&xs, &v).contains("100001"));
+        // Equal fastest particles in different runs: the first wins, and a fast one
+        // wins over any non-finite.
+        v[10] = Vec3::X * 80.0;
+        v[290_000] = Vec3::X * 80.0;
+        v[150_000] = Vec3::X * 60.0;
+        assert!(check(&xs, &v).starts_with("Some((10,"));
+        v[290_000] = Vec3::X * 81.0;
+        assert!(check(&xs, &v).starts_with("Some((290000,"));
+    }
 
     fn brick(material: Material, discretisation: Discretisation) -> Model {
         let mut model = Model::new();

@@ -818,17 +818,14 @@ impl CpuWorld {
             self.contacts_ms = Some(ms_since(start));
         }
         // The fastest particle of each body before the steps (for a divergence's advice).
-        let before: Vec<f32> = self
-            .model
-            .bodies
-            .iter()
-            .map(|b| {
-                state.v[b.range()]
-                    .iter()
-                    .map(|v| v.length())
-                    .fold(0.0f32, f32::max)
-            })
-            .collect();
+        let bodies = &self.model.bodies;
+        let threads = crate::core::par::threads_for(state.v.len(), 32768, 0);
+        let before: Vec<f32> = crate::core::par::map(bodies.len(), threads, |b| {
+            state.v[bodies[b].range()]
+                .iter()
+                .map(|v| v.length())
+                .fold(0.0f32, f32::max)
+        });
         let mut enc = device.create_command_encoder(&Default::default());
         world.record(&mut enc, &g.kernels, steps, None);
         queue.submit([enc.finish()]);
