@@ -51,8 +51,8 @@ impl TissueDiagnostics {
     /// step on the GPU with particle contacts on.
     pub const CONTACTS: DiagnosticPath = DiagnosticPath::const_new("tissue/main/contacts");
     /// Skinning the render surfaces of the bodies stepped from the main world and
-    /// writing their meshes and culling boxes, ms. Measured on frames that write them
-    /// (a step, a rebuild or a moved body).
+    /// writing their meshes and culling boxes, ms, with the test of which bodies moved
+    /// enough to be drawn again. Measured on frames that step, rebuild or move a body.
     pub const SKIN: DiagnosticPath = DiagnosticPath::const_new("tissue/main/skin");
 
     /// Every path, in the order above.
