@@ -125,6 +125,61 @@ fn bounded_and_filtered_queries_equal_brute_force() {
     }
 }
 
+/// Queries that skip the cells of their own "body" (a tag by region) find what a brute
+/// force finds among the other bodies' points, and each cell's tag is the one its points
+/// share, or none.
+#[test]
+fn queries_skipping_own_cells_equal_brute_force() {
+    use bevy_tissue::core::knn::NO_TAG;
+    let mut rng = Rng(0x7a65);
+    let mut pts: Vec<Vec3> = (0..1000)
+        .map(|i| Vec3::new((i % 10) as f32, ((i / 10) % 10) as f32, (i / 100) as f32) * 0.05)
+        .collect();
+    pts.extend((0..800).map(|_| rng.vec3() * 0.45));
+    let tag_of = |p: Vec3| match (p.x < 0.22, p.y < 0.2) {
+        (true, _) => 0u32,
+        (false, true) => 1,
+        (false, false) => 2,
+    };
+    let tags: Vec<u32> = pts.iter().map(|p| tag_of(*p)).collect();
+    let mut grid = Grid::build(&pts, 2.0);
+    grid.tag_cells(|j| tags[j as usize]);
+    let (mut single, mut mixed) = (0, 0);
+    for c in 0..grid.cell_start.len() - 1 {
+        let slots = &grid.sorted[grid.cell_start[c] as usize..grid.cell_start[c + 1] as usize];
+        let first = slots.first().map(|&j| tags[j as usize]);
+        let common = first.filter(|t| slots.iter().all(|&j| tags[j as usize] == *t));
+        assert_eq!(grid.cell_tag[c], common.unwrap_or(NO_TAG), "cell {c}");
+        match common {
+            Some(_) => single += 1,
+            None if !slots.is_empty() => mixed += 1,
+            None => {}
+        }
+    }
+    assert!(
+        single > 50 && mixed > 10,
+        "{single} single-tag, {mixed} mixed cells"
+    );
+    let mut out = Vec::new();
+    for t in 0..300 {
+        let i = (rng.vec3().x * pts.len() as f32) as usize % pts.len();
+        let (q, own) = (pts[i], tags[i]);
+        let reach = [0.03f32, 0.08, 0.2, 5.0][t % 4];
+        let k = [1usize, 8, 24][t % 3];
+        let accept = |j: u32| tags[j as usize] != own;
+        let mut all: Vec<(f32, u32)> = pts
+            .iter()
+            .enumerate()
+            .map(|(j, p)| (bevy_tissue::core::knn::dist2(q, *p), j as u32))
+            .filter(|&(d2, j)| accept(j) && d2 <= reach * reach)
+            .collect();
+        all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        all.truncate(k);
+        grid.knn_bounded_skipping(q, k, reach, f32::INFINITY, own, accept, &mut out);
+        assert_eq!(out, all, "query {t} (tag {own}, reach {reach}, k {k})");
+    }
+}
+
 /// Three lattice boxes: 4 cm at the origin, 4 cm at `second` and 3.2 cm at `third` (m).
 fn three_boxes(second: Vec3, third: Vec3) -> bevy_tissue::core::model::Model {
     let mut model = common::lattice_box_at(Vec3::splat(0.02), Vec3::ZERO);

@@ -33,7 +33,13 @@ pub struct Grid {
     pub sorted: Vec<u32>,
     /// Point positions in `sorted` order (a copy, for coherent reads).
     pub sorted_pos: Vec<Vec3>,
+    /// Per cell, the tag all its points share ([`Grid::tag_cells`]), or [`NO_TAG`]
+    /// (mixed or empty cells, or no tags given). Empty until tagged.
+    pub cell_tag: Vec<u32>,
 }
+
+/// The tag of a grid cell whose points do not all share one ([`Grid::tag_cells`]).
+pub const NO_TAG: u32 = u32::MAX;
 
 impl Grid {
     /// Builds a grid over `points` with roughly `points_per_cell` points per cell on
@@ -72,6 +78,7 @@ impl Grid {
             cell_start: Vec::new(),
             sorted: Vec::new(),
             sorted_pos: Vec::new(),
+            cell_tag: Vec::new(),
         };
         let cells = g.cell_count();
         // 1. counts
@@ -158,6 +165,46 @@ impl Grid {
         accept: impl Fn(u32) -> bool,
         out: &mut Vec<(f32, u32)>,
     ) -> usize {
+        self.knn_bounded_skipping(q, k, max_dist, known2, NO_TAG, accept, out)
+    }
+
+    /// Tags every cell with the tag its points share (`tag` of each point index; for
+    /// instance its body), or [`NO_TAG`] where they differ or there are none, for
+    /// [`Grid::knn_bounded_skipping`].
+    pub fn tag_cells(&mut self, tag: impl Fn(u32) -> u32) {
+        let cells = self.cell_start.len().saturating_sub(1);
+        self.cell_tag = (0..cells)
+            .map(|c| {
+                let slots =
+                    &self.sorted[self.cell_start[c] as usize..self.cell_start[c + 1] as usize];
+                let Some(&first) = slots.first() else {
+                    return NO_TAG;
+                };
+                let t = tag(first);
+                if slots.iter().all(|&j| tag(j) == t) {
+                    t
+                } else {
+                    NO_TAG
+                }
+            })
+            .collect();
+    }
+
+    /// [`Grid::knn_bounded`], not visiting the cells tagged `skip` ([`Grid::tag_cells`]):
+    /// `accept` must refuse every point of tag `skip` (for instance, `skip` the query's
+    /// own body when only other bodies' points are accepted), so the result is the same,
+    /// found without measuring those points. [`NO_TAG`] skips nothing.
+    #[allow(clippy::too_many_arguments)]
+    pub fn knn_bounded_skipping(
+        &self,
+        q: Vec3,
+        k: usize,
+        max_dist: f32,
+        known2: f32,
+        skip: u32,
+        accept: impl Fn(u32) -> bool,
+        out: &mut Vec<(f32, u32)>,
+    ) -> usize {
         out.clear();
         if k == 0 {
             return 0;
@@ -218,6 +265,10 @@ impl Grid {
                             continue;
                         }
                         let ci = x as usize + row;
+                        if skip != NO_TAG && self.cell_tag.get(ci) == Some(&skip) {
+                            x += 1;
+                            continue;
+                        }
                         let (s, e) = (
                             self.cell_start[ci] as usize,
                             self.cell_start[ci + 1] as usize,

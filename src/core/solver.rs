@@ -1158,7 +1158,9 @@ impl Solver {
         let index = |j: u32| subset.as_ref().map_or(j, |ids| ids[j as usize]);
         // Per particle: the k nearest particles of other bodies within its reach (the
         // candidates until the next search).
-        let grid = super::knn::Grid::build(if subset.is_some() { &points } else { x }, 2.0);
+        let mut grid = super::knn::Grid::build(if subset.is_some() { &points } else { x }, 2.0);
+        // Cells holding one body's particles only are not visited for that body's own.
+        grid.tag_cells(|j| model.particle_body[index(j) as usize]);
         // Broad phase: a body near no other searches nothing (its lists stay empty).
         let boxes = super::knn::body_boxes(x, model.bodies.iter().map(|b| (b.first, b.count)));
         // (The farthest reach below, with the same margin for rounding.)
@@ -1204,11 +1206,12 @@ impl Solver {
                         }
                     }
                 }
-                grid.knn_bounded(
+                grid.knn_bounded_skipping(
                     x[i],
                     k,
                     reach,
                     known,
+                    bi,
                     |j| model.particle_body[index(j) as usize] != bi,
                     &mut buf,
                 );
